@@ -1,0 +1,8 @@
+"""distilkit's built-in adapters (installed as ``distilkit_adapters``), loaded through the
+``distilkit.plugins`` entry point like any third-party plugin."""
+
+
+def register() -> None:
+    """Import the adapter modules; each registers itself in ``distilkit.registry.ADAPTERS``."""
+    from distilkit_adapters.js3cnet import adapter as _js3c  # noqa: F401
+    from distilkit_adapters.scpnet import adapter as _scp  # noqa: F401

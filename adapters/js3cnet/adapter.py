@@ -1,0 +1,58 @@
+"""How distilkit sees JS3C-Net: taps ``logits``, ``point_logits``, ``completion`` (sparse), ``ssc_dense``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+from torch import Tensor
+
+from distilkit.adapter import Adapter, select_frames
+from distilkit.data.datasets import DataInfo
+from distilkit.registry import ADAPTERS
+from distilkit.taps import SparseVoxels
+from distilkit_adapters.js3cnet.model import JS3CNet
+
+
+class JS3CNetParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    frames: int = Field(1, ge=1, description="input scans fused (SCPNet appendix: multi-frame teacher)")
+    seg_channels: int = Field(16, ge=1, description="segmentation U-Net width (paper: m = 16)")
+    embed: int = Field(16, ge=1, description="shape-embedding width D_e")
+    ssc_channels: int = Field(32, ge=1, description="SSC decoder width (paper: 32)")
+    pvi_hidden: int = Field(32, ge=1, description="PVI MLP width (paper: 32)")
+    knn: int = Field(8, ge=1, description="neighbours per query in the PVI (paper code: 8)")
+
+
+class JS3CNetAdapter(Adapter):
+    """JS3C-Net with the uncertainty-weighted multi-task loss (eq. 2) as its task loss."""
+
+    Params = JS3CNetParams
+    TAPS = {"completion": "sparse_features", "ssc_dense": "feature_map", "logits": "voxel_logits",
+            "point_logits": "point_logits"}
+    LOGITS_TAP = "logits"
+    DEFAULT_TASK_LOSSES = [{"name": "uncertainty_multitask", "weight": 1.0}]
+
+    def __init__(self, params: JS3CNetParams, info: DataInfo) -> None:
+        super().__init__(params, info)
+        self.net = JS3CNet(info.grid, info.num_classes, params.seg_channels, params.embed, params.ssc_channels,
+                           params.pvi_hidden, params.knn)
+
+    def forward(self, batch: dict[str, Tensor]) -> dict[str, Any]:
+        b = select_frames(batch, self.params.frames)
+        out = self.net(b, int(batch["voxel_label"].shape[0]))
+        shape = tuple(out["ssc_dense"].shape[2:])
+        return {
+            "logits": out["logits"],
+            # point logits of the *current* scan's points, aligned with batch["point_label"] of frame 0
+            "point_logits": out["point_logits"],
+            "completion": SparseVoxels(out["ssc_coords"], out["ssc_feats"], shape),  # type: ignore[arg-type]
+            "ssc_dense": out["ssc_dense"],
+            # segmentation targets of the points behind point_logits (input points inside the grid)
+            "point_target": b["point_label"][out["point_keep"]],
+        }
+
+
+ADAPTERS.add("js3cnet", JS3CNetAdapter,
+             description="JS3C-Net: segmentation branch, SSC decoder and point-voxel interaction (dense CPU variant)",
+             paper="Yan et al., JS3C-Net, AAAI 2021", consumes=tuple(JS3CNetAdapter.TAPS.values()))

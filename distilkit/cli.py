@@ -1,0 +1,120 @@
+"""The ``distilkit`` command: run | validate | list | schema | bench.
+
+Importing this module and ``distilkit --help`` do not import torch; each command imports what
+it needs. A user's mistake (bad recipe, missing file, NaN loss) prints one clear message and
+exits with status 2, without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Sequence
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from distilkit.engine.pipeline import Pipeline
+
+    pipe = Pipeline(args.recipe, args.output, quiet=args.quiet)
+    pipe.run(stop_after=args.stop_after)
+    return 0
+
+
+def _cmd_validate(args: argparse.Namespace) -> int:
+    from distilkit.engine.resolve import resolve
+    from distilkit.recipe import load_recipe
+
+    for path in args.recipes:
+        res = resolve(load_recipe(path), str(path))
+        stages = ", ".join(
+            f"{n} ({s.student.adapter}" + (f" <- {s.teacher_from}" if s.teacher_from else "")
+            + (f"; {', '.join(t.name for t in s.distill)}" if s.distill else "") + ")"
+            for n, s in res.stages.items())
+        print(f"{path}: ok — {len(res.stages)} stage(s): {stages}")
+    return 0
+
+
+def _cmd_list(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from distilkit.registry import ALL_REGISTRIES, plugin_errors
+
+    console = Console()
+    for kind, reg in ALL_REGISTRIES.items():
+        if args.kind and args.kind != kind.split()[0].rstrip("s") and args.kind != kind:
+            continue
+        table = Table(title=kind, title_justify="left")
+        table.add_column("name", style="bold")
+        table.add_column("description")
+        table.add_column("paper")
+        table.add_column("taps")
+        for e in reg:
+            table.add_row(e.name, e.description, e.paper, ", ".join(e.consumes))
+        console.print(table)
+    for msg in plugin_errors:
+        console.print(f"[yellow]warning:[/] {msg}")
+    return 0
+
+
+def _cmd_schema(args: argparse.Namespace) -> int:
+    from distilkit.schema_doc import recipe_json_schema, recipe_reference_markdown
+
+    print(recipe_reference_markdown() if args.markdown else recipe_json_schema())
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from distilkit.bench import run_bench
+
+    run_bench(args.names, device=args.device, quick=args.quick)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from distilkit import __version__
+
+    p = argparse.ArgumentParser(prog="distilkit", description="Knowledge distillation for 3D semantic scene completion.")
+    p.add_argument("--version", action="version", version=f"distilkit {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    r = sub.add_parser("run", help="train, distill and evaluate the stages of a recipe")
+    r.add_argument("recipe", help="recipe YAML file")
+    r.add_argument("--output", "-o", default="runs", help="output folder (default: runs/)")
+    r.add_argument("--quiet", "-q", action="store_true", help="no progress bars or tables")
+    r.add_argument("--stop-after", type=int, default=None, metavar="STEPS", help=argparse.SUPPRESS)
+    r.set_defaults(fn=_cmd_run)
+    v = sub.add_parser("validate", help="check recipes without training (exit status 2 on a problem)")
+    v.add_argument("recipes", nargs="+")
+    v.set_defaults(fn=_cmd_validate)
+    ls = sub.add_parser("list", help="registered adapters, objectives, task losses, datasets and metrics")
+    ls.add_argument("kind", nargs="?", choices=["adapters", "objectives", "task losses", "datasets", "metrics"])
+    ls.set_defaults(fn=_cmd_list)
+    s = sub.add_parser("schema", help="print the recipe JSON schema (for editor completion)")
+    s.add_argument("--markdown", action="store_true", help="print the recipe reference as Markdown instead")
+    s.set_defaults(fn=_cmd_schema)
+    b = sub.add_parser("bench", help="time objectives forward+backward at realistic sizes")
+    b.add_argument("names", nargs="*", help="objectives to time (default: all)")
+    b.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    b.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
+    b.set_defaults(fn=_cmd_bench)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.fn(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted; finished stages and the last checkpoint are kept", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        from distilkit.errors import DistilkitError
+
+        if isinstance(exc, DistilkitError):
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        raise
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

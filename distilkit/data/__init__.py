@@ -1,0 +1,1 @@
+"""Data: synthetic LiDAR scenes, SemanticKITTI IO, datasets and collation."""

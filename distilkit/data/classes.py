@@ -1,0 +1,58 @@
+"""SemanticKITTI class tables (``semantic-kitti.yaml``; data_metrics.md §1.6-1.7)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+RAW_NAMES: dict[int, str] = {
+    0: "unlabeled", 1: "outlier", 10: "car", 11: "bicycle", 13: "bus", 15: "motorcycle", 16: "on-rails",
+    18: "truck", 20: "other-vehicle", 30: "person", 31: "bicyclist", 32: "motorcyclist", 40: "road",
+    44: "parking", 48: "sidewalk", 49: "other-ground", 50: "building", 51: "fence", 52: "other-structure",
+    60: "lane-marking", 70: "vegetation", 71: "trunk", 72: "terrain", 80: "pole", 81: "traffic-sign",
+    99: "other-object", 252: "moving-car", 253: "moving-bicyclist", 254: "moving-person",
+    255: "moving-motorcyclist", 256: "moving-on-rails", 257: "moving-bus", 258: "moving-truck",
+    259: "moving-other-vehicle",
+}
+RAW_IDS = {name: rid for rid, name in RAW_NAMES.items()}
+
+LEARNING_MAP: dict[int, int] = {
+    0: 0, 1: 0, 10: 1, 11: 2, 13: 5, 15: 3, 16: 5, 18: 4, 20: 5, 30: 6, 31: 7, 32: 8, 40: 9, 44: 10,
+    48: 11, 49: 12, 50: 13, 51: 14, 52: 0, 60: 9, 70: 15, 71: 16, 72: 17, 80: 18, 81: 19, 99: 0,
+    252: 1, 253: 7, 254: 6, 255: 8, 256: 5, 257: 5, 258: 4, 259: 5,
+}
+LEARNING_MAP_INV: dict[int, int] = {
+    0: 0, 1: 10, 2: 11, 3: 15, 4: 18, 5: 20, 6: 30, 7: 31, 8: 32, 9: 40, 10: 44, 11: 48, 12: 49,
+    13: 50, 14: 51, 15: 70, 16: 71, 17: 72, 18: 80, 19: 81,
+}
+CLASS_NAMES: list[str] = [
+    "empty", "car", "bicycle", "motorcycle", "truck", "other-vehicle", "person", "bicyclist",
+    "motorcyclist", "road", "parking", "sidewalk", "other-ground", "building", "fence", "vegetation",
+    "trunk", "terrain", "pole", "traffic-sign",
+]
+NUM_CLASSES = 20
+IGNORE_INDEX = 255
+
+
+def ssc_lut() -> np.ndarray:
+    """Raw id -> SSC train id; everything that maps to 0 except raw 0 becomes 255 (§1.7)."""
+    lut = np.zeros(max(LEARNING_MAP) + 100, dtype=np.int32)
+    lut[list(LEARNING_MAP)] = list(LEARNING_MAP.values())
+    lut[lut == 0] = IGNORE_INDEX
+    lut[0] = 0
+    return lut
+
+
+def seg_lut() -> np.ndarray:
+    """Raw id -> segmentation train id (0 = unlabelled / ignored for point segmentation)."""
+    lut = np.zeros(max(LEARNING_MAP) + 100, dtype=np.int32)
+    lut[list(LEARNING_MAP)] = list(LEARNING_MAP.values())
+    return lut
+
+
+def remap(raw: np.ndarray, lut: np.ndarray, what: str = "labels") -> np.ndarray:
+    raw = np.asarray(raw).astype(np.int64)
+    if raw.size and (raw.min() < 0 or raw.max() >= lut.size):
+        from distilkit.errors import DataError
+
+        raise DataError(f"{what}: raw SemanticKITTI ids must lie in [0, {lut.size}), got max {int(raw.max())}")
+    return lut[raw]

@@ -1,0 +1,183 @@
+"""Registered datasets and the batch collation shared by every adapter.
+
+A sample is a dict of numpy arrays:
+
+* ``points`` (M,4) x, y, z, intensity in the current sensor frame; ``point_frame`` (M,) frame
+  offset (0 = current scan); ``point_label`` (M,) segmentation train id (0 = unlabelled);
+* ``voxel_label`` (X,Y,Z) SSC train ids (0 = empty, 255 = ignore); ``invalid`` (X,Y,Z) bool.
+
+:func:`collate` concatenates points with a ``point_batch`` index and stacks the grids; it adds
+``voxel_target`` = ``voxel_label`` with invalid voxels set to 255 (the training target).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from distilkit.data.classes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, remap, seg_lut, ssc_lut
+from distilkit.data.params import SemanticKittiParams, SyntheticParams
+from distilkit.data import semantickitti as skio
+from distilkit.errors import DataError
+from distilkit.geometry.voxel import VoxelGrid
+from distilkit.registry import DATASETS
+
+
+@dataclass(frozen=True)
+class DataInfo:
+    """What an adapter needs to know about the data to build itself."""
+
+    grid: VoxelGrid
+    num_classes: int = NUM_CLASSES
+    class_names: tuple[str, ...] = tuple(CLASS_NAMES)
+    input_frames: int = 1
+    point_features: int = 4
+
+
+class ArrayDataset(torch.utils.data.Dataset):
+    """Samples held as stacked arrays with point offsets (what the synthetic cache stores)."""
+
+    def __init__(self, arrays: dict[str, np.ndarray], info: DataInfo) -> None:
+        self.a = arrays
+        self.info = info
+
+    def __len__(self) -> int:
+        return len(self.a["offsets"]) - 1
+
+    def __getitem__(self, i: int) -> dict[str, np.ndarray]:
+        lo, hi = int(self.a["offsets"][i]), int(self.a["offsets"][i + 1])
+        return {
+            "points": self.a["points"][lo:hi],
+            "point_frame": self.a["point_frame"][lo:hi],
+            "point_label": self.a["point_label"][lo:hi],
+            "voxel_label": self.a["voxel_label"][i],
+            "invalid": self.a["invalid"][i],
+        }
+
+
+def collate(samples: list[dict[str, np.ndarray]]) -> dict[str, Tensor]:
+    """Concatenate points (with ``point_batch``) and stack voxel grids."""
+    pts = [torch.from_numpy(np.ascontiguousarray(s["points"], dtype=np.float32)) for s in samples]
+    batch = {
+        "points": torch.cat(pts),
+        "point_batch": torch.cat([torch.full((len(p),), b, dtype=torch.long) for b, p in enumerate(pts)]),
+        "point_frame": torch.cat([torch.from_numpy(s["point_frame"].astype(np.int64)) for s in samples]),
+        "point_label": torch.cat([torch.from_numpy(s["point_label"].astype(np.int64)) for s in samples]),
+        "voxel_label": torch.stack([torch.from_numpy(s["voxel_label"].astype(np.int64)) for s in samples]),
+        "invalid": torch.stack([torch.from_numpy(s["invalid"].astype(bool)) for s in samples]),
+    }
+    batch["voxel_target"] = batch["voxel_label"].masked_fill(batch["invalid"], IGNORE_INDEX)
+    batch["batch_size"] = torch.tensor(len(samples))
+    return batch
+
+
+def build_synthetic(params: SyntheticParams, split: str,
+                    progress: Callable[[int, int], None] | None = None) -> ArrayDataset:
+    from distilkit.data.synthetic import generate_split
+
+    count = params.num_train if split == "train" else params.num_val
+    arrays = generate_split(params, split, count, progress)
+    return ArrayDataset(arrays, synthetic_info(params))
+
+
+def synthetic_info(params: SyntheticParams) -> DataInfo:
+    return DataInfo(VoxelGrid.semantickitti(params.scale), input_frames=params.input_frames)
+
+
+def pool_labels(labels: np.ndarray, invalid: np.ndarray, scale: int) -> tuple[np.ndarray, np.ndarray]:
+    """Coarsen a (X,Y,Z) label grid by ``scale``: majority of non-empty valid labels, else empty/255."""
+    if scale == 1:
+        return labels, invalid
+    x, y, z = labels.shape
+    blocks = labels.reshape(x // scale, scale, y // scale, scale, z // scale, scale).transpose(0, 2, 4, 1, 3, 5)
+    blocks = blocks.reshape(x // scale, y // scale, z // scale, -1)
+    inv = invalid.reshape(x // scale, scale, y // scale, scale, z // scale, scale).all(axis=(1, 3, 5))
+    counts = np.stack([(blocks == c).sum(-1) for c in range(1, NUM_CLASSES)], -1)
+    out = np.where(counts.max(-1) > 0, counts.argmax(-1) + 1, 0)
+    out = np.where((blocks == IGNORE_INDEX).all(-1), IGNORE_INDEX, out)
+    return out.astype(np.uint8), inv
+
+
+class SemanticKittiDataset(torch.utils.data.Dataset):
+    """A SemanticKITTI-format folder: scans, point labels, SSC voxel labels and invalid masks."""
+
+    def __init__(self, params: SemanticKittiParams, split: str) -> None:
+        self.p = params
+        root = Path(params.root).expanduser()
+        seqs = params.train_sequences if split == "train" else params.val_sequences
+        self.items: list[tuple[Path, int, int]] = []  # (sequence dir, frame, sequence length)
+        for seq in seqs:
+            d = root / "sequences" / seq
+            vox = sorted((d / "voxels").glob("*.label"))
+            if not vox:
+                continue
+            n = len(list((d / "velodyne").glob("*.bin")))
+            for f in vox:
+                frame = int(f.stem)
+                if frame % params.stride == 0:
+                    self.items.append((d, frame, n))
+        if not self.items:
+            raise DataError(f"{root}: no voxels/*.label files under sequences {seqs} for split {split!r}")
+        self.info = DataInfo(VoxelGrid.semantickitti(params.scale), input_frames=params.input_frames)
+        self._poses: dict[Path, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def _pose(self, d: Path) -> np.ndarray:
+        if d not in self._poses:
+            self._poses[d] = skio.read_poses(d / "poses.txt", skio.read_calib(d / "calib.txt"))
+        return self._poses[d]
+
+    def __getitem__(self, i: int) -> dict[str, np.ndarray]:
+        d, frame, n = self.items[i]
+        pts, labs, frames = [], [], []
+        for k in range(self.p.input_frames):
+            j = frame + k
+            if j >= n:
+                break
+            p = skio.read_points(d / "velodyne" / f"{j:06d}.bin")
+            lab_file = d / "labels" / f"{j:06d}.label"
+            sem = skio.read_point_labels(lab_file, len(p))[0] if lab_file.is_file() else np.zeros(len(p), np.int64)
+            if k > 0:
+                poses = self._pose(d)
+                rel = np.linalg.inv(poses[frame]) @ poses[j]
+                p = p.copy()
+                p[:, :3] = p[:, :3] @ rel[:3, :3].T + rel[:3, 3]
+            pts.append(p)
+            labs.append(remap(sem, seg_lut(), str(lab_file)))
+            frames.append(np.full(len(p), k, np.uint8))
+        vl = remap(skio.read_voxel_labels(d / "voxels" / f"{frame:06d}.label"), ssc_lut(), f"{d}/voxels/{frame:06d}.label")
+        inv_file = d / "voxels" / f"{frame:06d}.invalid"
+        inv = skio.read_voxel_bits(inv_file) if inv_file.is_file() else np.zeros(vl.shape, bool)
+        vl, inv = pool_labels(vl, inv, self.p.scale)
+        return {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
+                "point_label": np.concatenate(labs).astype(np.uint8), "voxel_label": vl.astype(np.uint8), "invalid": inv}
+
+
+def _synthetic_factory(params: SyntheticParams, split: str, progress: Any = None) -> ArrayDataset:
+    return build_synthetic(params, split, progress)
+
+
+def _kitti_factory(params: SemanticKittiParams, split: str, progress: Any = None) -> SemanticKittiDataset:
+    return SemanticKittiDataset(params, split)
+
+
+DATASETS.add(
+    "synthetic-lidar", _synthetic_factory,
+    description="procedural street scenes, ray-cast LiDAR scans, multi-frame input and SSC ground truth (cached on disk)",
+    paper="distilkit (SemanticKITTI conventions, Behley et al. ICCV 2019)",
+    params=SyntheticParams, info=synthetic_info,
+)
+DATASETS.add(
+    "semantickitti", _kitti_factory,
+    description="a SemanticKITTI-format folder: velodyne/, labels/, voxels/*.label|.invalid, poses.txt, calib.txt",
+    paper="Behley et al., SemanticKITTI, ICCV 2019",
+    params=SemanticKittiParams,
+    info=lambda p: DataInfo(VoxelGrid.semantickitti(p.scale), input_frames=p.input_frames),
+)

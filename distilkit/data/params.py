@@ -1,0 +1,36 @@
+"""Parameters of the built-in datasets (pydantic, validated when a recipe is loaded)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class SyntheticParams(BaseModel):
+    """``synthetic-lidar``: procedural street scenes cast with a spinning LiDAR."""
+
+    model_config = ConfigDict(extra="forbid")
+    seed: int = Field(0, description="scene seed (independent of the training seed)")
+    scale: int = Field(4, description="grid coarsening: 1 = 256x256x32 at 0.2 m, 4 = 64x64x8 at 0.8 m")
+    num_train: int = Field(16, ge=1)
+    num_val: int = Field(4, ge=1)
+    input_frames: int = Field(5, ge=1, description="frames fused into the input (current + next T-1)")
+    gt_frames: int = Field(10, ge=0, description="future scans voxelised with the current one for the SSC target")
+    beams: int = Field(32, ge=2)
+    azimuth_steps: int = Field(1024, ge=8)
+    fov_up: float = 2.0
+    fov_down: float = -24.8
+    max_range: float = Field(60.0, gt=0)
+    range_noise: float = Field(0.02, ge=0, description="std of Gaussian range noise, metres")
+    ego_speed: float = Field(1.0, ge=0, description="metres per frame (KITTI: about 1 m at 10 Hz)")
+
+
+class SemanticKittiParams(BaseModel):
+    """``semantickitti``: a SemanticKITTI-format folder (``sequences/NN/...``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    root: str = Field(..., description="folder that holds sequences/")
+    train_sequences: list[str] = ["00", "01", "02", "03", "04", "05", "06", "07", "09", "10"]
+    val_sequences: list[str] = ["08"]
+    scale: int = Field(1, description="grid coarsening of the 256x256x32 voxel files (majority pooling)")
+    input_frames: int = Field(1, ge=1)
+    stride: int = Field(5, ge=1, description="use every n-th scan (voxel files exist for every 5th)")

@@ -1,0 +1,342 @@
+"""Procedural LiDAR street scenes with SemanticKITTI classes, a driving ego sensor and SSC ground truth.
+
+A scene is a straight street along +x (world frame, z up, ground at z = 0): a two-lane road,
+raised sidewalks, parking strips, terrain, buildings, fences, trees (trunk + crown), bushes,
+poles with traffic signs, parked cars and trucks (static) and moving cars, trucks, persons and
+bicyclists (each with an instance id and a constant velocity). The ego sensor drives along
+the right lane at ``ego_speed`` metres per frame, 1.73 m above the ground (KITTI).
+
+For one sample with current frame 0 (SemanticKITTI conventions, data_metrics.md §1.5):
+
+* input: the current scan fused with the next ``input_frames - 1`` scans, all in the
+  current sensor frame, each point tagged with its frame offset (the teacher uses more
+  frames than the student);
+* SSC ground truth: the current and next ``gt_frames`` scans voxelised on the SSC grid,
+  majority raw label per voxel (ties to the smallest id), remapped with the SSC LUT
+  (0 = empty); ``invalid`` marks voxels that no ray of those scans traversed or hit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from distilkit.data.classes import RAW_IDS, remap, seg_lut, ssc_lut
+from distilkit.data.raycast import Primitives, cast, ray_directions
+from distilkit.data.params import SyntheticParams
+from distilkit.geometry.voxel import VoxelGrid
+
+GENERATOR_VERSION = 1
+SENSOR_HEIGHT = 1.73
+ROAD_HALF = 4.0
+SIDEWALK_OUT = 6.5
+REFLECTANCE = {"road": 0.25, "sidewalk": 0.35, "parking": 0.3, "terrain": 0.45, "building": 0.5, "fence": 0.4,
+               "vegetation": 0.6, "trunk": 0.4, "pole": 0.55, "traffic-sign": 0.9, "car": 0.7, "truck": 0.65,
+               "person": 0.35, "bicyclist": 0.45}
+
+
+@dataclass
+class SceneSpec:
+    prims: Primitives
+    parking: np.ndarray  # (S,2) x ranges of parking strips on the left side
+
+
+class _Builder:
+    def __init__(self) -> None:
+        self.boxes: list[tuple] = []
+        self.cyls: list[tuple] = []
+        self.sphs: list[tuple] = []
+        self.next_inst = 1
+
+    def inst(self) -> int:
+        self.next_inst += 1
+        return self.next_inst - 1
+
+    def box(self, lo, hi, name, inst=0, vel=(0.0, 0.0)):
+        self.boxes.append((list(lo) + list(hi), RAW_IDS[name], inst, vel))
+
+    def cyl(self, cx, cy, z0, z1, r, name, inst=0, vel=(0.0, 0.0)):
+        self.cyls.append(([cx, cy, z0, z1, r], RAW_IDS[name], inst, vel))
+
+    def sph(self, cx, cy, cz, r, name, inst=0, vel=(0.0, 0.0)):
+        self.sphs.append(([cx, cy, cz, r], RAW_IDS[name], inst, vel))
+
+    def build(self) -> Primitives:
+        def arrs(items, width):
+            if not items:
+                return (np.zeros((0, width), np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                        np.zeros((0, 2), np.float32))
+            return (np.array([i[0] for i in items], np.float32), np.array([i[1] for i in items], np.int64),
+                    np.array([i[2] for i in items], np.int64), np.array([i[3] for i in items], np.float32))
+
+        return Primitives(*arrs(self.boxes, 6), *arrs(self.cyls, 5), *arrs(self.sphs, 4))
+
+
+def make_scene(rng: np.random.Generator, x_min: float, x_max: float, ego_speed: float) -> SceneSpec:
+    """Lay out one street between ``x_min`` and ``x_max`` (metres, world frame)."""
+    b = _Builder()
+    # Parking strips on the left; sidewalks elsewhere (raised 15 cm).
+    parking, x = [], x_min
+    while x < x_max:
+        seg = rng.uniform(10, 25)
+        if rng.random() < 0.35:
+            parking.append((x, x + seg))
+        else:
+            b.box((x, ROAD_HALF, 0), (x + seg, SIDEWALK_OUT, 0.15), "sidewalk")
+        x += seg
+    b.box((x_min, -SIDEWALK_OUT, 0), (x_max, -ROAD_HALF, 0.15), "sidewalk")
+    for side in (-1, 1):
+        # Buildings with gaps, fences, trees, bushes, poles and signs.
+        x = x_min + rng.uniform(0, 5)
+        while x < x_max:
+            w = rng.uniform(8, 25)
+            if rng.random() < 0.75:
+                y0 = rng.uniform(11, 16)
+                lo_y, hi_y = sorted((side * y0, side * (y0 + rng.uniform(6, 12))))
+                b.box((x, lo_y, 0), (x + w, hi_y, rng.uniform(4, 14)), "building")
+            x += w + rng.uniform(1, 6)
+        x = x_min + rng.uniform(0, 8)
+        while x < x_max:
+            w = rng.uniform(5, 15)
+            y = side * rng.uniform(8.5, 10)
+            b.box((x, min(y, y + side * 0.1), 0), (x + w, max(y, y + side * 0.1), rng.uniform(1.0, 1.8)), "fence")
+            x += w + rng.uniform(4, 15)
+        x = x_min + rng.uniform(0, 6)
+        while x < x_max:
+            y = side * rng.uniform(7.0, 8.2)
+            h = rng.uniform(1.8, 3.0)
+            b.cyl(x, y, 0, h, rng.uniform(0.15, 0.3), "trunk")
+            b.sph(x, y, h + rng.uniform(1.0, 1.8), rng.uniform(1.4, 2.4), "vegetation")
+            x += rng.uniform(6, 14)
+        for _ in range(int((x_max - x_min) / 12)):
+            xb, yb = rng.uniform(x_min, x_max), side * rng.uniform(6.8, 10.5)
+            r = rng.uniform(0.5, 1.2)
+            b.box((xb - r, yb - r, 0), (xb + r, yb + r, rng.uniform(0.5, 1.3)), "vegetation")
+        x = x_min + rng.uniform(0, 10)
+        while x < x_max:
+            y = side * rng.uniform(6.6, 6.9)
+            h = rng.uniform(4, 7)
+            b.cyl(x, y, 0, h, 0.12, "pole")
+            if rng.random() < 0.5:
+                zs = rng.uniform(2.0, 2.8)
+                b.box((x - 0.05, y - 0.35, zs), (x + 0.05, y + 0.35, zs + 0.7), "traffic-sign")
+            x += rng.uniform(12, 30)
+    # Parked vehicles in the parking strips (static ids).
+    for lo, hi in parking:
+        x = lo + rng.uniform(0.5, 3)
+        while x < hi - 4:
+            if rng.random() < 0.8:
+                truck = rng.random() < 0.15
+                length, width, height = (7.5, 2.4, 3.2) if truck else (4.2, 1.8, 1.5)
+                if x + length > hi:
+                    break
+                y = (ROAD_HALF + SIDEWALK_OUT) / 2
+                b.box((x, y - width / 2, 0), (x + length, y + width / 2, height), "truck" if truck else "car", b.inst())
+                x += length
+            x += rng.uniform(0.8, 3)
+    # Moving traffic: oncoming cars on the left lane, cars/trucks ahead on the right lane.
+    for _ in range(rng.integers(2, 6)):
+        x, v = rng.uniform(x_min, x_max), -rng.uniform(0.6, 1.5) * max(ego_speed, 0.5)
+        b.box((x, 0.85, 0), (x + 4.3, 2.65, 1.5), "moving-car", b.inst(), (v, 0.0))
+    for _ in range(rng.integers(1, 4)):
+        truck = rng.random() < 0.2
+        length, width, height = (8.0, 2.5, 3.3) if truck else (4.3, 1.8, 1.5)
+        x, v = rng.uniform(x_min + 15, x_max), rng.uniform(0.3, 1.2) * max(ego_speed, 0.5)
+        b.box((x, -1.75 - width / 2, 0), (x + length, -1.75 + width / 2, height),
+              "moving-truck" if truck else "moving-car", b.inst(), (v, 0.0))
+    # Pedestrians on the sidewalks (some standing), bicyclists at the road edge.
+    for _ in range(rng.integers(2, 8)):
+        side = rng.choice([-1, 1])
+        x, y = rng.uniform(x_min, x_max), side * rng.uniform(4.5, 6.0)
+        v = rng.choice([-1, 1]) * rng.uniform(0.1, 0.18) if rng.random() < 0.7 else 0.0
+        b.cyl(x, y, 0.15, 0.15 + rng.uniform(1.55, 1.9), 0.28, "moving-person" if v else "person", b.inst(), (v, 0.0))
+    for _ in range(rng.integers(0, 3)):
+        x, v = rng.uniform(x_min, x_max), rng.uniform(0.35, 0.6)
+        b.box((x, -3.7, 0), (x + 1.8, -3.1, 1.75), "moving-bicyclist", b.inst(), (v, 0.0))
+    return SceneSpec(b.build(), np.array(parking, np.float32).reshape(-1, 2))
+
+
+def _ground_labels(pts: np.ndarray, parking: np.ndarray) -> np.ndarray:
+    y, x = pts[:, 1], pts[:, 0]
+    lab = np.full(len(pts), RAW_IDS["terrain"], np.int64)
+    lab[np.abs(y) < ROAD_HALF] = RAW_IDS["road"]
+    left = (y >= ROAD_HALF) & (y < SIDEWALK_OUT)
+    in_park = np.zeros(len(pts), bool)
+    for lo, hi in parking:
+        in_park |= (x >= lo) & (x < hi)
+    lab[left & in_park] = RAW_IDS["parking"]
+    lab[left & ~in_park] = RAW_IDS["sidewalk"]  # under a sidewalk box (rarely visible)
+    lab[(y <= -ROAD_HALF) & (y > -SIDEWALK_OUT)] = RAW_IDS["sidewalk"]
+    return lab
+
+
+@dataclass
+class Scan:
+    xyz: np.ndarray  # (n,3) world frame
+    intensity: np.ndarray
+    label: np.ndarray  # raw ids
+    inst: np.ndarray
+    origin: np.ndarray  # (3,) sensor position, world frame
+
+
+def cast_scan(scene: SceneSpec, origin: np.ndarray, frame: int, dirs: np.ndarray, rng: np.random.Generator,
+              max_range: float, range_noise: float) -> Scan:
+    prims = scene.prims.at_frame(frame).near(origin, max_range + 5.0)
+    t, kind, index, _ = cast(origin, dirs, prims)
+    keep = np.isfinite(t) & (t <= max_range) & (t > 1.0)
+    t = np.where(keep, t, 0) + rng.normal(0.0, range_noise, t.shape).astype(np.float32)
+    xyz = origin[None, :] + dirs * t[:, None]
+    label = np.zeros(len(t), np.int64)
+    inst = np.zeros(len(t), np.int64)
+    for k, lab, ins in ((2, prims.box_label, prims.box_inst), (3, prims.cyl_label, prims.cyl_inst),
+                        (4, prims.sph_label, prims.sph_inst)):
+        sel = kind == k
+        label[sel], inst[sel] = lab[index[sel]], ins[index[sel]]
+    g = kind == 1
+    label[g] = _ground_labels(xyz[g], scene.parking)
+    names = {RAW_IDS[n]: n for n in REFLECTANCE}
+    base = np.array([REFLECTANCE.get(names.get(int(l), ""), 0.4) for l in range(300)], np.float32)
+    refl = base[np.clip(_static_id(label), 0, 299)]
+    intensity = np.clip(refl + rng.normal(0, 0.05, len(t)).astype(np.float32), 0, 1)
+    return Scan(xyz[keep].astype(np.float32), intensity[keep], label[keep], inst[keep], origin.astype(np.float32))
+
+
+def _static_id(label: np.ndarray) -> np.ndarray:
+    moving = {252: 10, 253: 31, 254: 30, 255: 32, 256: 16, 257: 13, 258: 18, 259: 20}
+    out = label.copy()
+    for m, s in moving.items():
+        out[label == m] = s
+    return out
+
+
+def voxelize_majority(xyz: np.ndarray, raw: np.ndarray, grid: VoxelGrid) -> np.ndarray:
+    """Majority raw label per voxel (ties -> smallest id), 0 where no point falls; (X,Y,Z) int64."""
+    idx = np.floor((xyz - np.array(grid.origin, np.float32)) / grid.voxel_size).astype(np.int64)
+    shape = np.array(grid.shape)
+    inside = ((idx >= 0) & (idx < shape)).all(1)
+    flat = np.ravel_multi_index(idx[inside].T, grid.shape)
+    lab = raw[inside]
+    out = np.zeros(int(np.prod(grid.shape)), np.int64)
+    if flat.size:
+        pairs, counts = np.unique(np.stack([flat, lab], 1), axis=0, return_counts=True)
+        # sort by voxel, then count descending, then label ascending; first row per voxel wins
+        order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
+        pairs = pairs[order]
+        first = np.ones(len(pairs), bool)
+        first[1:] = pairs[1:, 0] != pairs[:-1, 0]
+        out[pairs[first, 0]] = pairs[first, 1]
+    return out.reshape(grid.shape)
+
+
+def traversed(origins: list[np.ndarray], ends: list[np.ndarray], grid: VoxelGrid) -> np.ndarray:
+    """(X,Y,Z) bool: voxels a ray passes through or ends in (sampled every half voxel)."""
+    seen = np.zeros(int(np.prod(grid.shape)), bool)
+    origin = np.array(grid.origin, np.float32)
+    shape = np.array(grid.shape)
+    step = 0.5  # in voxels
+    for o, p in zip(origins, ends):
+        if len(p) == 0:
+            continue
+        start = (o - origin) / grid.voxel_size
+        vec = (p - o[None, :]) / grid.voxel_size
+        length = np.linalg.norm(vec, axis=1)
+        order = np.argsort(-length)
+        length, vec = length[order], vec[order]
+        unit = vec / np.maximum(length, 1e-6)[:, None]
+        samples = [start[None, :] + vec]  # the end points themselves
+        n_active = len(length)
+        k = 0
+        while True:
+            s = k * step
+            n_active = int(np.searchsorted(-length, -s, side="right"))
+            if n_active == 0:
+                break
+            samples.append(start[None, :] + unit[:n_active] * s)
+            k += 1
+        q = np.floor(np.concatenate(samples)).astype(np.int64)
+        ok = ((q >= 0) & (q < shape)).all(1)
+        seen[np.ravel_multi_index(q[ok].T, grid.shape)] = True
+    return seen.reshape(grid.shape)
+
+
+def make_sample(seed: int, p: SyntheticParams) -> dict[str, np.ndarray]:
+    """Generate one sample: fused input points with frame tags, SSC labels and the invalid mask."""
+    rng = np.random.default_rng(seed)
+    grid = VoxelGrid.semantickitti(p.scale)
+    n_frames = max(p.input_frames, p.gt_frames + 1)
+    x0 = rng.uniform(0, 20)
+    scene = make_scene(rng, x0 - 20, x0 + p.ego_speed * n_frames + 80, p.ego_speed)
+    dirs = ray_directions(p.beams, p.azimuth_steps, p.fov_up, p.fov_down)
+    ego0 = np.array([x0, -1.75, SENSOR_HEIGHT], np.float32)
+    scans = []
+    for j in range(n_frames):
+        origin = ego0 + np.array([p.ego_speed * j, 0, 0], np.float32)
+        scans.append(cast_scan(scene, origin, j, dirs, rng, p.max_range, p.range_noise))
+    # Current sensor frame = world - ego0 (the ego drives straight along +x, heading 0).
+    to_cur = lambda xyz: xyz - ego0[None, :]  # noqa: E731
+    inp = scans[: p.input_frames]
+    points = np.concatenate([np.concatenate([to_cur(s.xyz), s.intensity[:, None]], 1) for s in inp]).astype(np.float32)
+    frame = np.concatenate([np.full(len(s.xyz), j, np.uint8) for j, s in enumerate(inp)])
+    raw = np.concatenate([s.label for s in inp])
+    inst = np.concatenate([s.inst for s in inp])
+    gt = scans[: p.gt_frames + 1]
+    gt_xyz = np.concatenate([to_cur(s.xyz) for s in gt])
+    gt_raw = np.concatenate([s.label for s in gt])
+    voxel_raw = voxelize_majority(gt_xyz, gt_raw, grid)
+    seen = traversed([to_cur(s.origin[None])[0] for s in gt], [to_cur(s.xyz) for s in gt], grid)
+    return {
+        "points": points,
+        "point_frame": frame,
+        "point_label": remap(raw, seg_lut()).astype(np.uint8),
+        "point_raw": raw.astype(np.uint32) | (inst.astype(np.uint32) << 16),
+        "voxel_label": remap(voxel_raw, ssc_lut()).astype(np.uint8),
+        "invalid": ~seen & (voxel_raw == 0),
+    }
+
+
+def cache_root() -> Path:
+    return Path(os.environ.get("DISTILKIT_CACHE", Path.home() / ".cache" / "distilkit"))
+
+
+def content_key(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+_ARRAYS = ("points", "point_frame", "point_label", "point_raw")
+_GRIDS = ("voxel_label", "invalid")
+
+
+def generate_split(p: SyntheticParams, split: str, count: int,
+                   progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
+    """Generate (or load from the on-disk cache) ``count`` samples of ``split``; arrays stacked with offsets."""
+    key = content_key({"v": GENERATOR_VERSION, "split": split, "count": count, **p.model_dump()})
+    path = cache_root() / "synthetic-lidar" / f"{split}-{key}.npz"
+    if path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except Exception:
+            path.unlink(missing_ok=True)  # a corrupt cache entry is regenerated
+    split_salt = {"train": 0, "val": 1, "test": 2}.get(split, 3)
+    samples = []
+    for i in range(count):
+        samples.append(make_sample(int(p.seed) * 1_000_003 + split_salt * 100_003 + i, p))
+        if progress:
+            progress(i + 1, count)
+    out: dict[str, np.ndarray] = {}
+    for k in _ARRAYS:
+        out[k] = np.concatenate([s[k] for s in samples])
+    out["offsets"] = np.cumsum([0] + [len(s["points"]) for s in samples]).astype(np.int64)
+    for k in _GRIDS:
+        out[k] = np.stack([s[k] for s in samples])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}.npz")
+    np.savez(tmp, **out)
+    os.replace(tmp, path)
+    return out

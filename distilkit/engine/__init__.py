@@ -1,0 +1,1 @@
+"""Engine: recipe resolution, the trainer, the pipeline of stages, checkpoints and reports."""

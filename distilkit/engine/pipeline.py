@@ -1,0 +1,166 @@
+"""The pipeline: stages in dependency order, each cached by the content hash of its config.
+
+A stage's identity is a hash of its resolved configuration, the data configuration, the seed
+and the identities of its upstream stages. ``runs/<recipe>/<stage>-<hash>/summary.json`` marks a
+finished stage, which is reused and never retrained; an unfinished one resumes from ``last.pt``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from distilkit import __version__
+from distilkit.engine.io import atomic_write_text
+from distilkit.engine.resolve import ResolvedRecipe, ResolvedStage, resolve
+from distilkit.recipe import Recipe, load_recipe
+from distilkit.registry import DATASETS
+
+
+@dataclass
+class StageResult:
+    name: str
+    run_dir: Path
+    summary: dict[str, Any]
+    reused: bool
+
+
+def _file_digest(path: str) -> str:
+    p = Path(path)
+    return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else f"missing:{path}"
+
+
+def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, str]) -> dict[str, Any]:
+    spec = stage.spec
+    teacher: dict[str, Any] | None = None
+    if spec.teacher is not None:
+        teacher = spec.teacher.model_dump(mode="json", by_alias=True)
+        if spec.teacher.from_ is not None:
+            teacher["upstream_hash"] = hashes[spec.teacher.from_]
+        else:
+            teacher["checkpoint_sha256"] = _file_digest(spec.teacher.checkpoint or "")
+    return {
+        "schema_version": res.recipe.schema_version,
+        "seed": res.recipe.seed,
+        "data": {"dataset": res.recipe.data.dataset, "params": res.data_params.model_dump(mode="json")},
+        "model": {"adapter": stage.student.adapter, "params": stage.student.params.model_dump(mode="json")},
+        "teacher": teacher,
+        "task_losses": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps}
+                        for t in stage.task_losses],
+        "distill": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps}
+                    for t in stage.distill],
+        "optimizer": spec.optimizer.model_dump(mode="json"),
+        "train": spec.train.model_dump(mode="json", exclude={"log_every", "checkpoint_every", "device"}),
+    }
+
+
+def stage_hashes(res: ResolvedRecipe) -> dict[str, str]:
+    hashes: dict[str, str] = {}
+    for name in res.order:
+        cfg = stage_config(res, res.stages[name], hashes)
+        hashes[name] = hashlib.sha256(json.dumps(cfg, sort_keys=True).encode()).hexdigest()[:10]
+    return hashes
+
+
+def read_summary(run_dir: Path) -> dict[str, Any] | None:
+    path = run_dir / "summary.json"
+    if not path.is_file():
+        return None
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return summary if summary.get("status") == "finished" else None
+
+
+class Pipeline:
+    """Runs a recipe: resolves it, builds data lazily, trains or reuses each stage, writes a report."""
+
+    def __init__(self, recipe: Recipe | str | Path, output: str | Path = "runs", console: Any = None,
+                 quiet: bool = False) -> None:
+        self.source = str(recipe) if not isinstance(recipe, Recipe) else "recipe"
+        self.recipe = recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
+        self.resolved = resolve(self.recipe, self.source)
+        self.root = Path(output) / self.recipe.name
+        self.hashes = stage_hashes(self.resolved)
+        self.quiet = quiet
+        if console is None:
+            from rich.console import Console
+
+            console = Console(stderr=False, quiet=quiet)
+        self.console = console
+        self._data: dict[str, Any] = {}
+
+    def run_dir(self, name: str) -> Path:
+        return self.root / f"{name}-{self.hashes[name]}"
+
+    def dataset(self, split: str) -> Any:
+        if split not in self._data:
+            entry = DATASETS.entry(self.recipe.data.dataset)
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            with Progress(TextColumn(f"[cyan]data[/] {self.recipe.data.dataset}/{split}"), BarColumn(),
+                          MofNCompleteColumn(), TimeRemainingColumn(), console=self.console, transient=True) as prog:
+                task = prog.add_task("gen", total=None)
+                self._data[split] = entry.obj(self.resolved.data_params, split,
+                                              lambda i, n: prog.update(task, completed=i, total=n))
+        return self._data[split]
+
+    def _teacher_checkpoint(self, stage: ResolvedStage) -> Path:
+        t = stage.spec.teacher
+        assert t is not None
+        if t.from_ is not None:
+            return self.run_dir(t.from_) / "checkpoints" / f"{t.which}.pt"
+        return Path(t.checkpoint or "").expanduser()
+
+    def run(self, stop_after: int | None = None) -> list[StageResult]:
+        from distilkit.engine.io import seed_everything
+        from distilkit.engine.report import stage_progress, write_report
+        from distilkit.engine.trainer import Trainer, load_teacher, pick_device, write_summary
+
+        results: list[StageResult] = []
+        self.root.mkdir(parents=True, exist_ok=True)
+        for name in self.resolved.order:
+            stage = self.resolved.stages[name]
+            run_dir = self.run_dir(name)
+            done = read_summary(run_dir)
+            if done is not None:
+                self.console.print(f"[green]✓[/] stage [bold]{name}[/] reused from {run_dir}")
+                results.append(StageResult(name, run_dir, done, reused=True))
+                continue
+            run_dir.mkdir(parents=True, exist_ok=True)
+            cfg = stage_config(self.resolved, stage, self.hashes)
+            atomic_write_text(run_dir / "recipe.resolved.yaml",
+                              yaml.safe_dump({"recipe": self.recipe.name, "stage": name, "hash": self.hashes[name],
+                                              "distilkit": __version__, **cfg}, sort_keys=False))
+            seed_everything(self.recipe.seed)
+            device = pick_device(stage.spec.train.device)
+            teacher = None
+            if stage.teacher is not None and stage.distill:
+                teacher = load_teacher(stage.teacher, self.resolved.data_info, self._teacher_checkpoint(stage), device)
+            train_set, val_set = self.dataset("train"), self.dataset("val")
+            with stage_progress(self.console, name) as on_step:
+                trainer = Trainer(stage, self.resolved.data_info, train_set, val_set, run_dir, self.recipe.seed,
+                                  teacher, on_step, stop_after)
+                result = trainer.fit()
+            if stop_after is not None and result.steps < trainer.total_steps:
+                self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")
+                return results
+            summary = {
+                "status": "finished", "stage": name, "hash": self.hashes[name], "label": stage.spec.label or name,
+                "adapter": stage.student.adapter, "frames": getattr(stage.student.params, "frames", None),
+                "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
+                "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill],
+                "steps": result.steps, "train_seconds": round(result.seconds, 2),
+                "best": result.best, "last": result.last, "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            }
+            write_summary(run_dir, summary)
+            results.append(StageResult(name, run_dir, summary, reused=False))
+        write_report(self, results)
+        return results

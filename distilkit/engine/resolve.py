@@ -1,0 +1,171 @@
+"""Resolve a recipe against the registries: every name, parameter and tap is checked here,
+before any data is generated or any model is trained (``distilkit validate``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from distilkit.errors import RecipeError, UnknownNameError
+from distilkit.recipe import LossSpec, ModelSpec, Recipe, pydantic_problems, stage_order
+from distilkit.registry import ADAPTERS, DATASETS, OBJECTIVES, TASK_LOSSES, Registry
+
+
+@dataclass
+class ResolvedTerm:
+    name: str
+    cls: Any
+    params: BaseModel
+    weight: float
+    taps: dict[str, str]  # role -> tap name
+
+
+@dataclass
+class ResolvedModel:
+    adapter: str
+    cls: Any
+    params: BaseModel
+
+
+@dataclass
+class ResolvedStage:
+    name: str
+    spec: Any
+    student: ResolvedModel
+    teacher: ResolvedModel | None
+    teacher_from: str | None
+    task_losses: list[ResolvedTerm] = field(default_factory=list)
+    distill: list[ResolvedTerm] = field(default_factory=list)
+
+
+@dataclass
+class ResolvedRecipe:
+    recipe: Recipe
+    data_params: BaseModel
+    data_info: Any
+    stages: dict[str, ResolvedStage]
+    order: list[str]
+
+
+def _lookup(reg: Registry[Any], name: str, path: str, problems: list[tuple[str, str]]) -> Any:
+    try:
+        return reg.entry(name)
+    except UnknownNameError as exc:
+        problems.append((path, str(exc)))
+        return None
+
+
+def _params(model: type[BaseModel], raw: dict[str, Any], path: str, problems: list[tuple[str, str]]) -> BaseModel | None:
+    try:
+        return model.model_validate(raw)
+    except ValidationError as err:
+        problems.extend(pydantic_problems(err, path))
+        return None
+
+
+def _model(spec: ModelSpec, path: str, problems: list[tuple[str, str]]) -> ResolvedModel | None:
+    entry = _lookup(ADAPTERS, spec.adapter, f"{path}.adapter", problems)
+    if entry is None:
+        return None
+    params = _params(entry.obj.Params, spec.params, f"{path}.params", problems)
+    return None if params is None else ResolvedModel(spec.adapter, entry.obj, params)
+
+
+def _resolve_taps(term_path: str, cls: Any, given: dict[str, str], models: dict[str, ResolvedModel | None],
+                  problems: list[tuple[str, str]]) -> dict[str, str]:
+    """Pick the tap of each role: the recipe's choice (checked) or the model's first tap of that kind."""
+    out: dict[str, str] = {}
+    for role in given:
+        if role not in cls.CONSUMES:
+            problems.append((f"{term_path}.taps.{role}", f"unknown role (this component takes {sorted(cls.CONSUMES)})"))
+    for role, kind in cls.CONSUMES.items():
+        model = models.get("teacher" if role == "teacher" else "student")
+        if model is None:
+            continue
+        taps = model.cls.TAPS
+        if role in given:
+            tap = given[role]
+            if tap not in taps:
+                problems.append((f"{term_path}.taps.{role}",
+                                 f"adapter {model.adapter!r} has no tap {tap!r} (it has: {', '.join(taps) or 'none'})"))
+            elif taps[tap] != kind:
+                problems.append((f"{term_path}.taps.{role}",
+                                 f"tap {tap!r} of adapter {model.adapter!r} is {taps[tap]}, but this needs {kind}"))
+            else:
+                out[role] = tap
+        else:
+            candidates = [n for n, k in taps.items() if k == kind]
+            if not candidates:
+                problems.append((f"{term_path}", f"needs a {kind} tap for the {role}, but adapter {model.adapter!r} "
+                                                 f"provides only {', '.join(f'{n} ({k})' for n, k in taps.items()) or 'none'}"))
+            else:
+                out[role] = candidates[0]
+    return out
+
+
+def _terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: dict[str, ResolvedModel | None],
+           problems: list[tuple[str, str]]) -> list[ResolvedTerm]:
+    out = []
+    for i, spec in enumerate(specs):
+        p = f"{path}[{i}]"
+        entry = _lookup(reg, spec.name, f"{p}.name", problems)
+        if entry is None:
+            continue
+        params = _params(entry.obj.Params, spec.params, f"{p}.params", problems)
+        taps = _resolve_taps(p, entry.obj, spec.taps, models, problems)
+        weight = spec.weight if spec.weight is not None else float(getattr(entry.obj, "DEFAULT_WEIGHT", 1.0))
+        if params is not None:
+            out.append(ResolvedTerm(spec.name, entry.obj, params, weight, taps))
+    return out
+
+
+def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
+    """Check everything that can be checked without training; raise :class:`RecipeError` listing all problems."""
+    problems: list[tuple[str, str]] = []
+    try:
+        order = stage_order(recipe)
+    except RecipeError as exc:
+        problems.extend(exc.problems)
+        order = list(recipe.stages)
+    ds = _lookup(DATASETS, recipe.data.dataset, "data.dataset", problems)
+    data_params = _params(ds.meta["params"], recipe.data.params, "data.params", problems) if ds else None
+    info = ds.meta["info"](data_params) if data_params is not None else None
+    stages: dict[str, ResolvedStage] = {}
+    for name in order:
+        spec = recipe.stages[name]
+        path = f"stages.{name}"
+        student = _model(spec.model, f"{path}.model", problems)
+        teacher, teacher_from = None, None
+        if spec.teacher is not None:
+            if spec.teacher.from_ is not None:
+                teacher_from = spec.teacher.from_
+                up = stages.get(teacher_from)
+                teacher = up.student if up else None
+            else:
+                assert spec.teacher.model is not None
+                teacher = _model(spec.teacher.model, f"{path}.teacher.model", problems)
+        models = {"student": student, "teacher": teacher}
+        task_specs = spec.task_losses
+        if task_specs is None and student is not None:
+            task_specs = [LossSpec.model_validate(d) for d in student.cls.DEFAULT_TASK_LOSSES]
+        task = _terms(task_specs or [], TASK_LOSSES, f"{path}.task_losses", models, problems)
+        distill = _terms(spec.distill, OBJECTIVES, f"{path}.distill", models, problems)
+        if student is not None:
+            if student.cls.LOGITS_TAP not in student.cls.TAPS:
+                problems.append((f"{path}.model.adapter", f"adapter {student.adapter!r} declares no logits tap"))
+            frames = getattr(student.params, "frames", 1)
+            if info is not None and frames > info.input_frames:
+                problems.append((f"{path}.model.params.frames",
+                                 f"{frames} input frames requested, but the data provides {info.input_frames} "
+                                 f"(raise data.params.input_frames)"))
+        if teacher is not None and info is not None and getattr(teacher.params, "frames", 1) > info.input_frames:
+            problems.append((f"{path}.teacher", f"teacher needs {teacher.params.frames} input frames, data provides "
+                                                 f"{info.input_frames}"))
+        if student is not None:
+            stages[name] = ResolvedStage(name, spec, student, teacher, teacher_from, task, distill)
+    if problems:
+        raise RecipeError(problems, source)
+    assert data_params is not None
+    return ResolvedRecipe(recipe, data_params, info, stages, order)

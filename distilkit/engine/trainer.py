@@ -1,0 +1,220 @@
+"""The trainer: one stage's student, its frozen teacher, task losses and distillation objectives.
+
+Per step: ``s_out = student(batch)``; ``t_out = teacher(batch)`` under ``no_grad`` (only when the
+stage has objectives); ``loss = sum_j w_j task_j + sum_i w_i objective_i(s_tap, t_tap, batch)``;
+backward, gradient clipping, optimizer step, then ``objective.update``. ``last.pt`` is written
+every ``checkpoint_every`` steps and at each evaluation, ``best.pt`` when the validation score
+improves; a run started again resumes from ``last.pt`` (model, optimizer, RNG and data order).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from torch import Tensor, nn
+
+from distilkit.adapter import Adapter
+from distilkit.data.datasets import DataInfo, collate
+from distilkit.engine.io import atomic_torch_save, atomic_write_json, load_checkpoint, rng_state, set_rng_state
+from distilkit.engine.resolve import ResolvedModel, ResolvedStage
+from distilkit.errors import NonFiniteLossError
+from distilkit.metrics.ssc import SSCMetric
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def to_device(batch: dict[str, Tensor], device: torch.device) -> dict[str, Tensor]:
+    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+
+
+def build_model(model: ResolvedModel, info: DataInfo) -> Adapter:
+    return model.cls(model.params, info)
+
+
+def freeze(model: nn.Module) -> nn.Module:
+    """Teacher semantics: eval mode (BatchNorm statistics frozen) and no gradients."""
+    model.eval()
+    for p in model.parameters():
+        p.requires_grad_(False)
+    return model
+
+
+def load_teacher(model: ResolvedModel, info: DataInfo, checkpoint: Path, device: torch.device) -> Adapter:
+    teacher = build_model(model, info)
+    ckpt = load_checkpoint(checkpoint)
+    try:
+        teacher.load_state_dict(ckpt["student"])
+    except RuntimeError as exc:
+        from distilkit.errors import DataError
+
+        raise DataError(f"{checkpoint}: weights do not fit adapter {model.adapter!r} with these params ({exc})") from None
+    return freeze(teacher.to(device))  # type: ignore[return-value]
+
+
+@torch.no_grad()
+def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device) -> dict[str, Any]:
+    was_training = model.training
+    model.eval()
+    metric = SSCMetric(model.info.num_classes)
+    for start in range(0, len(dataset), batch_size):
+        batch = to_device(collate([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))]), device)
+        pred = model.predict(model(batch))
+        metric.update(pred.cpu(), batch["voxel_label"].cpu(), batch["invalid"].cpu())
+    model.train(was_training)
+    return metric.compute()
+
+
+@dataclass
+class TrainResult:
+    best: dict[str, Any]
+    last: dict[str, Any]
+    steps: int
+    seconds: float
+    history: list[dict[str, Any]] = field(default_factory=list)
+
+
+class Trainer:
+    def __init__(self, stage: ResolvedStage, info: DataInfo, train_set: Any, val_set: Any, run_dir: Path, seed: int,
+                 teacher: Adapter | None = None, on_step: Callable[[int, int, dict[str, float]], None] | None = None,
+                 stop_after: int | None = None) -> None:
+        self.stage, self.info, self.train_set, self.val_set = stage, info, train_set, val_set
+        self.run_dir, self.seed, self.on_step, self.stop_after = run_dir, seed, on_step, stop_after
+        spec = stage.spec.train
+        self.device = pick_device(spec.device)
+        torch.manual_seed(seed)
+        self.student = build_model(stage.student, info).to(self.device)
+        self.task = nn.ModuleList(t.cls(t.params, t.taps) for t in stage.task_losses).to(self.device)
+        self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
+        self.teacher = teacher
+        params = [p for m in (self.student, self.task, self.objectives) for p in m.parameters() if p.requires_grad]
+        self.optimizer = self._optimizer(params)
+        self.steps_per_epoch = math.ceil(len(train_set) / spec.batch_size)
+        self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
+        self.eval_every = spec.eval_every or self.steps_per_epoch
+
+    def _optimizer(self, params: list[nn.Parameter]) -> torch.optim.Optimizer:
+        o = self.stage.spec.optimizer
+        if o.name == "adam":
+            return torch.optim.Adam(params, lr=o.lr, betas=o.betas, weight_decay=o.weight_decay)
+        if o.name == "adamw":
+            return torch.optim.AdamW(params, lr=o.lr, betas=o.betas, weight_decay=o.weight_decay)
+        return torch.optim.SGD(params, lr=o.lr, momentum=o.momentum, weight_decay=o.weight_decay)
+
+    # -- checkpoints -------------------------------------------------------------------------
+    @property
+    def ckpt_dir(self) -> Path:
+        return self.run_dir / "checkpoints"
+
+    def _save_last(self, step: int, best: dict[str, Any]) -> None:
+        atomic_torch_save(self.ckpt_dir / "last.pt", {
+            "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
+            "objectives": self.objectives.state_dict(), "optimizer": self.optimizer.state_dict(),
+            "step": step, "best": best, "rng": rng_state(), "adapter": self.stage.student.adapter,
+            "adapter_params": self.stage.student.params.model_dump(mode="json"),
+        })
+
+    def _save_best(self, step: int, scores: dict[str, Any]) -> None:
+        atomic_torch_save(self.ckpt_dir / "best.pt", {
+            "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
+            "objectives": self.objectives.state_dict(), "step": step, "scores": json.dumps(scores),
+            "adapter": self.stage.student.adapter, "adapter_params": self.stage.student.params.model_dump(mode="json"),
+        })
+
+    def _log(self, record: dict[str, Any]) -> None:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        with open(self.run_dir / "metrics.jsonl", "a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
+
+    # -- loop --------------------------------------------------------------------------------
+    def _batch(self, step: int) -> dict[str, Tensor]:
+        epoch, i = divmod(step, self.steps_per_epoch)
+        g = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
+        perm = torch.randperm(len(self.train_set), generator=g)
+        bs = self.stage.spec.train.batch_size
+        return to_device(collate([self.train_set[int(j)] for j in perm[i * bs:(i + 1) * bs]]), self.device)
+
+    def loss_terms(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        s_out = self.student(batch)
+        terms: dict[str, Tensor] = {}
+        for spec, mod in zip(self.stage.task_losses, self.task):
+            terms[spec.name] = spec.weight * mod(s_out, batch)
+        if len(self.objectives):
+            assert self.teacher is not None
+            with torch.no_grad():
+                t_out = self.teacher(batch)
+            for spec, mod in zip(self.stage.distill, self.objectives):
+                terms[f"kd_{spec.name}"] = spec.weight * mod(s_out[spec.taps["student"]], t_out[spec.taps["teacher"]], batch)
+        return terms
+
+    def fit(self) -> TrainResult:
+        spec = self.stage.spec.train
+        start_step, best = 0, {"score": -1.0, "step": -1, "scores": None}
+        last_path = self.ckpt_dir / "last.pt"
+        if last_path.is_file():
+            ckpt = load_checkpoint(last_path)
+            self.student.load_state_dict(ckpt["student"])
+            self.task.load_state_dict(ckpt["task_losses"])
+            self.objectives.load_state_dict(ckpt["objectives"])
+            self.optimizer.load_state_dict(ckpt["optimizer"])
+            set_rng_state(ckpt["rng"])
+            start_step, best = int(ckpt["step"]), ckpt["best"]
+            self._log({"event": "resume", "step": start_step})
+        t0 = time.perf_counter()
+        self.student.train()
+        last_scores: dict[str, Any] | None = None
+        step = start_step
+        while step < self.total_steps:
+            batch = self._batch(step)
+            terms = self.loss_terms(batch)
+            loss = torch.stack(list(terms.values())).sum()
+            bad = [k for k, v in terms.items() if not torch.isfinite(v)]
+            if bad:
+                raise NonFiniteLossError(
+                    f"stage {self.stage.name!r}, step {step + 1}: loss term(s) {', '.join(bad)} became "
+                    f"{', '.join(str(float(terms[k].detach())) for k in bad)}; training stopped, the last checkpoint "
+                    f"({last_path}) is kept. Lower the learning rate or the term's weight.")
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if spec.grad_clip is not None:
+                torch.nn.utils.clip_grad_norm_(self.student.parameters(), spec.grad_clip)
+            self.optimizer.step()
+            extra: dict[str, float] = {}
+            for mod in self.objectives:
+                extra.update(mod.update(step))
+            step += 1
+            values = {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}, **extra}
+            if step % spec.log_every == 0 or step == self.total_steps:
+                self._log({"step": step, "epoch": (step - 1) // self.steps_per_epoch, **values,
+                           "lr": self.optimizer.param_groups[0]["lr"], "time": time.perf_counter() - t0})
+            if self.on_step:
+                self.on_step(step, self.total_steps, values)
+            if step % self.eval_every == 0 or step == self.total_steps:
+                last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device)
+                self._log({"step": step, "eval": last_scores})
+                score = last_scores[spec.metric]
+                if score > best["score"]:
+                    best = {"score": score, "step": step, "scores": last_scores}
+                    self._save_best(step, last_scores)
+                self._save_last(step, best)
+            elif step % spec.checkpoint_every == 0:
+                self._save_last(step, best)
+            if self.stop_after is not None and step >= self.stop_after:
+                break
+        if last_scores is None:  # resumed at the very end
+            last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device)
+        seconds = time.perf_counter() - t0
+        return TrainResult(best=best, last=last_scores, steps=step, seconds=seconds)
+
+
+def write_summary(run_dir: Path, summary: dict[str, Any]) -> None:
+    atomic_write_json(run_dir / "summary.json", summary)

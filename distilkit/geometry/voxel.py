@@ -1,0 +1,86 @@
+"""Voxel grids in SemanticKITTI conventions, voxel hashing and sparse feature alignment."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from distilkit.taps import SparseVoxels
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    """An axis-aligned grid: x forward, y left, z up; ``origin`` is the min corner of voxel (0,0,0).
+
+    SemanticKITTI SSC: origin (0, -25.6, -2), 256 x 256 x 32 voxels of 0.2 m. ``scale`` s gives
+    the same volume with s-times coarser voxels (s = 4: 64 x 64 x 8 at 0.8 m).
+    """
+
+    origin: tuple[float, float, float] = (0.0, -25.6, -2.0)
+    shape: tuple[int, int, int] = (256, 256, 32)
+    voxel_size: float = 0.2
+
+    @classmethod
+    def semantickitti(cls, scale: int = 1) -> "VoxelGrid":
+        if scale < 1 or 256 % scale or 32 % scale:
+            raise ValueError(f"grid scale must divide 256 and 32 (1, 2, 4, 8, 16, 32), got {scale}")
+        return cls((0.0, -25.6, -2.0), (256 // scale, 256 // scale, 32 // scale), 0.2 * scale)
+
+    def index(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
+        """Voxel indices (M,3) int64 of points (M,3) and a bool mask of points inside the grid."""
+        origin = torch.tensor(self.origin, dtype=xyz.dtype, device=xyz.device)
+        idx = torch.floor((xyz - origin) / self.voxel_size).long()
+        shape = torch.tensor(self.shape, device=xyz.device)
+        inside = ((idx >= 0) & (idx < shape)).all(dim=1)
+        return idx, inside
+
+    def centers(self, idx: Tensor) -> Tensor:
+        """Voxel centres (M,3) of integer indices (M,3)."""
+        origin = torch.tensor(self.origin, dtype=torch.float32, device=idx.device)
+        return origin + (idx.float() + 0.5) * self.voxel_size
+
+    def coarsen(self, factor: int) -> "VoxelGrid":
+        return VoxelGrid(self.origin, tuple(s // factor for s in self.shape), self.voxel_size * factor)  # type: ignore[arg-type]
+
+
+def voxel_hash(coords: Tensor, spatial_shape: tuple[int, int, int]) -> Tensor:
+    """Unique int64 key of (batch, x, y, z) rows: ((b*X + x)*Y + y)*Z + z."""
+    x, y, z = spatial_shape
+    c = coords.long()
+    return ((c[:, 0] * x + c[:, 1]) * y + c[:, 2]) * z + c[:, 3]
+
+
+def align_sparse(target_coords: Tensor, source: SparseVoxels) -> tuple[Tensor, Tensor]:
+    """Gather ``source`` features at ``target_coords`` (N,4); zero rows where the source has no voxel.
+
+    This is the DSKD alignment choice (SCPNet §3.3; as in the jdgalviss re-implementation,
+    seed_code.md §1.1): the student's voxel set is the reference, teacher rows are looked up at
+    the student's coordinates by sorted hash + searchsorted, O((N + M) log M).
+
+    Returns:
+        feats: (N, C) aligned source features; found: (N,) bool, True where the source had the voxel.
+    """
+    if source.coords.shape[0] == 0:
+        return source.feats.new_zeros((target_coords.shape[0], source.feats.shape[1])), torch.zeros(
+            target_coords.shape[0], dtype=torch.bool, device=target_coords.device)
+    src_key = voxel_hash(source.coords, source.spatial_shape)
+    order = torch.argsort(src_key)
+    sorted_key = src_key[order]
+    tgt_key = voxel_hash(target_coords, source.spatial_shape)
+    pos = torch.searchsorted(sorted_key, tgt_key).clamp_max(sorted_key.numel() - 1)
+    found = sorted_key[pos] == tgt_key
+    rows = order[pos]
+    feats = source.feats[rows] * found.unsqueeze(1).to(source.feats.dtype)
+    return feats, found
+
+
+def dense_to_sparse(dense: Tensor) -> SparseVoxels:
+    """Extract non-zero voxels of a dense (B, C, X, Y, Z) volume (``sum |feat| > 0``), SCPNet §3.2."""
+    if dense.dim() != 5:
+        raise ValueError(f"dense_to_sparse expects (B, C, X, Y, Z), got {tuple(dense.shape)}")
+    active = dense.detach().abs().sum(dim=1) > 0  # (B, X, Y, Z)
+    coords = active.nonzero()  # sorted lexicographically: batch, x, y, z
+    feats = dense.permute(0, 2, 3, 4, 1)[active]
+    return SparseVoxels(coords, feats, tuple(dense.shape[2:]))  # type: ignore[arg-type]

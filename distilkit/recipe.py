@@ -1,0 +1,217 @@
+"""The recipe schema (pydantic v2): the single source of truth for configuration.
+
+Recipes are read with ``yaml.safe_load`` only and may name registered components only.
+:func:`load_recipe` parses and validates the structure; :func:`check_recipe` also builds every
+parameter model from the registries and checks taps, so that mistakes are found before training.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from distilkit.errors import RecipeError
+
+SCHEMA_VERSION = 1
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+
+class ModelSpec(_Strict):
+    """A model: a registered adapter and its parameters."""
+
+    adapter: str = Field(..., description="registered adapter name (see `distilkit list`)")
+    params: dict[str, Any] = Field(default_factory=dict, description="the adapter's parameters")
+
+
+class TeacherSpec(_Strict):
+    """Where a stage's frozen teacher comes from: an earlier stage or a checkpoint file."""
+
+    from_: str | None = Field(None, alias="from", description="name of an earlier stage whose best model is the teacher")
+    checkpoint: str | None = Field(None, description="path of a distilkit checkpoint (loaded with weights_only=True)")
+    model: ModelSpec | None = Field(None, description="the teacher's model (required with `checkpoint`)")
+    which: Literal["best", "last"] = Field("best", description="checkpoint of the upstream stage to use")
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "TeacherSpec":
+        if (self.from_ is None) == (self.checkpoint is None):
+            raise ValueError("give exactly one of `from` (an earlier stage) or `checkpoint` (a file)")
+        if self.checkpoint is not None and self.model is None:
+            raise ValueError("a `checkpoint` teacher needs `model` (adapter and params)")
+        return self
+
+
+class LossSpec(_Strict):
+    """A weighted term: a task loss or a distillation objective."""
+
+    name: str = Field(..., description="registered name")
+    weight: float | None = Field(None, ge=0, description="weight (default: the component's default)")
+    params: dict[str, Any] = Field(default_factory=dict, description="the component's parameters")
+    taps: dict[str, str] = Field(default_factory=dict,
+                                 description="role -> tap name, e.g. {student: completion, teacher: completion}")
+
+
+class OptimizerSpec(_Strict):
+    name: Literal["adam", "adamw", "sgd"] = "adam"
+    lr: float = Field(1e-3, gt=0)
+    weight_decay: float = Field(0.0, ge=0)
+    momentum: float = Field(0.9, ge=0, description="SGD only")
+    betas: tuple[float, float] = (0.9, 0.999)
+
+
+class TrainSpec(_Strict):
+    epochs: int | None = Field(None, ge=1, description="passes over the training split")
+    steps: int | None = Field(None, ge=1, description="optimizer steps (instead of epochs)")
+    batch_size: int = Field(1, ge=1)
+    grad_clip: float | None = Field(None, gt=0, description="max gradient norm (SCPNet: 10)")
+    eval_every: int | None = Field(None, ge=1, description="evaluate every N steps (default: end of each epoch)")
+    log_every: int = Field(10, ge=1)
+    checkpoint_every: int = Field(50, ge=1, description="write last.pt every N steps (and at each evaluation)")
+    device: str = Field("auto", description="'auto' (cuda if available), 'cpu' or 'cuda'")
+    metric: str = Field("miou", description="validation score that selects best.pt (miou or iou)")
+
+    @model_validator(mode="after")
+    def _length(self) -> "TrainSpec":
+        if self.epochs is None and self.steps is None:
+            self.epochs = 1
+        if self.epochs is not None and self.steps is not None:
+            raise ValueError("give either `epochs` or `steps`, not both")
+        if self.metric not in ("miou", "iou"):
+            raise ValueError("metric must be 'miou' or 'iou'")
+        return self
+
+
+class StageSpec(_Strict):
+    """One training stage: a student model, optionally a frozen teacher and distillation terms."""
+
+    model: ModelSpec
+    teacher: TeacherSpec | None = None
+    task_losses: list[LossSpec] | None = Field(None, description="supervised terms (default: the adapter's)")
+    distill: list[LossSpec] = Field(default_factory=list, description="distillation objectives")
+    optimizer: OptimizerSpec = Field(default_factory=OptimizerSpec)
+    train: TrainSpec = Field(default_factory=TrainSpec)
+    label: str | None = Field(None, description="display name in reports")
+
+    @model_validator(mode="after")
+    def _teacher_needed(self) -> "StageSpec":
+        if self.distill and self.teacher is None:
+            raise ValueError("`distill` objectives need a `teacher`")
+        return self
+
+
+class DataSpec(_Strict):
+    dataset: str = Field("synthetic-lidar", description="registered dataset name")
+    params: dict[str, Any] = Field(default_factory=dict, description="the dataset's parameters")
+
+
+class Recipe(_Strict):
+    """A distilkit recipe: data and named stages, run in dependency order."""
+
+    schema_version: Literal[1] = Field(SCHEMA_VERSION, description="recipe format version")
+    name: str = Field(..., pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", description="run name (folder under the output)")
+    seed: int = 0
+    data: DataSpec = Field(default_factory=DataSpec)
+    stages: dict[str, StageSpec] = Field(..., min_length=1)
+
+    @field_validator("stages")
+    @classmethod
+    def _stage_names(cls, v: dict[str, StageSpec]) -> dict[str, StageSpec]:
+        import re
+
+        for name in v:
+            if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
+                raise ValueError(f"stage name {name!r} must be letters, digits, '_', '-' or '.'")
+        return v
+
+
+def format_loc(loc: tuple[Any, ...]) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out
+
+
+def pydantic_problems(err: ValidationError, prefix: str = "") -> list[tuple[str, str]]:
+    problems = []
+    for e in err.errors():
+        loc = tuple(p for p in e["loc"] if p not in ("function-after",) and not str(p).startswith("function-"))
+        path = format_loc(loc)
+        if prefix:
+            path = f"{prefix}.{path}" if path and not path.startswith("[") else prefix + path
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key"
+        elif msg.startswith("Value error, "):
+            msg = msg[len("Value error, "):]
+        problems.append((path, msg))
+    return problems
+
+
+def parse_yaml(text: str, source: str) -> Any:
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise RecipeError([("", f"{where}malformed YAML: {problem}")], source) from None
+
+
+def recipe_from_dict(data: Any, source: str = "recipe") -> Recipe:
+    if not isinstance(data, dict):
+        raise RecipeError([("", f"a recipe must be a YAML mapping, got {type(data).__name__}")], source)
+    try:
+        return Recipe.model_validate(data)
+    except ValidationError as err:
+        raise RecipeError(pydantic_problems(err), source) from None
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Read and validate the structure of a recipe file (``yaml.safe_load``; nothing is executed)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RecipeError([("", f"cannot read recipe: {exc}")], str(path)) from None
+    return recipe_from_dict(parse_yaml(text, str(path)), str(path))
+
+
+def stage_order(recipe: Recipe) -> list[str]:
+    """Stage names in dependency order (a teacher stage before its students)."""
+    order: list[str] = []
+    state: dict[str, int] = {}
+    problems: list[tuple[str, str]] = []
+
+    def visit(name: str, path: list[str]) -> None:
+        if state.get(name) == 2:
+            return
+        if state.get(name) == 1:
+            problems.append((f"stages.{name}.teacher.from", f"cycle: {' -> '.join(path + [name])}"))
+            return
+        state[name] = 1
+        t = recipe.stages[name].teacher
+        if t is not None and t.from_ is not None:
+            if t.from_ not in recipe.stages:
+                import difflib
+
+                close = difflib.get_close_matches(t.from_, list(recipe.stages), n=1)
+                hint = f"; did you mean {close[0]!r}?" if close else ""
+                problems.append((f"stages.{name}.teacher.from", f"no stage named {t.from_!r}{hint}"))
+            else:
+                visit(t.from_, path + [name])
+        state[name] = 2
+        order.append(name)
+
+    for name in recipe.stages:
+        visit(name, [])
+    if problems:
+        raise RecipeError(problems)
+    return order

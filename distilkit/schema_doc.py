@@ -1,0 +1,55 @@
+"""The recipe JSON schema and the Markdown recipe reference, both generated from :mod:`distilkit.recipe`."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from distilkit.recipe import Recipe
+
+
+def recipe_json_schema() -> str:
+    schema = Recipe.model_json_schema(by_alias=True)
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["title"] = "distilkit recipe"
+    return json.dumps(schema, indent=2)
+
+
+def _type(prop: dict[str, Any]) -> str:
+    if "$ref" in prop:
+        return prop["$ref"].split("/")[-1]
+    if "anyOf" in prop:
+        return " or ".join(_type(p) for p in prop["anyOf"])
+    if "enum" in prop:
+        return " | ".join(json.dumps(v) for v in prop["enum"])
+    if "const" in prop:
+        return json.dumps(prop["const"])
+    t = prop.get("type", "any")
+    if t == "array":
+        return f"list of {_type(prop.get('items', {}))}" if "items" in prop else "list"
+    if t == "object" and "additionalProperties" in prop and isinstance(prop["additionalProperties"], dict):
+        return f"mapping of {_type(prop['additionalProperties'])}"
+    return t
+
+
+def recipe_reference_markdown() -> str:
+    """Every recipe section and field, with type, default and description (docs/recipe-reference.md)."""
+    schema = Recipe.model_json_schema(by_alias=True)
+    defs = schema.get("$defs", {})
+    sections = [("Recipe", schema)] + sorted(defs.items())
+    out = ["# Recipe reference", "",
+           "Generated from the recipe schema by `distilkit schema --markdown`; a test keeps this file in sync.",
+           "Unknown keys are errors. Component parameters (`params`) are checked against the named component "
+           "(see `distilkit list`).", ""]
+    for name, sec in sections:
+        out += [f"## {name}", ""]
+        if sec.get("description"):
+            out += [sec["description"].strip().splitlines()[0], ""]
+        out += ["| field | type | default | description |", "|---|---|---|---|"]
+        required = set(sec.get("required", []))
+        for field, prop in sec.get("properties", {}).items():
+            default = "*required*" if field in required else f"`{json.dumps(prop.get('default'))}`" if "default" in prop else ""
+            desc = (prop.get("description") or "").replace("|", "\\|")
+            out.append(f"| `{field}` | {_type(prop)} | {default} | {desc} |")
+        out.append("")
+    return "\n".join(out)

@@ -1,0 +1,32 @@
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+
+TINY_DATA = {"scale": 8, "num_train": 2, "num_val": 1, "input_frames": 2, "gt_frames": 3, "beams": 16,
+             "azimuth_steps": 256}
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _cache(tmp_path_factory: pytest.TempPathFactory) -> None:
+    os.environ.setdefault("DISTILKIT_CACHE", str(tmp_path_factory.mktemp("cache")))
+
+
+def tiny_recipe(name: str = "tiny", steps: int = 2, distill: bool = True, adapter: str = "scpnet") -> dict:
+    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4} if adapter == "scpnet" else \
+        {"seg_channels": 4, "embed": 4, "ssc_channels": 4, "pvi_hidden": 4, "knn": 4}
+    train = {"steps": steps, "batch_size": 1, "eval_every": steps, "log_every": 1, "checkpoint_every": 1}
+    stages = {
+        "teacher": {"model": {"adapter": adapter, "params": {**params, "frames": 2}}, "train": train},
+    }
+    if distill:
+        stages["student"] = {"model": {"adapter": adapter, "params": {**params, "frames": 1}},
+                             "teacher": {"from": "teacher"},
+                             "distill": [{"name": "dskd", "weight": 10.0}], "train": train}
+    return {"schema_version": 1, "name": name, "seed": 0,
+            "data": {"dataset": "synthetic-lidar", "params": dict(TINY_DATA)}, "stages": stages}

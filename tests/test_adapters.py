@@ -1,0 +1,104 @@
+"""SCPNet and JS3C-Net adapters: architecture facts from the papers, taps, task losses."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from conftest import TINY_DATA
+from distilkit.data.datasets import build_synthetic, collate, synthetic_info
+from distilkit.data.params import SyntheticParams
+from distilkit.losses.task import UncertaintyMultiTask
+from distilkit.registry import ADAPTERS
+from distilkit.taps import SparseVoxels, check_tap
+from distilkit_adapters.js3cnet.model import pixel_shuffle_3d
+from distilkit_adapters.scpnet.model import CompletionSubNetwork, MultiPathBlock
+
+P = SyntheticParams(**TINY_DATA)
+
+
+@pytest.fixture(scope="module")
+def batch() -> dict:
+    ds = build_synthetic(P, "train")
+    return collate([ds[0], ds[1]])
+
+
+def test_mpb_has_3_5_7_kernels_no_bias_no_batchnorm() -> None:
+    net = CompletionSubNetwork(4)
+    convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv3d)]
+    assert all(c.bias is None for c in convs)
+    assert not any(isinstance(m, torch.nn.modules.batchnorm._BatchNorm) for m in net.modules())
+    mpb = MultiPathBlock(4)
+    assert sorted(p[0].kernel_size[0] for p in mpb.paths) == [3, 5, 7]
+    assert sum(isinstance(m, MultiPathBlock) for m in net.modules()) == 3  # upper 1 + middle 2
+
+
+def test_completion_keeps_sparsity() -> None:
+    # no bias, no BN: a voxel farther than the receptive field from any input stays exactly zero
+    net = CompletionSubNetwork(2)
+    x = torch.zeros(1, 2, 40, 8, 8)
+    x[0, :, 2, 4, 4] = torch.rand(2) + 0.5
+    out = net(x)
+    nz = out.abs().sum(1)[0].nonzero()
+    assert len(nz) > 1  # completed (dilated)
+    # radius: middle branch 3 + (3 + 1) * 2 ... bounded by 1 + 3 + 3 + 1 = 8 voxels along x
+    assert int(nz[:, 0].max()) <= 2 + 8 and out[0, :, 12:].abs().sum() == 0
+
+
+def test_scpnet_taps(batch) -> None:
+    cls = ADAPTERS.get("scpnet")
+    model = cls(cls.Params(frames=2, channels=4, point_mlp=[8], seg_channels=4), synthetic_info(P))
+    out = model(batch)
+    for name, kind in cls.TAPS.items():
+        check_tap(out[name], kind, name)
+    assert out["logits"].shape == (2, 20, 32, 32, 4)
+    sp: SparseVoxels = out["completion"]
+    dense = out["completion_dense"]
+    assert sp.feats.shape[0] == int((dense.abs().sum(1) > 0).sum())
+    b, x, y, z = sp.coords[0].tolist()
+    assert torch.equal(dense[b, :, x, y, z], sp.feats[0])
+
+
+def test_teacher_sees_more_points_than_student(batch) -> None:
+    cls = ADAPTERS.get("scpnet")
+    info = synthetic_info(P)
+    torch.manual_seed(0)
+    student = cls(cls.Params(frames=1, channels=4, point_mlp=[8], seg_channels=4), info)
+    torch.manual_seed(0)
+    teacher = cls(cls.Params(frames=2, channels=4, point_mlp=[8], seg_channels=4), info)
+    student.eval(), teacher.eval()
+    with torch.no_grad():
+        ns = student(batch)["completion"].coords.shape[0]
+        nt = teacher(batch)["completion"].coords.shape[0]
+    assert nt > ns
+
+
+def test_js3cnet_taps_and_uncertainty_loss(batch) -> None:
+    cls = ADAPTERS.get("js3cnet")
+    model = cls(cls.Params(frames=1, seg_channels=4, embed=4, ssc_channels=4, pvi_hidden=4, knn=4), synthetic_info(P))
+    out = model(batch)
+    for name, kind in cls.TAPS.items():
+        check_tap(out[name], kind, name)
+    assert out["logits"].shape == (2, 20, 32, 32, 4)
+    assert out["point_logits"].shape[0] == out["point_target"].shape[0]
+    assert out["completion"].spatial_shape == (16, 16, 2)
+    loss = UncertaintyMultiTask(UncertaintyMultiTask.Params(init_log_var=0.3), {"student": "logits", "points": "point_logits"})
+    value = loss(out, batch)
+    # JS3C-Net eq. 2 with s = log sigma^2: 1/(2 sigma^2) L + log sigma
+    tgt = out["point_target"].masked_fill(out["point_target"] == 0, 255)
+    l_seg = F.cross_entropy(out["point_logits"], tgt, ignore_index=255)
+    l_comp = F.cross_entropy(out["logits"], batch["voxel_target"], ignore_index=255)
+    sigma2 = torch.exp(torch.tensor(0.3))
+    want = l_seg / (2 * sigma2) + l_comp / (2 * sigma2) + 2 * torch.log(sigma2.sqrt())
+    assert value.item() == pytest.approx(want.item(), rel=1e-5)
+    value.backward()
+    assert loss.log_var.grad is not None and torch.isfinite(loss.log_var.grad).all()
+
+
+def test_pixel_shuffle_3d_inverts_space_to_depth() -> None:
+    x = torch.arange(2 * 8 * 2 * 3 * 1, dtype=torch.float32).view(1, 16, 2, 3, 1)
+    y = pixel_shuffle_3d(x, 2)
+    assert y.shape == (1, 2, 4, 6, 2)
+    # channel c*8 + (i*4 + j*2 + k) of coarse voxel (x,y,z) lands at fine (2x+i, 2y+j, 2z+k)
+    assert y[0, 1, 3, 4, 1] == x[0, 8 + 4 + 0 + 1, 1, 2, 0]

@@ -1,0 +1,150 @@
+"""Recipes, `distilkit validate`, `list`, `schema`, cheap imports and the registry."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from conftest import ROOT, tiny_recipe
+from distilkit.cli import main
+from distilkit.registry import OBJECTIVES, Registry
+from distilkit.errors import UnknownNameError
+
+
+def write(tmp_path: Path, data, name: str = "r.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(data if isinstance(data, str) else yaml.safe_dump(data))
+    return p
+
+
+def validate(path: Path, capsys) -> tuple[int, str]:
+    code = main(["validate", str(path)])
+    captured = capsys.readouterr()
+    return code, captured.out + captured.err
+
+
+@pytest.mark.parametrize("recipe", sorted((ROOT / "recipes").glob("*.yaml")), ids=lambda p: p.name)
+def test_shipped_recipes_validate(recipe: Path, capsys) -> None:
+    code, out = validate(recipe, capsys)
+    assert code == 0 and "ok" in out
+
+
+def test_misspelled_objective_suggests(tmp_path, capsys) -> None:
+    r = tiny_recipe()
+    r["stages"]["student"]["distill"][0]["name"] = "dskdd"
+    code, out = validate(write(tmp_path, r), capsys)
+    assert code == 2
+    assert "stages.student.distill[0].name" in out and "did you mean 'dskd'" in out
+    assert "Traceback" not in out
+
+
+def test_wrong_type_names_the_field(tmp_path, capsys) -> None:
+    r = tiny_recipe()
+    r["stages"]["student"]["distill"][0]["weight"] = "heavy"
+    code, out = validate(write(tmp_path, r), capsys)
+    assert code == 2 and "stages.student.distill[0].weight" in out
+
+
+def test_unknown_key_and_bad_adapter_param(tmp_path, capsys) -> None:
+    r = tiny_recipe()
+    r["stages"]["teacher"]["trian"] = {}
+    r["stages"]["teacher"]["model"]["params"]["chanels"] = 3
+    code, out = validate(write(tmp_path, r), capsys)
+    assert code == 2
+    assert "stages.teacher.trian: unknown key" in out
+
+
+def test_bad_adapter_param_names_path(tmp_path, capsys) -> None:
+    r = tiny_recipe()
+    r["stages"]["teacher"]["model"]["params"]["chanels"] = 3
+    code, out = validate(write(tmp_path, r), capsys)
+    assert code == 2 and "stages.teacher.model.params.chanels: unknown key" in out
+
+
+def test_malformed_yaml(tmp_path, capsys) -> None:
+    code, out = validate(write(tmp_path, "name: x\nstages: [\n  a: b\n"), capsys)
+    assert code == 2 and "malformed YAML" in out and "line" in out
+
+
+def test_python_tag_is_rejected_and_never_executed(tmp_path, capsys) -> None:
+    marker = tmp_path / "pwned"
+    text = f"name: x\nseed: !!python/object/apply:os.system ['touch {marker}']\nstages: {{}}\n"
+    code, out = validate(write(tmp_path, text), capsys)
+    assert code == 2 and "python/object/apply" in out
+    assert not marker.exists()
+
+
+def test_taps_the_adapter_does_not_provide(tmp_path, capsys) -> None:
+    r = tiny_recipe()
+    r["stages"]["student"]["distill"][0]["taps"] = {"student": "logits"}
+    code, out = validate(write(tmp_path, r), capsys)
+    assert code == 2 and "tap 'logits'" in out and "sparse_features" in out
+    r["stages"]["student"]["distill"][0]["taps"] = {"student": "nope"}
+    code, out = validate(write(tmp_path, r), capsys)
+    assert code == 2 and "has no tap 'nope'" in out
+
+
+def test_unknown_teacher_stage_and_missing_teacher(tmp_path, capsys) -> None:
+    r = tiny_recipe()
+    r["stages"]["student"]["teacher"] = {"from": "teachr"}
+    code, out = validate(write(tmp_path, r), capsys)
+    assert code == 2 and "stages.student.teacher.from" in out and "did you mean 'teacher'" in out
+    r = tiny_recipe()
+    del r["stages"]["student"]["teacher"]
+    code, out = validate(write(tmp_path, r), capsys)
+    assert code == 2 and "need a `teacher`" in out
+
+
+def test_too_many_frames_for_the_data(tmp_path, capsys) -> None:
+    r = tiny_recipe()
+    r["stages"]["teacher"]["model"]["params"]["frames"] = 9
+    code, out = validate(write(tmp_path, r), capsys)
+    assert code == 2 and "stages.teacher.model.params.frames" in out
+
+
+def test_registry_rejects_duplicates_and_suggests() -> None:
+    reg: Registry[object] = Registry("thing")
+    reg.add("alpha", 1, description="a")
+    with pytest.raises(ValueError, match="already registered"):
+        reg.add("alpha", 2, description="b")
+    reg.add("alpha", 2, description="b", override=True)
+    assert reg.get("alpha") == 2
+    with pytest.raises(UnknownNameError, match="did you mean 'alpha'"):
+        reg.get("alpah")
+    assert OBJECTIVES.entry("dskd").meta["default_weight"] == 3000.0
+
+
+def test_list_shows_components(capsys) -> None:
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    for name in ("scpnet", "js3cnet", "dskd", "synthetic-lidar", "ssc", "lovasz"):
+        assert name in out
+    assert "SCPNet" in out
+
+
+def test_schema_is_json_and_docs_are_in_sync(capsys) -> None:
+    assert main(["schema"]) == 0
+    schema = json.loads(capsys.readouterr().out)
+    assert "stages" in schema["properties"] and schema["additionalProperties"] is False
+    assert main(["schema", "--markdown"]) == 0
+    generated = capsys.readouterr().out
+    assert (ROOT / "docs" / "recipe-reference.md").read_text() == generated, \
+        "docs/recipe-reference.md is stale: run `distilkit schema --markdown > docs/recipe-reference.md`"
+
+
+def test_help_and_import_do_not_import_torch() -> None:
+    code = ("import sys, distilkit, distilkit.cli\n"
+            "try:\n    distilkit.cli.main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "assert 'torch' not in sys.modules, 'torch imported'\nprint('clean')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "clean" in out.stdout and "usage: distilkit" in out.stdout
+
+
+def test_python_dash_m_works() -> None:
+    out = subprocess.run([sys.executable, "-m", "distilkit", "--version"], capture_output=True, text=True)
+    assert out.returncode == 0 and "distilkit" in out.stdout

@@ -1,0 +1,138 @@
+"""Synthetic scenes, SemanticKITTI IO and collation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import SHARED, TINY_DATA
+from distilkit.data import semantickitti as sk
+from distilkit.data.classes import NUM_CLASSES, ssc_lut
+from distilkit.data.datasets import build_synthetic, collate, pool_labels
+from distilkit.data.params import SyntheticParams
+from distilkit.data.raycast import Primitives, cast, ray_directions
+from distilkit.data.synthetic import generate_split, make_sample, make_scene, voxelize_majority
+from distilkit.errors import DataError
+from distilkit.geometry.voxel import VoxelGrid
+
+P = SyntheticParams(**TINY_DATA)
+
+
+def test_deterministic_per_seed_and_different_across_seeds() -> None:
+    a, b, c = make_sample(5, P), make_sample(5, P), make_sample(6, P)
+    for k in a:
+        assert np.array_equal(a[k], b[k])
+    assert not np.array_equal(a["voxel_label"], c["voxel_label"])
+
+
+def test_scene_has_required_classes_static_and_moving_objects() -> None:
+    rng = np.random.default_rng(0)
+    scene = make_scene(rng, 0, 200, 1.0)
+    prims = scene.prims
+    labels = set(prims.box_label) | set(prims.cyl_label) | set(prims.sph_label)
+    for raw in (48, 50, 51, 70, 71, 80, 252, 254):  # sidewalk, building, fence, vegetation, trunk, pole, moving car/person
+        assert raw in labels
+    moving = np.abs(prims.box_vel).sum(1) > 0
+    assert moving.any() and (prims.box_inst[moving] > 0).all()
+    inst = prims.box_inst[prims.box_inst > 0]
+    assert len(np.unique(inst)) == len(inst)  # one id per object
+
+
+def test_ray_caster_hits_a_box_at_the_right_distance() -> None:
+    prims = Primitives(boxes=np.array([[10, -1, 0, 12, 1, 3]], np.float32), box_label=np.array([50]),
+                       box_inst=np.array([0]), box_vel=np.zeros((1, 2), np.float32))
+    dirs = np.array([[1, 0, 0], [0, 1, 0], [0.6, 0, -0.8]], np.float32)
+    t, kind, idx, pts = cast(np.array([0, 0, 1.0], np.float32), dirs, prims)
+    assert t[0] == pytest.approx(10.0) and kind[0] == 2
+    assert kind[1] == 0 and not np.isfinite(t[1])
+    assert kind[2] == 1 and pts[2, 2] == pytest.approx(0.0, abs=1e-5)  # ground
+    assert ray_directions(4, 8, 2, -24).shape == (32, 3)
+
+
+def test_sample_conventions() -> None:
+    s = make_sample(1, P)
+    grid = VoxelGrid.semantickitti(P.scale)
+    assert s["voxel_label"].shape == grid.shape == (32, 32, 4)
+    assert s["invalid"].shape == grid.shape
+    assert set(np.unique(s["point_frame"])) == {0, 1}
+    # labels are SSC train ids; the observed volume has road and empty space
+    vals = set(np.unique(s["voxel_label"]).tolist())
+    assert vals <= set(range(NUM_CLASSES)) | {255}
+    assert 9 in vals and 0 in vals
+    # occupied voxels are never invalid; invalid voxels exist (unobserved space)
+    assert not (s["invalid"] & (s["voxel_label"] > 0)).any()
+    assert s["invalid"].any() and (~s["invalid"]).any()
+    # points of the current frame are in the sensor frame: ground about 1.73 m below the sensor
+    cur = s["points"][(s["point_frame"] == 0) & (s["point_label"] == 9)]
+    assert np.median(cur[:, 2]) == pytest.approx(-1.73, abs=0.1)
+
+
+def test_majority_voxelisation_ties_to_smallest_id() -> None:
+    grid = VoxelGrid((0.0, 0.0, 0.0), (2, 1, 1), 1.0)
+    xyz = np.array([[0.5, 0.5, 0.5]] * 4 + [[1.5, 0.5, 0.5]] * 3, np.float32)
+    raw = np.array([50, 50, 40, 40, 70, 70, 10])
+    out = voxelize_majority(xyz, raw, grid)
+    assert out[0, 0, 0] == 40 and out[1, 0, 0] == 70
+
+
+def test_cache_is_reused(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("DISTILKIT_CACHE", str(tmp_path))
+    a = generate_split(P, "val", 1)
+    files = list(tmp_path.rglob("*.npz"))
+    assert len(files) == 1
+    mtime = files[0].stat().st_mtime_ns
+    b = generate_split(P, "val", 1)
+    assert files[0].stat().st_mtime_ns == mtime
+    assert np.array_equal(a["points"], b["points"])
+
+
+def test_collate_sets_invalid_to_ignore() -> None:
+    ds = build_synthetic(P, "train")
+    batch = collate([ds[0], ds[1]])
+    assert batch["voxel_label"].shape == (2, 32, 32, 4)
+    assert (batch["voxel_target"][batch["invalid"]] == 255).all()
+    assert int(batch["point_batch"].max()) == 1 and len(batch["points"]) == len(ds[0]["points"]) + len(ds[1]["points"])
+
+
+def test_reads_the_real_semantickitti_scan() -> None:
+    root = SHARED / "data" / "semantickitti-sample" / "sequences" / "00"
+    pts = sk.read_points(root / "velodyne" / "000000.bin")
+    sem, inst = sk.read_point_labels(root / "labels" / "000000.label", len(pts))
+    assert pts.shape == (50, 4) and pts.dtype == np.float32
+    assert set(np.unique(sem)) <= {0, 50, 52, 70, 71, 80} and (inst == 0).all()
+    assert (ssc_lut()[sem] != 0).sum() > 0
+
+
+def test_voxel_files_round_trip_and_bit_order(tmp_path) -> None:
+    rng = np.random.default_rng(0)
+    shape = (8, 4, 2)
+    bits = rng.random(shape) < 0.3
+    sk.write_voxel_bits(tmp_path / "a.invalid", bits)
+    assert np.array_equal(sk.read_voxel_bits(tmp_path / "a.invalid", shape), bits)
+    one = np.zeros(shape, bool)
+    one.reshape(-1)[0] = True  # voxel 0 is the most significant bit of byte 0
+    sk.write_voxel_bits(tmp_path / "b.bin", one)
+    assert (tmp_path / "b.bin").read_bytes()[0] == 0x80
+    labels = rng.integers(0, 260, shape).astype(np.uint16)
+    sk.write_voxel_labels(tmp_path / "a.label", labels)
+    assert np.array_equal(sk.read_voxel_labels(tmp_path / "a.label", shape), labels)
+
+
+def test_corrupt_files_raise_clear_errors(tmp_path) -> None:
+    (tmp_path / "x.bin").write_bytes(b"\x00" * 10)
+    with pytest.raises(DataError, match="not a multiple of 16"):
+        sk.read_points(tmp_path / "x.bin")
+    with pytest.raises(DataError, match="not found"):
+        sk.read_points(tmp_path / "missing.bin")
+    (tmp_path / "y.label").write_bytes(b"\x00" * 8)
+    with pytest.raises(DataError, match="expected"):
+        sk.read_voxel_labels(tmp_path / "y.label", (4, 4, 4))
+
+
+def test_pool_labels_majority_of_nonempty() -> None:
+    lab = np.zeros((2, 2, 2), np.uint8)
+    lab[0, 0, 0] = 9
+    lab[1, 1, 1] = 9
+    lab[0, 1, 0] = 13
+    out, inv = pool_labels(lab, np.zeros_like(lab, bool), 2)
+    assert out.shape == (1, 1, 1) and out[0, 0, 0] == 9 and not inv.any()

@@ -1,0 +1,119 @@
+"""Trainer and pipeline: frozen teacher, caching by content, resume, checkpoints, NaN handling."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from conftest import tiny_recipe
+from distilkit.engine.io import load_checkpoint
+from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.trainer import Trainer, load_teacher
+from distilkit.errors import DataError, NonFiniteLossError
+from distilkit.recipe import recipe_from_dict
+
+
+def pipeline(tmp_path, recipe: dict) -> Pipeline:
+    return Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
+
+
+def test_run_then_reuse_every_stage(tmp_path) -> None:
+    pipe = pipeline(tmp_path, tiny_recipe())
+    first = pipe.run()
+    assert [r.reused for r in first] == [False, False]
+    for r in first:
+        d = r.run_dir
+        assert (d / "summary.json").is_file() and (d / "recipe.resolved.yaml").is_file()
+        assert (d / "checkpoints" / "last.pt").is_file() and (d / "checkpoints" / "best.pt").is_file()
+        lines = [json.loads(x) for x in (d / "metrics.jsonl").read_text().splitlines()]
+        assert any("eval" in x for x in lines) and any("loss" in x for x in lines)
+        assert 0.0 <= r.summary["best"]["scores"]["miou"] <= 1.0
+    assert (pipe.root / "report.md").is_file() and (pipe.root / "report.png").stat().st_size > 1000
+    student = first[1]
+    assert "kd_dskd" in json.loads((student.run_dir / "metrics.jsonl").read_text().splitlines()[0])
+    # checkpoints hold the student only (no teacher weights)
+    ckpt = load_checkpoint(student.run_dir / "checkpoints" / "last.pt")
+    assert set(ckpt) >= {"student", "optimizer", "rng", "step"} and "teacher" not in ckpt
+    mtimes = [(r.run_dir / "summary.json").stat().st_mtime_ns for r in first]
+    again = pipeline(tmp_path, tiny_recipe()).run()
+    assert [r.reused for r in again] == [True, True]
+    assert [(r.run_dir / "summary.json").stat().st_mtime_ns for r in again] == mtimes
+
+
+def test_changing_the_teacher_changes_the_student_identity(tmp_path) -> None:
+    a = pipeline(tmp_path, tiny_recipe())
+    r = tiny_recipe()
+    r["stages"]["teacher"]["optimizer"] = {"lr": 0.01}
+    b = pipeline(tmp_path, r)
+    assert a.hashes["teacher"] != b.hashes["teacher"] and a.hashes["student"] != b.hashes["student"]
+    r2 = tiny_recipe()
+    r2["stages"]["teacher"]["train"]["log_every"] = 5  # logging does not change what is trained
+    assert pipeline(tmp_path, r2).hashes == a.hashes
+
+
+def test_teacher_is_frozen_and_unchanged_by_a_step(tmp_path) -> None:
+    pipe = pipeline(tmp_path, tiny_recipe(steps=1))
+    pipe.run()
+    stage = pipe.resolved.stages["student"]
+    teacher = load_teacher(stage.teacher, pipe.resolved.data_info,
+                           pipe.run_dir("teacher") / "checkpoints" / "best.pt", torch.device("cpu"))
+    before = {k: v.clone() for k, v in teacher.state_dict().items()}
+    assert not teacher.training and not any(p.requires_grad for p in teacher.parameters())
+    trainer = Trainer(stage, pipe.resolved.data_info, pipe.dataset("train"), pipe.dataset("val"), tmp_path / "s", 0,
+                      teacher)
+    trainer.fit()
+    after = teacher.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)  # weights and BN buffers
+    assert not teacher.training
+
+
+def test_resume_after_interruption(tmp_path) -> None:
+    recipe = tiny_recipe(steps=4, distill=False)
+    recipe["stages"]["teacher"]["train"]["eval_every"] = 4
+    pipeline(tmp_path, recipe).run(stop_after=2)
+    pipe = pipeline(tmp_path, recipe)
+    run_dir = pipe.run_dir("teacher")
+    assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["step"] == 2
+    assert not (run_dir / "summary.json").exists()
+    results = pipe.run()
+    assert results[0].summary["steps"] == 4 and not results[0].reused
+    events = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert {"event": "resume", "step": 2} in events
+    # the resumed run equals an uninterrupted one
+    fresh = pipeline(tmp_path / "other", recipe).run()
+    a = load_checkpoint(run_dir / "checkpoints" / "last.pt")["student"]
+    b = load_checkpoint(fresh[0].run_dir / "checkpoints" / "last.pt")["student"]
+    assert all(torch.allclose(a[k].float(), b[k].float(), atol=1e-5) for k in a)
+
+
+def test_nan_loss_stops_with_a_clear_error_and_keeps_the_checkpoint(tmp_path, monkeypatch) -> None:
+    recipe = tiny_recipe(steps=3, distill=False)
+    pipe = pipeline(tmp_path, recipe)
+    calls = {"n": 0}
+    orig = Trainer.loss_terms
+
+    def poisoned(self, batch):
+        terms = orig(self, batch)
+        calls["n"] += 1
+        if calls["n"] == 2:
+            terms["ce"] = terms["ce"] * float("nan")
+        return terms
+
+    monkeypatch.setattr(Trainer, "loss_terms", poisoned)
+    with pytest.raises(NonFiniteLossError, match="ce"):
+        pipe.run()
+    assert load_checkpoint(pipe.run_dir("teacher") / "checkpoints" / "last.pt")["step"] == 1
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path) -> None:
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(DataError, match="not a readable distilkit checkpoint"):
+        load_checkpoint(bad)
+
+
+def test_js3cnet_dskd_recipe_runs(tmp_path) -> None:
+    results = pipeline(tmp_path, tiny_recipe(adapter="js3cnet")).run()
+    assert [r.summary["status"] for r in results] == ["finished", "finished"]
