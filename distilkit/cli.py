@@ -35,12 +35,13 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
-    from rich.console import Console
     from rich.table import Table
+
+    from distilkit.console import make_console
 
     from distilkit.registry import ALL_REGISTRIES, plugin_errors
 
-    console = Console()
+    console = make_console()
     for kind, reg in ALL_REGISTRIES.items():
         if args.kind and args.kind != kind.split()[0].rstrip("s") and args.kind != kind:
             continue

@@ -120,10 +120,11 @@ _loading = False
 plugin_errors: list[str] = []
 
 
-def load_plugins() -> None:
-    """Import the built-in components and every ``distilkit.plugins`` entry point (once)."""
+def load_plugins(force: bool = False) -> None:
+    """Import the built-in components and every ``distilkit.plugins`` entry point (once;
+    ``force=True`` looks for entry points again, e.g. after a package was installed)."""
     global _loaded, _loading
-    if _loaded or _loading:
+    if _loading or (_loaded and not force):
         return
     _loading = True
     try:

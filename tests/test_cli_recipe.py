@@ -148,3 +148,14 @@ def test_help_and_import_do_not_import_torch() -> None:
 def test_python_dash_m_works() -> None:
     out = subprocess.run([sys.executable, "-m", "distilkit", "--version"], capture_output=True, text=True)
     assert out.returncode == 0 and "distilkit" in out.stdout
+
+
+def test_bench_quick_reports_a_speedup(capsys) -> None:
+    from distilkit.bench import run_bench
+
+    rows = run_bench(["dskd"], quick=True, repeat=1)
+    out = capsys.readouterr().out
+    assert "dskd" in out and "speed-up" in out
+    naive_rows = [r for r in rows if "speedup" in r]
+    assert naive_rows and naive_rows[0]["rel_err"] < 1e-4
+    assert main(["bench", "nope"]) == 2

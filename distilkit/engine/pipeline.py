@@ -91,9 +91,9 @@ class Pipeline:
         self.hashes = stage_hashes(self.resolved)
         self.quiet = quiet
         if console is None:
-            from rich.console import Console
+            from distilkit.console import make_console
 
-            console = Console(stderr=False, quiet=quiet)
+            console = make_console(quiet=quiet)
         self.console = console
         self._data: dict[str, Any] = {}
 

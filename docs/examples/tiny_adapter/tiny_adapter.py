@@ -1,0 +1,63 @@
+"""A worked example: a user's own SSC model plugged into distilkit as an adapter.
+
+The model is deliberately small: points are max-pooled into voxels, a few 3-D convolutions
+complete the volume, and a 1x1x1 convolution gives class logits. The adapter tells distilkit
+which taps it returns, so any registered objective can distil into it -- here DSKD from an
+SCPNet teacher (see ``recipe.yaml`` beside this file).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from torch import Tensor, nn
+
+from distilkit.adapter import Adapter, select_frames
+from distilkit.data.datasets import DataInfo
+from distilkit.geometry.voxel import dense_to_sparse
+from distilkit.registry import ADAPTERS
+
+
+class TinyParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    frames: int = Field(1, ge=1, description="input scans to use")
+    channels: int = Field(8, ge=1)
+
+
+class TinySSC(Adapter):
+    """Voxel max-pooling, three bias-free 3x3x3 convolutions, a 1x1x1 classifier."""
+
+    Params = TinyParams
+    TAPS = {"features": "sparse_features", "logits": "voxel_logits"}
+    LOGITS_TAP = "logits"
+    DEFAULT_TASK_LOSSES = [{"name": "ce", "weight": 1.0}]
+
+    def __init__(self, params: TinyParams, info: DataInfo) -> None:
+        super().__init__(params, info)
+        c = params.channels
+        self.embed = nn.Linear(4, c)
+        self.body = nn.Sequential(*[m for _ in range(3) for m in (nn.Conv3d(c, c, 3, padding=1, bias=False), nn.ReLU())])
+        self.head = nn.Conv3d(c, info.num_classes, 1)
+
+    def forward(self, batch: dict[str, Tensor]) -> dict[str, Any]:
+        b = select_frames(batch, self.params.frames)
+        grid = self.info.grid
+        idx, inside = grid.index(b["points"][:, :3])
+        x, y, z = grid.shape
+        n = int(batch["voxel_label"].shape[0])
+        flat = ((b["point_batch"] * x + idx[:, 0]) * y + idx[:, 1]) * z + idx[:, 2]
+        feats = torch.relu(self.embed(b["points"][inside]))
+        vol = feats.new_zeros(n * x * y * z, feats.shape[1])
+        vol = vol.scatter_reduce(0, flat[inside, None].expand_as(feats), feats, "amax", include_self=False)
+        dense = vol.view(n, x, y, z, -1).permute(0, 4, 1, 2, 3)
+        completed = self.body(dense)
+        return {"features": dense_to_sparse(completed), "logits": self.head(completed)}
+
+
+def register() -> None:
+    """The entry point: ``[project.entry-points."distilkit.plugins"] tiny = "tiny_adapter:register"``."""
+    if "tiny-ssc" not in ADAPTERS:
+        ADAPTERS.add("tiny-ssc", TinySSC, description="a tiny user model (worked example)",
+                     paper="docs/distill-your-own-model.md", consumes=tuple(TinySSC.TAPS.values()))
