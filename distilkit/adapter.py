@@ -13,6 +13,7 @@ a dict with (at least) every declared tap.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 import torch
@@ -26,7 +27,7 @@ class NoParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
-class Adapter(nn.Module):
+class Adapter(nn.Module, ABC):
     Params: ClassVar[type[BaseModel]] = NoParams
     TAPS: ClassVar[dict[str, str]] = {}
     LOGITS_TAP: ClassVar[str] = "logits"
@@ -37,8 +38,9 @@ class Adapter(nn.Module):
         self.params = params
         self.info = info
 
-    def forward(self, batch: dict[str, Tensor]) -> dict[str, Any]:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def forward(self, batch: dict[str, Tensor]) -> dict[str, Any]:
+        """Run the model on a collated batch; return every declared tap."""
 
     @torch.no_grad()
     def predict(self, outputs: dict[str, Any]) -> Tensor:

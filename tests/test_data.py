@@ -136,3 +136,42 @@ def test_pool_labels_majority_of_nonempty() -> None:
     lab[0, 1, 0] = 13
     out, inv = pool_labels(lab, np.zeros_like(lab, bool), 2)
     assert out.shape == (1, 1, 1) and out[0, 0, 0] == 9 and not inv.any()
+
+
+def _fake_kitti(tmp_path):
+    """A SemanticKITTI-format folder: the real shared scan as frames 0 and 1, synthetic voxel files."""
+    src = SHARED / "data" / "semantickitti-sample" / "sequences" / "00"
+    seq = tmp_path / "sequences" / "08"
+    for sub in ("velodyne", "labels", "voxels"):
+        (seq / sub).mkdir(parents=True)
+    for f in ("000000", "000001"):
+        (seq / "velodyne" / f"{f}.bin").write_bytes((src / "velodyne" / "000000.bin").read_bytes())
+        (seq / "labels" / f"{f}.label").write_bytes((src / "labels" / "000000.label").read_bytes())
+    raw = np.zeros((256, 256, 32), np.uint16)
+    raw[10:14, 100:104, 5:9] = 50   # building -> 13
+    raw[0:4, 0:4, 0:4] = 52         # other-structure -> 255 (ignore)
+    sk.write_voxel_labels(seq / "voxels" / "000000.label", raw)
+    inv = np.zeros_like(raw, bool)
+    inv[200:, :, :] = True
+    sk.write_voxel_bits(seq / "voxels" / "000000.invalid", inv)
+    eye = " ".join(["1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1", "0"])
+    (seq / "calib.txt").write_text(f"P0: {eye}\nTr: {eye}\n")
+    (seq / "poses.txt").write_text(f"{eye}\n1 0 0 1.0 0 1 0 0 0 0 1 0\n")
+    return tmp_path
+
+
+def test_semantickitti_folder_dataset(tmp_path) -> None:
+    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.params import SemanticKittiParams
+
+    root = _fake_kitti(tmp_path)
+    ds = SemanticKittiDataset(SemanticKittiParams(root=str(root), val_sequences=["08"], scale=4, input_frames=2), "val")
+    assert len(ds) == 1
+    s = ds[0]
+    assert s["voxel_label"].shape == (64, 64, 8)
+    assert s["voxel_label"][3, 25, 1] == 13 and s["voxel_label"][0, 0, 0] == 255
+    assert s["invalid"][60].all() and not s["invalid"][10].any()
+    p0, p1 = s["points"][s["point_frame"] == 0], s["points"][s["point_frame"] == 1]
+    assert np.allclose(p1[:, 0], p0[:, 0] + 1.0) and np.allclose(p1[:, 1:], p0[:, 1:])
+    with pytest.raises(DataError, match="no voxels"):
+        SemanticKittiDataset(SemanticKittiParams(root=str(root)), "train")

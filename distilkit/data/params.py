@@ -2,7 +2,15 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+SCALES = (1, 2, 4, 8)
+
+
+def _check_scale(v: int) -> int:
+    if v not in SCALES:
+        raise ValueError(f"scale must be one of {SCALES} (256x256x32 divided by it), got {v}")
+    return v
 
 
 class SyntheticParams(BaseModel):
@@ -23,6 +31,8 @@ class SyntheticParams(BaseModel):
     range_noise: float = Field(0.02, ge=0, description="std of Gaussian range noise, metres")
     ego_speed: float = Field(1.0, ge=0, description="metres per frame (KITTI: about 1 m at 10 Hz)")
 
+    _scale = field_validator("scale")(_check_scale)
+
 
 class SemanticKittiParams(BaseModel):
     """``semantickitti``: a SemanticKITTI-format folder (``sequences/NN/...``)."""
@@ -34,3 +44,5 @@ class SemanticKittiParams(BaseModel):
     scale: int = Field(1, description="grid coarsening of the 256x256x32 voxel files (majority pooling)")
     input_frames: int = Field(1, ge=1)
     stride: int = Field(5, ge=1, description="use every n-th scan (voxel files exist for every 5th)")
+
+    _scale = field_validator("scale")(_check_scale)

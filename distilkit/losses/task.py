@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 import torch
@@ -13,7 +14,7 @@ from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
 from distilkit.registry import TASK_LOSSES
 
 
-class TaskLoss(nn.Module):
+class TaskLoss(nn.Module, ABC):
     """A supervised term: ``forward(outputs, batch) -> scalar``. ``CONSUMES`` lists tap kinds it reads."""
 
     Params: ClassVar[type[BaseModel]]
@@ -24,8 +25,9 @@ class TaskLoss(nn.Module):
         self.params = params
         self.taps = taps  # role -> tap name on the model
 
-    def forward(self, outputs: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:  # pragma: no cover
-        raise NotImplementedError
+    @abstractmethod
+    def forward(self, outputs: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
+        """The scalar loss of the model's ``outputs`` on ``batch``."""
 
 
 class _CEParams(BaseModel):

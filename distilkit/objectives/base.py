@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 from pydantic import BaseModel
 from torch import Tensor, nn
 
 
-class Objective(nn.Module):
+class Objective(nn.Module, ABC):
     """A distillation term ``forward(student_tap, teacher_tap, batch) -> scalar``.
 
     ``CONSUMES`` maps the roles ``student`` and ``teacher`` to the tap kind each needs;
@@ -24,8 +25,9 @@ class Objective(nn.Module):
         super().__init__()
         self.params = params
 
-    def forward(self, student: Any, teacher: Any, batch: dict[str, Tensor]) -> Tensor:  # pragma: no cover
-        raise NotImplementedError
+    @abstractmethod
+    def forward(self, student: Any, teacher: Any, batch: dict[str, Tensor]) -> Tensor:
+        """The scalar distillation loss between the student's and the teacher's taps."""
 
     def update(self, step: int) -> dict[str, float]:
         """Own optimisation after the student's step (e.g. a score network); returns logged values."""
