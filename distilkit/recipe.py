@@ -71,7 +71,7 @@ class TrainSpec(_Strict):
     grad_clip: float | None = Field(None, gt=0, description="max gradient norm (SCPNet: 10)")
     eval_every: int | None = Field(None, ge=1, description="evaluate every N steps (default: end of each epoch)")
     log_every: int = Field(10, ge=1)
-    checkpoint_every: int = Field(50, ge=1, description="write last.pt every N steps (and at each evaluation)")
+    checkpoint_every: int = Field(20, ge=1, description="write last.pt every N steps (and at each evaluation)")
     device: str = Field("auto", description="'auto' (cuda if available), 'cpu' or 'cuda'")
     metric: str = Field("miou", description="validation score that selects best.pt (miou or iou)")
 

@@ -159,3 +159,12 @@ def test_bench_quick_reports_a_speedup(capsys) -> None:
     naive_rows = [r for r in rows if "speedup" in r]
     assert naive_rows and naive_rows[0]["rel_err"] < 1e-4
     assert main(["bench", "nope"]) == 2
+
+
+def test_losses_import_costs_only_torch() -> None:
+    code = ("import sys, distilkit.losses as L\n"
+            "heavy = [m for m in ('pydantic', 'yaml', 'rich', 'matplotlib', 'scipy', 'torchvision') if m in sys.modules]\n"
+            "assert not heavy, heavy\nprint(L.dskd.__doc__.splitlines()[0])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert "DSKD" in out.stdout

@@ -71,9 +71,9 @@ def _losses(run_dir: Path) -> tuple[list[int], list[float]]:
                 rec = json.loads(line)
             except ValueError:
                 continue
-            if "loss" in rec:
+            if "loss" in rec:  # the task loss: the total without distillation terms
                 steps.append(rec["step"])
-                losses.append(rec["loss"])
+                losses.append(rec["loss"] - sum(v for k, v in rec.items() if k.startswith("kd_")))
     return steps, losses
 
 
@@ -116,7 +116,7 @@ def _plot(path: Path, results: list[Any], rows: list[dict[str, Any]]) -> None:
         if steps:
             ax1.plot(steps, losses, label=r.summary.get("label", r.name))
     ax1.set_xlabel("step")
-    ax1.set_ylabel("total training loss")
+    ax1.set_ylabel("task loss (without distillation terms)")
     ax1.set_yscale("log")
     ax1.legend(fontsize=8)
     ax1.set_title("training loss")
