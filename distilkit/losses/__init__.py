@@ -2,9 +2,15 @@
 
 >>> import torch, distilkit.losses as L
 >>> L.dskd(torch.randn(100, 32), torch.randn(100, 32))   # SCPNet eq. 1-2
+
+Class/channel dimension is 1 for dense maps; ``mask`` arguments are bool tensors shaped like the
+map without its class dimension.
 """
 
 from distilkit.losses.dskd import dskd
+from distilkit.losses.feature import fitnet, nst, pkt
+from distilkit.losses.logit import dist, kd
+from distilkit.losses.rgo2d import rgo2d, rgo2d_region
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
 
-__all__ = ["dskd", "cross_entropy", "lovasz_softmax"]
+__all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "rgo2d_region", "rgo2d", "cross_entropy", "lovasz_softmax"]

@@ -1,0 +1,65 @@
+"""Output (logit) distillation: vanilla KD (Hinton et al. 2015) and DIST (Huang et al., NeurIPS 2022)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def _positions(logits: Tensor, mask: Tensor | None, name: str) -> Tensor:
+    """(P, K) rows of a (B, K, *S) or (N, K) map, restricted to ``mask`` (shape without the class dim)."""
+    if logits.dim() < 2:
+        raise ValueError(f"{name}: logits need a class dimension at dim 1, got shape {tuple(logits.shape)}")
+    rows = logits.movedim(1, -1).reshape(-1, logits.shape[1])
+    if mask is None:
+        return rows
+    expect = logits.shape[:1] + logits.shape[2:]
+    if mask.shape != expect:
+        raise ValueError(f"{name}: mask must have shape {tuple(expect)} (logits without the class dim), got {tuple(mask.shape)}")
+    return rows[mask.reshape(-1).bool()]
+
+
+def kd(student_logits: Tensor, teacher_logits: Tensor, temperature: float = 1.0, mask: Tensor | None = None) -> Tensor:
+    """Vanilla KD: T^2 * mean over positions of KL(softmax(t/T) || softmax(s/T)).
+
+    Logits are (B, K, *S) or (N, K), class dim 1; ``mask`` (B, *S) bool selects positions. The
+    reduction is the per-position mean (never ``batchmean``), so the value does not grow with the
+    grid size. 0 if no position is selected.
+    """
+    if student_logits.shape != teacher_logits.shape:
+        raise ValueError(f"kd: student {tuple(student_logits.shape)} and teacher {tuple(teacher_logits.shape)} logits differ")
+    if temperature <= 0:
+        raise ValueError(f"kd: temperature must be > 0, got {temperature}")
+    s = _positions(student_logits, mask, "kd")
+    t = _positions(teacher_logits.to(student_logits.dtype), mask, "kd")
+    if s.shape[0] == 0:
+        return student_logits.sum() * 0.0
+    log_ps = torch.log_softmax(s / temperature, dim=1)
+    log_pt = torch.log_softmax(t / temperature, dim=1)
+    return temperature**2 * (log_pt.exp() * (log_pt - log_ps)).sum(1).mean()
+
+
+def pearson_rows(a: Tensor, b: Tensor, eps: float = 1e-8) -> Tensor:
+    """Pearson correlation of matching rows: cosine of the mean-centred rows (eps in the denominator)."""
+    a = a - a.mean(dim=1, keepdim=True)
+    b = b - b.mean(dim=1, keepdim=True)
+    return (a * b).sum(1) / (a.norm(dim=1) * b.norm(dim=1) + eps)
+
+
+def dist(student_logits: Tensor, teacher_logits: Tensor, beta: float = 1.0, gamma: float = 1.0,
+         temperature: float = 1.0) -> Tensor:
+    """DIST: T^2 (beta * (1 - mean_i pearson(p_s[i], p_t[i])) + gamma * (1 - mean_k pearson(p_s[:,k], p_t[:,k]))).
+
+    (N, K) logits; p = softmax(logits / T) over classes. The inter-class term correlates each row's
+    class distribution, the intra-class term each class's scores across the N rows. Scale-free:
+    repeating the rows leaves the value unchanged. Handles N = 1 (the intra term is then 1).
+    """
+    if student_logits.dim() != 2 or student_logits.shape != teacher_logits.shape:
+        raise ValueError(f"dist: expects equal (N, K) logits, got {tuple(student_logits.shape)} and {tuple(teacher_logits.shape)}")
+    if student_logits.shape[0] == 0:
+        return student_logits.sum() * 0.0
+    ps = torch.softmax(student_logits / temperature, dim=1)
+    pt = torch.softmax(teacher_logits.to(ps.dtype) / temperature, dim=1)
+    inter = 1.0 - pearson_rows(ps, pt).mean()
+    intra = 1.0 - pearson_rows(ps.T, pt.T).mean()
+    return temperature**2 * (beta * inter + gamma * intra)

@@ -1,0 +1,236 @@
+"""KD, FitNets, PKT, NST, DIST and RGO²D against independent naive float64 implementations."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import distilkit.losses as L
+from distilkit.losses.rgo2d import range_regions
+
+D = torch.float64
+
+
+def close(a: torch.Tensor, b: torch.Tensor, rel: float = 1e-6) -> bool:
+    return bool((a - b).abs() <= rel * b.abs() + 1e-12)
+
+
+def grads_close(fa, fb, inputs, rel: float = 1e-6) -> None:
+    ga = torch.autograd.grad(fa(), inputs, allow_unused=True)
+    gb = torch.autograd.grad(fb(), inputs, allow_unused=True)
+    for x, y in zip(ga, gb):
+        x = torch.zeros(()) if x is None else x
+        y = torch.zeros(()) if y is None else y
+        assert (x - y).norm() <= rel * y.norm() + 1e-12
+
+
+# ---- naive references, written from the papers' formulas -------------------------------------
+def naive_kd(s, t, T, mask):
+    k = s.shape[1]
+    rows_s = [s[(b, slice(None)) + idx] for b in range(s.shape[0]) for idx in _spatial(s)
+              if mask is None or mask[(b,) + idx]]
+    rows_t = [t[(b, slice(None)) + idx] for b in range(s.shape[0]) for idx in _spatial(s)
+              if mask is None or mask[(b,) + idx]]
+    total = 0.0
+    for rs, rt in zip(rows_s, rows_t):
+        zs = sum(torch.exp(rs[c] / T) for c in range(k))
+        zt = sum(torch.exp(rt[c] / T) for c in range(k))
+        for c in range(k):
+            pt, ps = torch.exp(rt[c] / T) / zt, torch.exp(rs[c] / T) / zs
+            total = total + pt * torch.log(pt / ps)
+    return T * T * total / max(len(rows_s), 1)
+
+
+def _spatial(x):
+    import itertools
+
+    return list(itertools.product(*[range(n) for n in x.shape[2:]]))
+
+
+def naive_pearson(a, b):
+    am, bm = a.mean(), b.mean()
+    num = sum((a[i] - am) * (b[i] - bm) for i in range(len(a)))
+    sa = sum((a[i] - am) ** 2 for i in range(len(a)))
+    sb = sum((b[i] - bm) ** 2 for i in range(len(b)))
+    na = torch.sqrt(sa) if sa > 0 else sa * 0  # a constant vector (e.g. one row): correlation 0
+    nb = torch.sqrt(sb) if sb > 0 else sb * 0
+    return num / (na * nb + 1e-8)
+
+
+def naive_dist(s, t, beta, gamma, T):
+    ps, pt = torch.softmax(s / T, 1), torch.softmax(t / T, 1)
+    n, k = ps.shape
+    inter = 1 - sum(naive_pearson(ps[i], pt[i]) for i in range(n)) / n
+    intra = 1 - sum(naive_pearson(ps[:, j], pt[:, j]) for j in range(k)) / k
+    return T * T * (beta * inter + gamma * intra)
+
+
+def naive_pkt(s, t, eps=1e-7):
+    def probs(x):
+        n = x.shape[0]
+        xn = [x[i] / (torch.sqrt((x[i] ** 2).sum()) + eps) for i in range(n)]
+        k = [[(xn[i] @ xn[j] + 1) / 2 for j in range(n)] for i in range(n)]
+        return [[k[i][j] / sum(k[i]) for j in range(n)] for i in range(n)]
+
+    ps, pt = probs(s), probs(t)
+    n = s.shape[0]
+    return sum(pt[i][j] * torch.log((pt[i][j] + eps) / (ps[i][j] + eps)) for i in range(n) for j in range(n)) / n**2
+
+
+def naive_nst(s, t):
+    b = s.shape[0]
+    S = s.reshape(b, s.shape[1], -1)
+    T = t.reshape(b, t.shape[1], -1)
+    S = S / S.norm(dim=2, keepdim=True)
+    T = T / T.norm(dim=2, keepdim=True)
+
+    def mk(a, c):
+        vals = [(a[i, p] @ c[i, q]) ** 2 for i in range(b) for p in range(a.shape[1]) for q in range(c.shape[1])]
+        return sum(vals) / len(vals)
+
+    return mk(T, T) + mk(S, S) - 2 * mk(S, T)
+
+
+def naive_rgo2d_region(ys, yt, labels, mask, inter=2.625, intra=0.375):
+    b = ys.shape[0]
+    g_tot, l_tot = 0.0, 0.0
+    for i in range(b):
+        vox = [idx for idx in _spatial(ys) if mask[(i,) + idx]]
+        classes = sorted({int(labels[(i,) + idx]) for idx in vox} - {0, 255})
+        if not classes:
+            continue
+        gs, gt = [], []
+        for c in classes:
+            mem = [idx for idx in vox if int(labels[(i,) + idx]) == c]
+            gs.append(sum(ys[(i, slice(None)) + idx] for idx in mem) / len(mem))
+            gt.append(sum(yt[(i, slice(None)) + idx] for idx in mem) / len(mem))
+        gs, gt = torch.stack(gs), torch.stack(gt)
+        ps, pt = gs.softmax(1), gt.softmax(1)
+        kc = len(classes)
+        g_tot = g_tot + inter * (1 - sum(naive_pearson(ps[j], pt[j]) for j in range(kc)) / kc) \
+            + intra * (1 - sum(naive_pearson(ps[:, c], pt[:, c]) for c in range(ps.shape[1])) / ps.shape[1])
+        sq = []
+        for idx in vox:
+            vs, vt = ys[(i, slice(None)) + idx], yt[(i, slice(None)) + idx]
+            for j in range(kc):
+                cs = vs @ gs[j] / (vs.norm() * gs[j].norm())
+                ct = vt @ gt[j] / (vt.norm() * gt[j].norm())
+                sq.append((cs - ct) ** 2)
+        l_tot = l_tot + sum(sq) / len(sq)
+    return g_tot / b, l_tot / b
+
+
+# ---- tests ----------------------------------------------------------------------------------
+@pytest.fixture
+def g() -> torch.Generator:
+    return torch.Generator().manual_seed(0)
+
+
+@pytest.mark.parametrize("T", [1.0, 4.0])
+@pytest.mark.parametrize("masked", [False, True])
+def test_kd(g, T, masked) -> None:
+    s = torch.randn(2, 4, 3, 2, 2, dtype=D, generator=g, requires_grad=True)
+    t = torch.randn(2, 4, 3, 2, 2, dtype=D, generator=g, requires_grad=True)
+    mask = (torch.rand(2, 3, 2, 2, generator=g) < 0.5) if masked else None
+    assert close(L.kd(s, t, T, mask), naive_kd(s, t, T, mask))
+    grads_close(lambda: L.kd(s, t, T, mask), lambda: naive_kd(s, t, T, mask), (s, t))
+
+
+def test_kd_empty_mask_and_errors(g) -> None:
+    s = torch.randn(1, 3, 2, 2, requires_grad=True)
+    assert L.kd(s, s.detach(), mask=torch.zeros(1, 2, 2, dtype=torch.bool)).item() == 0.0
+    with pytest.raises(ValueError, match="mask must have shape"):
+        L.kd(s, s, mask=torch.ones(2, 2, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("n", [1, 6])
+def test_dist(g, n) -> None:
+    s = torch.randn(n, 5, dtype=D, generator=g, requires_grad=True)
+    t = torch.randn(n, 5, dtype=D, generator=g, requires_grad=True)
+    assert close(L.dist(s, t, 1.5, 0.7, 2.0), naive_dist(s, t, 1.5, 0.7, 2.0))
+    grads_close(lambda: L.dist(s, t, 1.5, 0.7, 2.0), lambda: naive_dist(s, t, 1.5, 0.7, 2.0), (s, t))
+
+
+@pytest.mark.parametrize("n,ds,dt", [(1, 3, 3), (9, 4, 6)])
+def test_pkt(g, n, ds, dt) -> None:
+    s = torch.randn(n, ds, dtype=D, generator=g, requires_grad=True)
+    t = torch.randn(n, dt, dtype=D, generator=g, requires_grad=True)
+    assert close(L.pkt(s, t), naive_pkt(s, t))
+    grads_close(lambda: L.pkt(s, t), lambda: naive_pkt(s, t), (s, t))
+    # blocked evaluation (with recomputation) equals the one-block value and gradient
+    grads_close(lambda: L.pkt(s, t, block=2), lambda: L.pkt(s, t, block=1000), (s, t), rel=1e-10)
+
+
+@pytest.mark.parametrize("b,cs,ct,spatial", [(1, 3, 3, (4, 3)), (2, 3, 5, (3, 2, 2))])
+def test_nst(g, b, cs, ct, spatial) -> None:
+    s = torch.randn(b, cs, *spatial, dtype=D, generator=g, requires_grad=True)
+    t = torch.randn(b, ct, *spatial, dtype=D, generator=g, requires_grad=True)
+    assert close(L.nst(s, t), naive_nst(s, t))
+    grads_close(lambda: L.nst(s, t), lambda: naive_nst(s, t), (s, t))
+    with pytest.raises(ValueError, match="spatial shape"):
+        L.nst(s, t[..., :1])
+
+
+def test_fitnet(g) -> None:
+    s = torch.randn(2, 3, 4, 4, 2, dtype=D, generator=g, requires_grad=True)
+    t = torch.randn(2, 3, 4, 4, 2, dtype=D, generator=g)
+    want = sum(float((a - b).detach() ** 2) for a, b in zip(s.reshape(-1), t.reshape(-1))) / s.numel()
+    assert L.fitnet(s, t).item() == pytest.approx(want, rel=1e-12)
+    (grad,) = torch.autograd.grad(L.fitnet(s, t), s)
+    assert torch.allclose(grad, 2 * (s - t) / s.numel())
+
+
+def _rgo_inputs(g, b=2, k=4, shape=(4, 3, 2)):
+    s = torch.randn(b, k, *shape, dtype=D, generator=g, requires_grad=True)
+    t = torch.randn(b, k, *shape, dtype=D, generator=g, requires_grad=True)
+    labels = torch.randint(0, 4, (b, *shape), generator=g)
+    labels[0, 0, 0, 0] = 255
+    mask = torch.rand(b, *shape, generator=g) < 0.7
+    return s, t, labels, mask
+
+
+def test_rgo2d_region(g) -> None:
+    s, t, labels, mask = _rgo_inputs(g)
+    fast = L.rgo2d_region(s, t, labels, mask)
+    slow = naive_rgo2d_region(s, t, labels, mask)
+    assert close(fast[0], slow[0]) and close(fast[1], slow[1])
+    grads_close(lambda: sum(L.rgo2d_region(s, t, labels, mask)), lambda: sum(naive_rgo2d_region(s, t, labels, mask)), (s, t))
+
+
+def test_rgo2d_regions_and_weights(g) -> None:
+    s, t, labels, mask = _rgo_inputs(g, shape=(8, 8, 2))
+    regs = range_regions((8, 8, 2), "boxes")
+    assert regs[0].sum() == 2 * 2 * 2 and regs[1].sum() == 4 * 4 * 2 and regs[2].all()
+    want = sum(w * sum(naive_rgo2d_region(s, t, labels, mask & r)) for w, r in zip((0.06, 0.15, 0.20), regs))
+    assert close(L.rgo2d(s, t, labels, mask), want)
+    rings = range_regions((8, 8, 2), "rings")
+    assert not (rings[0] & rings[1]).any() and (rings[0] | rings[1] | rings[2]).all()
+
+
+def test_rgo2d_empty_regions_are_zero_not_nan(g) -> None:
+    s, t, labels, mask = _rgo_inputs(g)
+    zero_g, zero_l = L.rgo2d_region(s, t, torch.zeros_like(labels), mask)
+    assert zero_g.item() == 0.0 and zero_l.item() == 0.0
+    out = L.rgo2d(s, t, labels, torch.zeros_like(mask))
+    assert out.item() == 0.0 and out.requires_grad
+    # one class only: intra term is the constant 1 (no NaN)
+    g1, _ = L.rgo2d_region(s, t, torch.where(labels > 0, 1, 0), mask)
+    assert torch.isfinite(g1)
+
+
+def _double_grid(x: torch.Tensor, first_spatial: int) -> torch.Tensor:
+    for d in range(first_spatial, x.dim()):
+        x = x.repeat_interleave(2, dim=d)
+    return x
+
+
+def test_scale_free_when_the_grid_doubles(g) -> None:
+    s, t, labels, mask = _rgo_inputs(g, shape=(8, 8, 2))
+    s2, t2 = _double_grid(s.detach(), 2), _double_grid(t.detach(), 2)
+    l2, m2 = _double_grid(labels, 1), _double_grid(mask, 1)
+    assert close(L.kd(s2, t2, 2.0, m2), L.kd(s, t, 2.0, mask), 1e-9)
+    flat = lambda x: x.movedim(1, -1).reshape(-1, x.shape[1])  # noqa: E731
+    assert close(L.dist(flat(s2), flat(t2)), L.dist(flat(s), flat(t)), 1e-9)
+    assert close(L.rgo2d(s2, t2, l2, m2), L.rgo2d(s, t, labels, mask), 1e-9)
