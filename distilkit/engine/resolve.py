@@ -80,9 +80,10 @@ def _resolve_taps(term_path: str, cls: Any, given: dict[str, str], models: dict[
     for role in given:
         if role not in cls.CONSUMES:
             problems.append((f"{term_path}.taps.{role}", f"unknown role (this component takes {sorted(cls.CONSUMES)})"))
+    optional = getattr(cls, "OPTIONAL", frozenset())
     for role, kind in cls.CONSUMES.items():
-        model = models.get("teacher" if role == "teacher" else "student")
-        if model is None:
+        model = models.get("teacher" if role.startswith("teacher") else "student")
+        if model is None or (role in optional and role not in given):
             continue
         taps = model.cls.TAPS
         if role in given:

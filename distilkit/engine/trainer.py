@@ -96,9 +96,10 @@ class Trainer:
         self.task = nn.ModuleList(t.cls(t.params, t.taps) for t in stage.task_losses).to(self.device)
         self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
         self.teacher = teacher
+        self.steps_per_epoch = math.ceil(len(train_set) / spec.batch_size)
+        self._setup_objectives()
         params = [p for m in (self.student, self.task, self.objectives) for p in m.parameters() if p.requires_grad]
         self.optimizer = self._optimizer(params)
-        self.steps_per_epoch = math.ceil(len(train_set) / spec.batch_size)
         self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
         self.eval_every = spec.eval_every or self.steps_per_epoch
 
@@ -143,6 +144,25 @@ class Trainer:
         bs = self.stage.spec.train.batch_size
         return to_device(collate([self.train_set[int(j)] for j in perm[i * bs:(i + 1) * bs]]), self.device)
 
+    @staticmethod
+    def _taps(spec: Any, s_out: dict[str, Any], t_out: dict[str, Any]) -> dict[str, Any]:
+        return {role: (t_out if role.startswith("teacher") else s_out)[tap] for role, tap in spec.taps.items()}
+
+    def _setup_objectives(self) -> None:
+        """Size the objectives' own layers from one real batch (before the optimizer exists)."""
+        if not len(self.objectives):
+            return
+        assert self.teacher is not None
+        batch = self._batch(0)
+        was = self.student.training
+        self.student.eval()
+        with torch.no_grad():
+            s_out, t_out = self.student(batch), self.teacher(batch)
+            for spec, mod in zip(self.stage.distill, self.objectives):
+                mod.setup(self._taps(spec, s_out, t_out), batch)
+        self.student.train(was)
+        self.objectives.to(self.device)
+
     def loss_terms(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         s_out = self.student(batch)
         terms: dict[str, Tensor] = {}
@@ -153,7 +173,7 @@ class Trainer:
             with torch.no_grad():
                 t_out = self.teacher(batch)
             for spec, mod in zip(self.stage.distill, self.objectives):
-                terms[f"kd_{spec.name}"] = spec.weight * mod(s_out[spec.taps["student"]], t_out[spec.taps["teacher"]], batch)
+                terms[f"kd_{spec.name}"] = spec.weight * mod.compute(self._taps(spec, s_out, t_out), batch)
         return terms
 
     def fit(self) -> TrainResult:

@@ -1,6 +1,10 @@
 """Registered distillation objectives (nn.Module wrappers around :mod:`distilkit.losses`)."""
 
 from distilkit.objectives.base import Objective
-from distilkit.objectives import dskd as _dskd  # noqa: F401  (registers "dskd")
+from distilkit.objectives import dskd as _dskd  # noqa: F401  (registers the objectives)
+from distilkit.objectives import feature as _feature  # noqa: F401
+from distilkit.objectives import logit as _logit  # noqa: F401
+from distilkit.objectives import region as _region  # noqa: F401
+from distilkit.objectives import relational as _relational  # noqa: F401
 
 __all__ = ["Objective"]

@@ -10,20 +10,31 @@ from torch import Tensor, nn
 
 
 class Objective(nn.Module, ABC):
-    """A distillation term ``forward(student_tap, teacher_tap, batch) -> scalar``.
+    """A distillation term.
 
-    ``CONSUMES`` maps the roles ``student`` and ``teacher`` to the tap kind each needs;
-    ``DEFAULT_WEIGHT`` is the weight for this field when a recipe gives none. Trainable
-    parameters of an objective are optimised with the student and saved in its checkpoint.
+    ``CONSUMES`` maps roles to the tap kind each needs. Roles starting with ``teacher`` read the
+    teacher's outputs, all others the student's; roles in ``OPTIONAL`` are used only when the
+    recipe names a tap for them. The trainer calls :meth:`setup` once with the taps of a first
+    batch (to size own layers, e.g. a regressor) before the optimizer is built, then
+    :meth:`compute` every step. Trainable parameters are optimised with the student and saved in
+    its checkpoint. ``DEFAULT_WEIGHT`` is the weight for this field when a recipe gives none.
     """
 
     Params: ClassVar[type[BaseModel]]
     CONSUMES: ClassVar[dict[str, str]] = {}
+    OPTIONAL: ClassVar[frozenset[str]] = frozenset()
     DEFAULT_WEIGHT: ClassVar[float] = 1.0
 
     def __init__(self, params: BaseModel) -> None:
         super().__init__()
         self.params = params
+
+    def setup(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> None:
+        """Build shape-dependent layers from one batch's taps (default: nothing to build)."""
+
+    def compute(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
+        """The loss from the taps of every role (default: ``forward(student, teacher, batch)``)."""
+        return self(taps["student"], taps["teacher"], batch)
 
     @abstractmethod
     def forward(self, student: Any, teacher: Any, batch: dict[str, Tensor]) -> Tensor:

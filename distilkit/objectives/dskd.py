@@ -45,4 +45,6 @@ class DSKD(Objective):
 
 
 OBJECTIVES.add("dskd", DSKD, description="dense-to-sparse relational KD: squared gap of voxel cosine-similarity matrices",
-               paper="SCPNet (Xia et al., CVPR 2023), eq. 1-2", consumes=("sparse_features",), default_weight=3000.0)
+               paper="SCPNet (Xia et al., CVPR 2023), eq. 1-2", consumes=("sparse_features",), default_weight=3000.0,
+               equation="1/N² Σ_ij (cos_S(i,j) − cos_T(i,j))², exact via ‖AᵀA‖² + ‖BᵀB‖² − 2‖AᵀB‖²",
+               shapes="sparse voxel features; teacher rows gathered at the student's coordinates")

@@ -1,0 +1,39 @@
+"""Helpers shared by objectives: voxel masks from a batch, dense-map resampling."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from distilkit.data.classes import IGNORE_INDEX
+
+MaskName = Literal["all", "valid", "occupied"]
+
+
+def voxel_mask(batch: dict[str, Tensor], which: str) -> Tensor | None:
+    """(B, X, Y, Z) bool: ``all`` -> None, ``valid`` = observed and labelled, ``occupied`` = ground truth non-empty."""
+    if which == "all":
+        return None
+    target = batch["voxel_target"]
+    if which == "valid":
+        return target != IGNORE_INDEX
+    if which == "occupied":
+        return (target != IGNORE_INDEX) & (target != 0)
+    raise ValueError(f"unknown voxel mask {which!r} (all, valid or occupied)")
+
+
+def match_spatial(x: Tensor, shape: tuple[int, ...]) -> Tensor:
+    """Resample a (B, C, *S) map to spatial ``shape`` (adaptive average pooling down, trilinear/bilinear up)."""
+    if tuple(x.shape[2:]) == tuple(shape):
+        return x
+    if all(a >= b for a, b in zip(x.shape[2:], shape)):
+        pool = F.adaptive_avg_pool3d if x.dim() == 5 else F.adaptive_avg_pool2d
+        return pool(x, shape)
+    return F.interpolate(x, size=shape, mode="trilinear" if x.dim() == 5 else "bilinear", align_corners=False)
+
+
+def conv1x1(cin: int, cout: int, dims: int) -> torch.nn.Module:
+    return (torch.nn.Conv3d if dims == 3 else torch.nn.Conv2d)(cin, cout, 1)
