@@ -41,6 +41,15 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
     from distilkit.registry import ALL_REGISTRIES, plugin_errors
 
+    if args.markdown:
+        if args.kind != "objectives":
+            from distilkit.errors import DistilkitError
+
+            raise DistilkitError("--markdown is available for `distilkit list objectives`")
+        from distilkit.schema_doc import objectives_markdown
+
+        print(objectives_markdown())
+        return 0
     console = make_console()
     for kind, reg in ALL_REGISTRIES.items():
         if args.kind and args.kind != kind.split()[0].rstrip("s") and args.kind != kind:
@@ -89,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.set_defaults(fn=_cmd_validate)
     ls = sub.add_parser("list", help="registered adapters, objectives, task losses, datasets and metrics")
     ls.add_argument("kind", nargs="?", choices=["adapters", "objectives", "task losses", "datasets", "metrics"])
+    ls.add_argument("--markdown", action="store_true", help="objectives as Markdown (docs/objectives.md)")
     ls.set_defaults(fn=_cmd_list)
     s = sub.add_parser("schema", help="print the recipe JSON schema (for editor completion)")
     s.add_argument("--markdown", action="store_true", help="print the recipe reference as Markdown instead")

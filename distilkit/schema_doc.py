@@ -53,3 +53,32 @@ def recipe_reference_markdown() -> str:
             out.append(f"| `{field}` | {_type(prop)} | {default} | {desc} |")
         out.append("")
     return "\n".join(out)
+
+
+def objectives_markdown() -> str:
+    """docs/objectives.md: every registered objective's paper, equation, shapes, taps, weight and parameters."""
+    from distilkit.registry import OBJECTIVES
+
+    out = ["# Objectives", "",
+           "Generated from the objective registry by `distilkit list objectives --markdown`; a test keeps it in sync.",
+           "Every objective is also a plain function in `distilkit.losses` (tested against naive float64",
+           "implementations of the paper's formula). Weights are the defaults for this field when a recipe gives none.",
+           "", "| name | paper | default weight | taps (role: kind) |", "|---|---|---|---|"]
+    for e in OBJECTIVES:
+        taps = ", ".join(f"{r}: {k}" + (" (optional)" if r in getattr(e.obj, "OPTIONAL", ()) else "")
+                         for r, k in e.obj.CONSUMES.items())
+        out.append(f"| [`{e.name}`](#{e.name}) | {e.paper} | {e.meta['default_weight']:g} | {taps} |")
+    out.append("")
+    for e in OBJECTIVES:
+        doc = " ".join((e.obj.__doc__ or "").split())
+        out += [f"## {e.name}", "", e.description + ".", "", f"- **Paper:** {e.paper}",
+                f"- **Equation:** `{e.meta['equation']}`", f"- **Tensors:** {e.meta['shapes']}",
+                f"- **Default weight:** {e.meta['default_weight']:g}", "", doc, ""]
+        props = e.obj.Params.model_json_schema().get("properties", {})
+        if props:
+            out += ["| parameter | default | description |", "|---|---|---|"]
+            for name, prop in props.items():
+                out.append(f"| `{name}` | `{json.dumps(prop.get('default'))}` | {prop.get('description', '')} |")
+            out.append("")
+        out += ["```yaml", "distill:", f"  - {{name: {e.name}, weight: {e.meta['default_weight']:g}}}", "```", ""]
+    return "\n".join(out)

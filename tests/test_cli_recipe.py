@@ -168,3 +168,14 @@ def test_losses_import_costs_only_torch() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert "DSKD" in out.stdout
+
+
+def test_readme_python_examples_run() -> None:
+    import re
+
+    text = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    assert blocks
+    for code in blocks:
+        code = code.replace("100_000", "2_000")  # same code, smaller tensors
+        exec(compile(code, "README.md", "exec"), {})

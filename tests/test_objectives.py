@@ -75,3 +75,11 @@ def test_pvkd_affinity_equals_grouped_dskd() -> None:
     want = torch.stack([dskd(fs[ids == i], ft[ids == i]) for i in torch.unique(ids)]).mean()
     assert got.item() == pytest.approx(want.item(), rel=1e-12)
     assert len(torch.unique(ids)) > 1
+
+
+def test_objectives_doc_is_in_sync() -> None:
+    from conftest import ROOT
+    from distilkit.schema_doc import objectives_markdown
+
+    assert (ROOT / "docs" / "objectives.md").read_text() == objectives_markdown() + "\n", \
+        "docs/objectives.md is stale: run `distilkit list objectives --markdown > docs/objectives.md`"

@@ -6,19 +6,6 @@ import torch
 from torch import Tensor
 
 
-def _positions(logits: Tensor, mask: Tensor | None, name: str) -> Tensor:
-    """(P, K) rows of a (B, K, *S) or (N, K) map, restricted to ``mask`` (shape without the class dim)."""
-    if logits.dim() < 2:
-        raise ValueError(f"{name}: logits need a class dimension at dim 1, got shape {tuple(logits.shape)}")
-    rows = logits.movedim(1, -1).reshape(-1, logits.shape[1])
-    if mask is None:
-        return rows
-    expect = logits.shape[:1] + logits.shape[2:]
-    if mask.shape != expect:
-        raise ValueError(f"{name}: mask must have shape {tuple(expect)} (logits without the class dim), got {tuple(mask.shape)}")
-    return rows[mask.reshape(-1).bool()]
-
-
 def kd(student_logits: Tensor, teacher_logits: Tensor, temperature: float = 1.0, mask: Tensor | None = None) -> Tensor:
     """Vanilla KD: T^2 * mean over positions of KL(softmax(t/T) || softmax(s/T)).
 
@@ -30,13 +17,18 @@ def kd(student_logits: Tensor, teacher_logits: Tensor, temperature: float = 1.0,
         raise ValueError(f"kd: student {tuple(student_logits.shape)} and teacher {tuple(teacher_logits.shape)} logits differ")
     if temperature <= 0:
         raise ValueError(f"kd: temperature must be > 0, got {temperature}")
-    s = _positions(student_logits, mask, "kd")
-    t = _positions(teacher_logits.to(student_logits.dtype), mask, "kd")
-    if s.shape[0] == 0:
+    if mask is not None:
+        expect = student_logits.shape[:1] + student_logits.shape[2:]
+        if mask.shape != expect:
+            raise ValueError(f"kd: mask must have shape {tuple(expect)} (logits without the class dim), got {tuple(mask.shape)}")
+    log_ps = torch.log_softmax(student_logits / temperature, dim=1)
+    log_pt = torch.log_softmax(teacher_logits.to(student_logits.dtype) / temperature, dim=1)
+    kl = (log_pt.exp() * (log_pt - log_ps)).sum(1)  # (B, *S): one KL per position
+    if mask is not None:
+        kl = kl[mask.bool()]
+    if kl.numel() == 0:
         return student_logits.sum() * 0.0
-    log_ps = torch.log_softmax(s / temperature, dim=1)
-    log_pt = torch.log_softmax(t / temperature, dim=1)
-    return temperature**2 * (log_pt.exp() * (log_pt - log_ps)).sum(1).mean()
+    return temperature**2 * kl.mean()
 
 
 def pearson_rows(a: Tensor, b: Tensor, eps: float = 1e-8) -> Tensor:
