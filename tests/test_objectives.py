@@ -83,3 +83,38 @@ def test_objectives_doc_is_in_sync() -> None:
 
     assert (ROOT / "docs" / "objectives.md").read_text() == objectives_markdown() + "\n", \
         "docs/objectives.md is stale: run `distilkit list objectives --markdown > docs/objectives.md`"
+
+
+def test_validate_rejects_an_adapter_without_the_tap_kind(tmp_path) -> None:
+    from distilkit.adapter import Adapter
+    from distilkit.registry import ADAPTERS
+
+    class LogitsOnly(Adapter):
+        TAPS = {"logits": "voxel_logits"}
+
+        def forward(self, batch):
+            return {}
+
+    ADAPTERS.add("logits-only-test", LogitsOnly, description="test adapter", override=True)
+    try:
+        r = tiny_recipe()
+        r["stages"]["student"]["model"] = {"adapter": "logits-only-test"}
+        r["stages"]["student"]["distill"] = [{"name": "nst", "weight": 1.0}]
+        with pytest.raises(RecipeError, match=r"stages.student.distill\[0\]: needs a feature_map tap for the student"):
+            Pipeline(recipe_from_dict(r), tmp_path)
+    finally:
+        ADAPTERS._entries.pop("logits-only-test", None)
+
+
+@pytest.mark.parametrize("dims", [2, 3])
+def test_fitnets_regressor_2d_and_3d(dims) -> None:
+    from distilkit.objectives.feature import FitNets
+
+    spatial = (6, 5) if dims == 2 else (6, 5, 2)
+    s, t = torch.randn(2, 3, *spatial), torch.randn(2, 7, *spatial)
+    obj = FitNets(FitNets.Params())
+    obj.setup({"student": s, "teacher": t}, {})
+    conv = obj.regressor
+    assert conv.weight.shape[:2] == (7, 3) and conv.weight.dim() == dims + 2
+    want = ((conv(s) - t) ** 2).mean()
+    assert obj(s, t, {}).item() == pytest.approx(want.item(), rel=1e-6)
