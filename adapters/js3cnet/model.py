@@ -107,7 +107,7 @@ class JS3CNet(nn.Module):
     def forward(self, batch: dict[str, Tensor], batch_size: int) -> dict[str, Tensor]:
         grid = self.grid
         keep, idx, flat = point_voxel_index(batch, grid)
-        pts, idx, flat, pb = batch["points"][keep], idx[keep], flat[keep], batch["point_batch"][keep]
+        pts, idx, flat = batch["points"][keep], idx[keep], flat[keep]
         x, y, z = grid.shape
         n_vox = batch_size * x * y * z
         # segmentation branch

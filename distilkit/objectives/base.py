@@ -43,3 +43,25 @@ class Objective(nn.Module, ABC):
     def update(self, step: int) -> dict[str, float]:
         """Own optimisation after the student's step (e.g. a score network); returns logged values."""
         return {}
+
+
+class MultiTapObjective(Objective):
+    """An objective that reads more roles than ``student``/``teacher``: it implements :meth:`compute`;
+    calling it with two taps is the same as ``compute({"student": ..., "teacher": ...})``."""
+
+    @abstractmethod
+    def compute(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
+        """The loss from the taps of every role."""
+
+    def forward(self, student: Any, teacher: Any, batch: dict[str, Tensor]) -> Tensor:
+        return self.compute({"student": student, "teacher": teacher}, batch)
+
+
+def register_objective(name: str, cls: type[Objective], *, description: str, paper: str, equation: str,
+                       shapes: str) -> type[Objective]:
+    """Register ``cls`` under ``name``; tap kinds and the default weight are read from the class."""
+    from distilkit.registry import OBJECTIVES
+
+    kinds = tuple(dict.fromkeys(cls.CONSUMES.values()))
+    return OBJECTIVES.add(name, cls, description=description, paper=paper, consumes=kinds,
+                          default_weight=cls.DEFAULT_WEIGHT, equation=equation, shapes=shapes)

@@ -8,8 +8,7 @@ from torch import Tensor
 
 from distilkit.geometry.voxel import align_sparse
 from distilkit.losses.dskd import dskd
-from distilkit.objectives.base import Objective
-from distilkit.registry import OBJECTIVES
+from distilkit.objectives.base import Objective, register_objective
 from distilkit.taps import SparseVoxels
 
 
@@ -44,7 +43,7 @@ class DSKD(Objective):
         return torch.stack(losses).mean()
 
 
-OBJECTIVES.add("dskd", DSKD, description="dense-to-sparse relational KD: squared gap of voxel cosine-similarity matrices",
-               paper="SCPNet (Xia et al., CVPR 2023), eq. 1-2", consumes=("sparse_features",), default_weight=3000.0,
+register_objective("dskd", DSKD, description="dense-to-sparse relational KD: squared gap of voxel cosine-similarity matrices",
+               paper="SCPNet (Xia et al., CVPR 2023), eq. 1-2",
                equation="1/N² Σ_ij (cos_S(i,j) − cos_T(i,j))², exact via ‖AᵀA‖² + ‖BᵀB‖² − 2‖AᵀB‖²",
                shapes="sparse voxel features; teacher rows gathered at the student's coordinates")

@@ -9,9 +9,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 
 from distilkit.losses.feature import fitnet, nst
-from distilkit.objectives.base import Objective
+from distilkit.objectives.base import Objective, register_objective
 from distilkit.objectives.common import conv1x1, match_spatial
-from distilkit.registry import OBJECTIVES
 
 
 class NoParams(BaseModel):
@@ -73,15 +72,12 @@ class MGD(Objective):
         return fitnet(self.generator(x * keep), teacher)
 
 
-OBJECTIVES.add("fitnets", FitNets, description="FitNets hint: MSE after a learnable 1x1 regressor (2-D or 3-D)",
-               paper="Romero et al., ICLR 2015; SCPNet Table 4", consumes=("feature_map",),
-               default_weight=FitNets.DEFAULT_WEIGHT, equation="mean (r(F_s) − F_t)²",
+register_objective("fitnets", FitNets, description="FitNets hint: MSE after a learnable 1x1 regressor (2-D or 3-D)",
+               paper="Romero et al., ICLR 2015; SCPNet Table 4", equation="mean (r(F_s) − F_t)²",
                shapes="(B, C_s, *S) and (B, C_t, *S') feature maps; r: 1×1 conv C_s → C_t")
-OBJECTIVES.add("nst", NST, description="NST: squared MMD (polynomial kernel) between channel-response distributions",
-               paper="Huang & Wang, arXiv 2017 (Neuron Selectivity Transfer); SCPNet Table 4", consumes=("feature_map",),
-               default_weight=NST.DEFAULT_WEIGHT, equation="mean k(T,T) + mean k(S,S) − 2 mean k(S,T), k(a,b) = (aᵀb)²",
+register_objective("nst", NST, description="NST: squared MMD (polynomial kernel) between channel-response distributions",
+               paper="Huang & Wang, arXiv 2017 (Neuron Selectivity Transfer); SCPNet Table 4", equation="mean k(T,T) + mean k(S,S) − 2 mean k(S,T), k(a,b) = (aᵀb)²",
                shapes="(B, C_s, *S), (B, C_t, *S); the larger map is pooled to the smaller")
-OBJECTIVES.add("mgd", MGD, description="MGD: reconstruct the teacher's features from randomly masked student features",
-               paper="Yang et al., ECCV 2022; Scribble2Scene Table 5", consumes=("feature_map",),
-               default_weight=MGD.DEFAULT_WEIGHT, equation="mean (G(align(F_s) ⊙ M) − F_t)², M ~ Bernoulli(1 − λ)",
+register_objective("mgd", MGD, description="MGD: reconstruct the teacher's features from randomly masked student features",
+               paper="Yang et al., ECCV 2022; Scribble2Scene Table 5", equation="mean (G(align(F_s) ⊙ M) − F_t)², M ~ Bernoulli(1 − λ)",
                shapes="(B, C_s, *S), (B, C_t, *S) feature maps")

@@ -6,9 +6,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
 from distilkit.losses.logit import dist, kd
-from distilkit.objectives.base import Objective
+from distilkit.objectives.base import Objective, register_objective
 from distilkit.objectives.common import MaskName, voxel_mask
-from distilkit.registry import OBJECTIVES
 
 
 class KDParams(BaseModel):
@@ -57,12 +56,10 @@ class DIST(Objective):
         return dist(rows_s, rows_t, p.beta, p.gamma, p.temperature)
 
 
-OBJECTIVES.add("kd", KD, description="vanilla KD: per-voxel KL of softened class distributions (T² scaled)",
-               paper="Hinton et al. 2015; SCPNet Table 4, Scribble2Scene Table 5", consumes=("voxel_logits",),
-               default_weight=KD.DEFAULT_WEIGHT, equation="T² · mean_v KL(softmax(t_v/T) ‖ softmax(s_v/T))",
+register_objective("kd", KD, description="vanilla KD: per-voxel KL of softened class distributions (T² scaled)",
+               paper="Hinton et al. 2015; SCPNet Table 4, Scribble2Scene Table 5", equation="T² · mean_v KL(softmax(t_v/T) ‖ softmax(s_v/T))",
                shapes="(B, K, X, Y, Z) logits, student and teacher")
-OBJECTIVES.add("dist", DIST, description="DIST: Pearson correlation of class distributions, inter- and intra-class",
-               paper="Huang et al., NeurIPS 2022; Scribble2Scene Table 5", consumes=("voxel_logits",),
-               default_weight=DIST.DEFAULT_WEIGHT,
+register_objective("dist", DIST, description="DIST: Pearson correlation of class distributions, inter- and intra-class",
+               paper="Huang et al., NeurIPS 2022; Scribble2Scene Table 5",
                equation="T²(β(1 − mean_v ρ(p_s,v, p_t,v)) + γ(1 − mean_k ρ(p_s,:k, p_t,:k)))",
                shapes="(B, K, X, Y, Z) logits; rows = selected voxels")

@@ -12,9 +12,14 @@ from torch import Tensor
 from distilkit.data.classes import IGNORE_INDEX
 from distilkit.losses.feature import fitnet
 from distilkit.losses.rgo2d import _gsl, rgo2d
-from distilkit.objectives.base import Objective
+from distilkit.objectives.base import MultiTapObjective, register_objective
 from distilkit.objectives.common import match_spatial
-from distilkit.registry import OBJECTIVES
+
+
+# logits of both models, plus an optional feature pair (image features in Scribble2Scene)
+LOGITS_AND_OPTIONAL_FEATURES = {"student": "voxel_logits", "teacher": "voxel_logits",
+                                "student_features": "feature_map", "teacher_features": "feature_map"}
+FEATURE_ROLES = frozenset({"student_features", "teacher_features"})
 
 
 def labels_and_geometry(batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
@@ -41,15 +46,14 @@ class RGO2DParams(BaseModel):
     feature_weight: float = Field(0.6, ge=0, description="weight of the image-feature MSE (with feature taps)")
 
 
-class RGO2D(Objective):
+class RGO2D(MultiTapObjective):
     """RGO²D (Scribble2Scene, Wang et al. IJCAI 2024, eq. 2-4): range-guided global (GSL, DIST-style)
     and local (LSA) distillation, plus 0.6 x feature MSE when ``student_features``/``teacher_features``
     taps are given (image features in the paper)."""
 
     Params = RGO2DParams
-    CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits",
-                "student_features": "feature_map", "teacher_features": "feature_map"}
-    OPTIONAL = frozenset({"student_features", "teacher_features"})
+    CONSUMES = LOGITS_AND_OPTIONAL_FEATURES
+    OPTIONAL = FEATURE_ROLES
     DEFAULT_WEIGHT = 1.0
 
     def compute(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
@@ -58,9 +62,6 @@ class RGO2D(Objective):
         loss = rgo2d(taps["student"], taps["teacher"], labels, geometry, p.regions, p.region_weights, p.inter, p.intra)
         feat = _feature_term(taps)
         return loss if feat is None else loss + p.feature_weight * feat
-
-    def forward(self, student: Any, teacher: Any, batch: dict[str, Tensor]) -> Tensor:
-        return self.compute({"student": student, "teacher": teacher}, batch)
 
 
 class CleanerSParams(BaseModel):
@@ -71,16 +72,15 @@ class CleanerSParams(BaseModel):
     kd_sa: float = Field(1.0, ge=0, description="semantic-affinity MSE")
 
 
-class CleanerS(Objective):
+class CleanerS(MultiTapObjective):
     """CleanerS (Wang et al., CVPR 2023): KD-T (feature MSE), KD-SC (KL between softened class-centre
     logits of teacher and student) and KD-SA (MSE of voxel-to-centre cosine affinities); centres are
     class means over labelled voxels (classes != 0), as in the authors' code (seed_code.md §2.3).
     Default weight 0.25 as in their total loss."""
 
     Params = CleanerSParams
-    CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits",
-                "student_features": "feature_map", "teacher_features": "feature_map"}
-    OPTIONAL = frozenset({"student_features", "teacher_features"})
+    CONSUMES = LOGITS_AND_OPTIONAL_FEATURES
+    OPTIONAL = FEATURE_ROLES
     DEFAULT_WEIGHT = 0.25
 
     def compute(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
@@ -110,17 +110,12 @@ class CleanerS(Objective):
         feat = _feature_term(taps)
         return total if feat is None else total + p.kd_t * feat
 
-    def forward(self, student: Any, teacher: Any, batch: dict[str, Tensor]) -> Tensor:
-        return self.compute({"student": student, "teacher": teacher}, batch)
 
-
-OBJECTIVES.add("rgo2d", RGO2D, description="RGO²D: range-guided global (class-centre DIST) + local (affinity) distillation",
-               paper="Scribble2Scene (Wang et al., IJCAI 2024), eq. 2-4", consumes=("voxel_logits", "feature_map"),
-               default_weight=RGO2D.DEFAULT_WEIGHT,
+register_objective("rgo2d", RGO2D, description="RGO²D: range-guided global (class-centre DIST) + local (affinity) distillation",
+               paper="Scribble2Scene (Wang et al., IJCAI 2024), eq. 2-4",
                equation="Σ_r w_r (2.625 inter_r + 0.375 intra_r + LSA_r) + 0.6 · MSE(F_s, F_t)",
                shapes="(B, K, X, Y, Z) logits; labels and dense-geometry mask from the batch")
-OBJECTIVES.add("cleaners", CleanerS, description="CleanerS: feature, semantic-centre KL and semantic-affinity distillation",
-               paper="Wang et al., CVPR 2023 (CleanerS); Scribble2Scene Table 5", consumes=("voxel_logits", "feature_map"),
-               default_weight=CleanerS.DEFAULT_WEIGHT,
+register_objective("cleaners", CleanerS, description="CleanerS: feature, semantic-centre KL and semantic-affinity distillation",
+               paper="Wang et al., CVPR 2023 (CleanerS); Scribble2Scene Table 5",
                equation="KD-T + T² mean_c KL(σ(G_t/T) ‖ σ(G_s/T)) + MSE(cos(y_s, G_s), cos(y_t, G_t))",
                shapes="(B, K, X, Y, Z) logits (+ optional feature maps)")

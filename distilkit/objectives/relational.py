@@ -13,9 +13,8 @@ from distilkit.geometry.voxel import align_sparse
 from distilkit.losses.dskd import dskd
 from distilkit.losses.feature import pkt
 from distilkit.losses.logit import kd
-from distilkit.objectives.base import Objective
+from distilkit.objectives.base import MultiTapObjective, Objective, register_objective
 from distilkit.objectives.common import MaskName, voxel_mask
-from distilkit.registry import OBJECTIVES
 from distilkit.taps import SparseVoxels
 
 
@@ -72,7 +71,7 @@ class PVKDParams(BaseModel):
     voxels: MaskName = "valid"
 
 
-class PVKD(Objective):
+class PVKD(MultiTapObjective):
     """PVKD (Hou et al., CVPR 2022) as SCPNet Table 4 uses it: voxel-wise output KD plus inter-voxel
     affinity distillation inside supervoxels (the point-wise terms are dropped, as in SCPNet).
 
@@ -121,17 +120,12 @@ class PVKD(Objective):
         affinity = torch.stack(aff).mean() if aff else fs.sum() * 0.0
         return p.output_weight * out + p.affinity_weight * affinity
 
-    def forward(self, student: Any, teacher: Any, batch: dict[str, Tensor]) -> Tensor:
-        return self.compute({"student": student, "teacher": teacher}, batch)
 
-
-OBJECTIVES.add("pkt", PKT, description="PKT: KL between cosine-kernel probability distributions over sampled voxels",
-               paper="Passalis & Tefas, ECCV 2018; SCPNet Table 4", consumes=("sparse_features",),
-               default_weight=PKT.DEFAULT_WEIGHT,
+register_objective("pkt", PKT, description="PKT: KL between cosine-kernel probability distributions over sampled voxels",
+               paper="Passalis & Tefas, ECCV 2018; SCPNet Table 4",
                equation="mean_ij p_t,ij log((p_t,ij + ε)/(p_s,ij + ε)), p_ij = k_ij / Σ_j k_ij, k = (cos + 1)/2",
                shapes="sparse voxel features; M ≤ sample_size rows per scene")
-OBJECTIVES.add("pvkd", PVKD, description="PVKD: voxel-wise output KD + inter-voxel affinity inside cylindrical supervoxels",
-               paper="Hou et al., CVPR 2022; SCPNet Table 4", consumes=("sparse_features", "voxel_logits"),
-               default_weight=PVKD.DEFAULT_WEIGHT,
+register_objective("pvkd", PVKD, description="PVKD: voxel-wise output KD + inter-voxel affinity inside cylindrical supervoxels",
+               paper="Hou et al., CVPR 2022; SCPNet Table 4",
                equation="w_o · KD(s, t) + w_a · mean_sv ‖Â_sv Â_svᵀ − B̂_sv B̂_svᵀ‖² / n_sv²",
                shapes="sparse voxel features and (B, K, X, Y, Z) logits")
