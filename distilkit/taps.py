@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import torch
 from torch import Tensor
 
 TAP_KINDS = ("sparse_features", "voxel_logits", "feature_map", "point_logits", "points", "scalar")
@@ -65,4 +64,4 @@ def check_tap(value: Any, kind: str, where: str) -> None:
         raise TapError(f"{where}: expected a {kind} tap, got {shape}")
 
 
-__all__ = ["SparseVoxels", "TAP_KINDS", "check_tap", "torch"]
+__all__ = ["SparseVoxels", "TAP_KINDS", "check_tap"]

@@ -98,8 +98,8 @@ class Trainer:
         self.teacher = teacher
         self.steps_per_epoch = math.ceil(len(train_set) / spec.batch_size)
         self._setup_objectives()
-        params = [p for m in (self.student, self.task, self.objectives) for p in m.parameters() if p.requires_grad]
-        self.optimizer = self._optimizer(params)
+        self.trainable = [p for m in (self.student, self.task, self.objectives) for p in m.parameters() if p.requires_grad]
+        self.optimizer = self._optimizer(self.trainable)
         self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
         self.eval_every = spec.eval_every or self.steps_per_epoch
 
@@ -206,7 +206,7 @@ class Trainer:
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             if spec.grad_clip is not None:
-                torch.nn.utils.clip_grad_norm_(self.student.parameters(), spec.grad_clip)
+                torch.nn.utils.clip_grad_norm_(self.trainable, spec.grad_clip)
             self.optimizer.step()
             extra: dict[str, float] = {}
             for mod in self.objectives:
