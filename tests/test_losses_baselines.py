@@ -204,6 +204,8 @@ def test_rgo2d_regions_and_weights(g) -> None:
     assert regs[0].sum() == 2 * 2 * 2 and regs[1].sum() == 4 * 4 * 2 and regs[2].all()
     want = sum(w * sum(naive_rgo2d_region(s, t, labels, mask & r)) for w, r in zip((0.06, 0.15, 0.20), regs))
     assert close(L.rgo2d(s, t, labels, mask), want)
+    naive = lambda: sum(w * sum(naive_rgo2d_region(s, t, labels, mask & r)) for w, r in zip((0.06, 0.15, 0.20), regs))  # noqa: E731
+    grads_close(lambda: L.rgo2d(s, t, labels, mask), naive, (s, t))
     rings = range_regions((8, 8, 2), "rings")
     assert not (rings[0] & rings[1]).any() and (rings[0] | rings[1] | rings[2]).all()
 
