@@ -60,12 +60,14 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
     }
 
 
-def stage_hashes(res: ResolvedRecipe) -> dict[str, str]:
+def stage_hashes(res: ResolvedRecipe) -> tuple[dict[str, str], dict[str, dict[str, Any]]]:
+    """Each stage's identity (hash of its resolved config and its upstream hashes) and that config."""
     hashes: dict[str, str] = {}
+    configs: dict[str, dict[str, Any]] = {}
     for name in res.order:
-        cfg = stage_config(res, res.stages[name], hashes)
-        hashes[name] = hashlib.sha256(json.dumps(cfg, sort_keys=True).encode()).hexdigest()[:10]
-    return hashes
+        configs[name] = stage_config(res, res.stages[name], hashes)
+        hashes[name] = hashlib.sha256(json.dumps(configs[name], sort_keys=True).encode()).hexdigest()[:10]
+    return hashes, configs
 
 
 def read_summary(run_dir: Path) -> dict[str, Any] | None:
@@ -88,7 +90,7 @@ class Pipeline:
         self.recipe = recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
         self.resolved = resolve(self.recipe, self.source)
         self.root = Path(output) / self.recipe.name
-        self.hashes = stage_hashes(self.resolved)
+        self.hashes, self.configs = stage_hashes(self.resolved)
         self.quiet = quiet
         if console is None:
             from distilkit.console import make_console
@@ -135,7 +137,7 @@ class Pipeline:
                 results.append(StageResult(name, run_dir, done, reused=True))
                 continue
             run_dir.mkdir(parents=True, exist_ok=True)
-            cfg = stage_config(self.resolved, stage, self.hashes)
+            cfg = self.configs[name]
             atomic_write_text(run_dir / "recipe.resolved.yaml",
                               yaml.safe_dump({"recipe": self.recipe.name, "stage": name, "hash": self.hashes[name],
                                               "distilkit": __version__, **cfg}, sort_keys=False))

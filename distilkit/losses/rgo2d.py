@@ -28,6 +28,11 @@ def _gsl(y: Tensor, inv: Tensor, k: int) -> Tensor:
     return sums / (counts[:, None] + _EPS)
 
 
+def centre_affinity(y: Tensor, centres: Tensor) -> Tensor:
+    """(N, K_c) cosine similarity of each voxel's logits to each class centre (normalised matmul)."""
+    return F.normalize(y, dim=1, eps=_EPS) @ F.normalize(centres, dim=1, eps=_EPS).T
+
+
 def rgo2d_region(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, mask: Tensor,
                  inter: float = 2.625, intra: float = 0.375, ignore_index: int = 255) -> tuple[Tensor, Tensor]:
     """(global, local) RGO²D terms of one region.
@@ -61,9 +66,7 @@ def rgo2d_region(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor,
         g_total = g_total + inter * (1 - pearson_rows(ps, pt).mean()) + intra * (1 - pearson_rows(ps.T, pt.T).mean())
         # LSA over every occupied voxel of the region (labelled or not), as in the code
         vs, vt = ys[m.reshape(-1)], yt[m.reshape(-1)]
-        a_s = F.normalize(vs, dim=1, eps=_EPS) @ F.normalize(gs, dim=1, eps=_EPS).T
-        a_t = F.normalize(vt, dim=1, eps=_EPS) @ F.normalize(gt, dim=1, eps=_EPS).T
-        l_total = l_total + F.mse_loss(a_s, a_t)
+        l_total = l_total + F.mse_loss(centre_affinity(vs, gs), centre_affinity(vt, gt))
     return g_total / b, l_total / b
 
 

@@ -9,6 +9,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from distilkit.data.classes import IGNORE_INDEX
+from distilkit.geometry.voxel import align_sparse
+from distilkit.taps import SparseVoxels
 
 MaskName = Literal["all", "valid", "occupied"]
 
@@ -23,6 +25,15 @@ def voxel_mask(batch: dict[str, Tensor], which: str) -> Tensor | None:
     if which == "occupied":
         return (target != IGNORE_INDEX) & (target != 0)
     raise ValueError(f"unknown voxel mask {which!r} (all, valid or occupied)")
+
+
+def aligned_pairs(student: SparseVoxels, teacher: SparseVoxels) -> tuple[Tensor, Tensor, Tensor]:
+    """Student rows, the (detached) teacher rows gathered at the student's coordinates (zero where
+    the teacher has no voxel), and the mask of voxels the teacher has."""
+    if tuple(student.spatial_shape) != tuple(teacher.spatial_shape):
+        raise ValueError(f"student grid {student.spatial_shape} and teacher grid {teacher.spatial_shape} differ")
+    t, found = align_sparse(student.coords, teacher.detach())
+    return student.feats, t, found
 
 
 def match_spatial(x: Tensor, shape: tuple[int, ...]) -> Tensor:

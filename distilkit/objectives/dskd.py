@@ -6,7 +6,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
-from distilkit.geometry.voxel import align_sparse
+from distilkit.objectives.common import aligned_pairs
 from distilkit.losses.dskd import dskd
 from distilkit.objectives.base import Objective, register_objective
 from distilkit.taps import SparseVoxels
@@ -31,15 +31,13 @@ class DSKD(Objective):
     DEFAULT_WEIGHT = 3000.0
 
     def forward(self, student: SparseVoxels, teacher: SparseVoxels, batch: dict[str, Tensor]) -> Tensor:
-        if tuple(student.spatial_shape) != tuple(teacher.spatial_shape):
-            raise ValueError(f"dskd: student grid {student.spatial_shape} and teacher grid {teacher.spatial_shape} differ")
-        t_feats, _ = align_sparse(student.coords, teacher.detach())
+        s_feats, t_feats, _ = aligned_pairs(student, teacher)
         if not self.params.per_sample:
-            return dskd(student.feats, t_feats)
+            return dskd(s_feats, t_feats)
         b = student.coords[:, 0]
-        losses = [dskd(student.feats[b == i], t_feats[b == i]) for i in torch.unique(b).tolist()]
+        losses = [dskd(s_feats[b == i], t_feats[b == i]) for i in torch.unique(b).tolist()]
         if not losses:
-            return student.feats.sum() * 0.0
+            return s_feats.sum() * 0.0
         return torch.stack(losses).mean()
 
 

@@ -11,9 +11,9 @@ from torch import Tensor
 
 from distilkit.data.classes import IGNORE_INDEX
 from distilkit.losses.feature import fitnet
-from distilkit.losses.rgo2d import _gsl, rgo2d
+from distilkit.losses.rgo2d import _gsl, centre_affinity, rgo2d
 from distilkit.objectives.base import MultiTapObjective, register_objective
-from distilkit.objectives.common import match_spatial
+from distilkit.objectives.common import match_spatial, voxel_mask
 
 
 # logits of both models, plus an optional feature pair (image features in Scribble2Scene)
@@ -25,9 +25,9 @@ FEATURE_ROLES = frozenset({"student_features", "teacher_features"})
 def labels_and_geometry(batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
     """Scribble labels (``scribble`` if the data has them, else the dense target) and the dense-geometry
     occupancy mask (target neither empty nor ignored), as in the authors' code."""
-    target = batch["voxel_target"]
-    labels = batch.get("scribble", target)
-    return labels, (target != 0) & (target != IGNORE_INDEX)
+    occupied = voxel_mask(batch, "occupied")
+    assert occupied is not None
+    return batch.get("scribble", batch["voxel_target"]), occupied
 
 
 def _feature_term(taps: dict[str, Any]) -> Tensor | None:
@@ -102,9 +102,7 @@ class CleanerS(MultiTapObjective):
             log_ps = torch.log_softmax(gs / p.temperature, 1)
             log_pt = torch.log_softmax(gt / p.temperature, 1)
             sc = sc + p.temperature**2 * (log_pt.exp() * (log_pt - log_ps)).sum(1).mean()
-            a_s = F.normalize(ys, dim=1) @ F.normalize(gs, dim=1).T
-            a_t = F.normalize(yt, dim=1) @ F.normalize(gt, dim=1).T
-            sa = sa + F.mse_loss(a_s, a_t)
+            sa = sa + F.mse_loss(centre_affinity(ys, gs), centre_affinity(yt, gt))
             n += 1
         total = (p.kd_sc * sc + p.kd_sa * sa) / max(n, 1)
         feat = _feature_term(taps)

@@ -9,21 +9,12 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
-from distilkit.geometry.voxel import align_sparse
 from distilkit.losses.dskd import dskd
 from distilkit.losses.feature import pkt
 from distilkit.losses.logit import kd
 from distilkit.objectives.base import MultiTapObjective, Objective, register_objective
-from distilkit.objectives.common import MaskName, voxel_mask
+from distilkit.objectives.common import MaskName, aligned_pairs, voxel_mask
 from distilkit.taps import SparseVoxels
-
-
-def aligned_pairs(student: SparseVoxels, teacher: SparseVoxels) -> tuple[Tensor, Tensor, Tensor]:
-    """Student rows, teacher rows gathered at the student's coordinates, and the found mask."""
-    if tuple(student.spatial_shape) != tuple(teacher.spatial_shape):
-        raise ValueError(f"student grid {student.spatial_shape} and teacher grid {teacher.spatial_shape} differ")
-    t, found = align_sparse(student.coords, teacher.detach())
-    return student.feats, t, found
 
 
 class PKTParams(BaseModel):
