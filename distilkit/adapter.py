@@ -5,7 +5,8 @@ An adapter is an ``nn.Module`` registered in :data:`distilkit.registry.ADAPTERS`
 * ``Params``: a pydantic model of its constructor parameters (validated when a recipe loads);
 * ``TAPS``: tap name -> tap kind (see :mod:`distilkit.taps`) that ``forward`` returns;
 * ``LOGITS_TAP``: the ``voxel_logits`` tap that predictions and evaluation use;
-* ``DEFAULT_TASK_LOSSES``: task losses used when a recipe stage names none.
+* ``DEFAULT_TASK_LOSSES``: task losses used when a recipe stage names none;
+* ``VERSION``: bump it when the model's behaviour changes, so that stages using it retrain.
 
 ``forward(batch)`` takes the collated batch (:func:`distilkit.data.datasets.collate`) and returns
 a dict with (at least) every declared tap.
@@ -32,6 +33,7 @@ class Adapter(nn.Module, ABC):
     TAPS: ClassVar[dict[str, str]] = {}
     LOGITS_TAP: ClassVar[str] = "logits"
     DEFAULT_TASK_LOSSES: ClassVar[list[dict[str, Any]]] = [{"name": "ce", "weight": 1.0}]
+    VERSION: ClassVar[int] = 1
 
     def __init__(self, params: BaseModel, info: DataInfo) -> None:
         super().__init__()

@@ -15,8 +15,8 @@ from typing import Sequence
 def _cmd_run(args: argparse.Namespace) -> int:
     from distilkit.engine.pipeline import Pipeline
 
-    pipe = Pipeline(args.recipe, args.output, quiet=args.quiet)
-    pipe.run(stop_after=args.stop_after)
+    pipe = Pipeline(args.recipe, args.output, quiet=args.quiet, seed=args.seed)
+    pipe.run(stop_after=args.stop_after, rerun=args.rerun)
     return 0
 
 
@@ -91,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("recipe", help="recipe YAML file")
     r.add_argument("--output", "-o", default="runs", help="output folder (default: runs/)")
     r.add_argument("--quiet", "-q", action="store_true", help="no progress bars or tables")
+    r.add_argument("--rerun", nargs="+", metavar="STAGE", help="retrain these stages (and the stages that use "
+                   "them as teacher) even if finished; the previous runs are kept beside the new ones")
+    r.add_argument("--seed", type=int, default=None, help="override the recipe's seed (each seed is its own run)")
     r.add_argument("--stop-after", type=int, default=None, metavar="STEPS", help=argparse.SUPPRESS)
     r.set_defaults(fn=_cmd_run)
     v = sub.add_parser("validate", help="check recipes without training (exit status 2 on a problem)")

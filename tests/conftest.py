@@ -6,9 +6,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
+FIXTURES = Path(__file__).resolve().parent / "fixtures"  # copied in; tests never read outside the repo
 
-TINY_DATA = {"scale": 8, "num_train": 2, "num_val": 1, "input_frames": 2, "gt_frames": 3, "beams": 16,
+TINY_DATA = {"scale": 8, "num_train": 2, "num_val": 1, "num_test": 1, "input_frames": 2, "gt_frames": 3, "beams": 16,
              "azimuth_steps": 256}
 
 

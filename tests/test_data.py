@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import SHARED, TINY_DATA
+from conftest import FIXTURES, TINY_DATA
 from distilkit.data import semantickitti as sk
-from distilkit.data.classes import NUM_CLASSES, ssc_lut
+from distilkit.data.classes import CLASS_NAMES, NUM_CLASSES, ssc_lut
 from distilkit.data.datasets import build_synthetic, collate, pool_labels
 from distilkit.data.params import SyntheticParams
 from distilkit.data.raycast import Primitives, cast, ray_directions
@@ -95,7 +95,7 @@ def test_collate_sets_invalid_to_ignore() -> None:
 
 
 def test_reads_the_real_semantickitti_scan() -> None:
-    root = SHARED / "data" / "semantickitti-sample" / "sequences" / "00"
+    root = FIXTURES / "semantickitti-sample" / "sequences" / "00"
     pts = sk.read_points(root / "velodyne" / "000000.bin")
     sem, inst = sk.read_point_labels(root / "labels" / "000000.label", len(pts))
     assert pts.shape == (50, 4) and pts.dtype == np.float32
@@ -140,7 +140,7 @@ def test_pool_labels_majority_of_nonempty() -> None:
 
 def _fake_kitti(tmp_path):
     """A SemanticKITTI-format folder: the real shared scan as frames 0 and 1, synthetic voxel files."""
-    src = SHARED / "data" / "semantickitti-sample" / "sequences" / "00"
+    src = FIXTURES / "semantickitti-sample" / "sequences" / "00"
     seq = tmp_path / "sequences" / "08"
     for sub in ("velodyne", "labels", "voxels"):
         (seq / sub).mkdir(parents=True)
@@ -175,3 +175,90 @@ def test_semantickitti_folder_dataset(tmp_path) -> None:
     assert np.allclose(p1[:, 0], p0[:, 0] + 1.0) and np.allclose(p1[:, 1:], p0[:, 1:])
     with pytest.raises(DataError, match="no voxels"):
         SemanticKittiDataset(SemanticKittiParams(root=str(root)), "train")
+
+
+def _boxes_over_trajectory(scene, n_frames: int):
+    for j in range(n_frames + 1):
+        yield j, scene.prims.at_frame(j)
+
+
+def test_traffic_never_overlaps_the_ego_car() -> None:
+    from distilkit.data.synthetic import EGO_HALF_LENGTH, EGO_LANE_Y
+
+    n_frames, speed = 11, 1.0
+    for seed in range(60):
+        rng = np.random.default_rng(seed)
+        x0 = rng.uniform(0, 20)
+        scene = make_scene(rng, x0 - 20, x0 + speed * n_frames + 80, speed, x0, n_frames)
+        for j, prims in _boxes_over_trajectory(scene, n_frames):
+            ego_x = x0 + speed * j
+            b = prims.boxes
+            hit = ((b[:, 0] < ego_x + EGO_HALF_LENGTH) & (b[:, 3] > ego_x - EGO_HALF_LENGTH)
+                   & (b[:, 1] < EGO_LANE_Y + 0.9) & (b[:, 4] > EGO_LANE_Y - 0.9) & (b[:, 5] > 0.2))
+            assert not hit.any(), f"scene seed {seed}, frame {j}: a box overlaps the ego car"
+            c = prims.cylinders
+            near = (np.abs(c[:, 0] - ego_x) < EGO_HALF_LENGTH + c[:, 4]) & (np.abs(c[:, 1] - EGO_LANE_Y) < 0.9 + c[:, 4])
+            assert not near.any(), f"scene seed {seed}, frame {j}: a cylinder overlaps the ego car"
+
+
+def test_ego_lane_traffic_does_appear_ahead() -> None:
+    """The fix keeps traffic in the ego's lane (it only moves it out of the ego's way)."""
+    from distilkit.data.synthetic import EGO_LANE_Y
+
+    found = 0
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        scene = make_scene(rng, -20, 100, 1.0, 0.0, 11)
+        b, vel = scene.prims.boxes, scene.prims.box_vel
+        found += int((((b[:, 1] + b[:, 4]) / 2 - EGO_LANE_Y).__abs__() < 0.01).any() and (vel[:, 0] > 0).any())
+    assert found >= 15
+
+
+def test_all_19_classes_occur_in_the_ground_truth() -> None:
+    p = P.model_copy(update={"scale": 4, "beams": 32, "azimuth_steps": 768, "gt_frames": 10, "input_frames": 1})
+    seen = set()
+    for seed in range(4):
+        seen |= set(np.unique(make_sample(seed, p)["voxel_label"]).tolist())
+    missing = [CLASS_NAMES[c] for c in range(1, NUM_CLASSES) if c not in seen]
+    assert not missing, f"classes never in the voxel ground truth: {missing}"
+
+
+def test_scribbles_are_sparse_consistent_and_distinguish_unlabelled_from_empty() -> None:
+    from distilkit.data.classes import SCRIBBLE_UNLABELLED
+
+    for mode in ("lines", "random"):
+        s = make_sample(3, P.model_copy(update={"scribble": mode}))
+        sc, vl, inv = s["scribble"], s["voxel_label"], s["invalid"]
+        occupied = (vl != 0) & (vl != 255)
+        labelled = (sc >= 1) & (sc < NUM_CLASSES)
+        assert (sc[inv] == 255).all() and (sc[(vl == 0) & ~inv] == 0).all()
+        assert set(np.unique(sc[occupied]).tolist()) <= set(range(1, NUM_CLASSES)) | {SCRIBBLE_UNLABELLED}
+        assert 0 < labelled.sum() < occupied.sum()  # some, not all, occupied voxels carry a class
+        assert (sc == SCRIBBLE_UNLABELLED).any()
+        agree = (sc[labelled] == vl[labelled]).mean()
+        assert agree > 0.6, f"{mode}: scribble classes agree with the dense labels on only {agree:.0%}"
+
+
+def test_scribbles_travel_through_collate_and_reach_rgo2d() -> None:
+    import torch
+
+    from distilkit.data.classes import SCRIBBLE_UNLABELLED
+    from distilkit.losses import rgo2d
+    from distilkit.objectives.region import RGO2D, RGO2DParams
+
+    samples = [make_sample(i, P) for i in range(2)]
+    batch = collate(samples)
+    assert batch["scribble"].shape == batch["voxel_label"].shape
+    assert torch.equal(batch["scribble"][1], torch.from_numpy(samples[1]["scribble"].astype(np.int64)))
+    g = torch.Generator().manual_seed(0)
+    shape = (2, NUM_CLASSES, *batch["voxel_label"].shape[1:])
+    s, t = torch.randn(shape, generator=g), torch.randn(shape, generator=g)
+    occ = (batch["voxel_target"] != 0) & (batch["voxel_target"] != 255)
+    obj = RGO2D(RGO2DParams())
+    value = obj.compute({"student": s, "teacher": t}, batch)
+    assert torch.allclose(value, rgo2d(s, t, batch["scribble"], occ))
+    dense = rgo2d(s, t, batch["voxel_target"], occ)
+    assert not torch.allclose(value, dense)  # the scribbles, not the dense labels, are used
+    # unlabelled voxels (254) are no class: relabelling them as empty leaves the loss unchanged
+    as_empty = batch["scribble"].masked_fill(batch["scribble"] == SCRIBBLE_UNLABELLED, 0)
+    assert torch.allclose(value, rgo2d(s, t, as_empty, occ))

@@ -117,3 +117,87 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path) -> None:
 def test_js3cnet_dskd_recipe_runs(tmp_path) -> None:
     results = pipeline(tmp_path, tiny_recipe(adapter="js3cnet")).run()
     assert [r.summary["status"] for r in results] == ["finished", "finished"]
+
+
+def test_a_changed_component_version_retrains_exactly_its_stages(tmp_path, monkeypatch) -> None:
+    from distilkit.losses.task import VoxelLovasz
+    from distilkit.objectives.dskd import DSKD
+
+    base = pipeline(tmp_path, tiny_recipe()).hashes
+    monkeypatch.setattr(DSKD, "VERSION", DSKD.VERSION + 1)  # only the student uses DSKD
+    bumped = pipeline(tmp_path, tiny_recipe()).hashes
+    assert bumped["teacher"] == base["teacher"] and bumped["student"] != base["student"]
+    monkeypatch.setattr(VoxelLovasz, "VERSION", VoxelLovasz.VERSION + 1)  # both stages train with Lovász
+    both = pipeline(tmp_path, tiny_recipe()).hashes
+    assert both["teacher"] != base["teacher"] and both["student"] != bumped["student"]
+
+
+def test_generator_and_distilkit_versions_are_part_of_the_identity(tmp_path, monkeypatch) -> None:
+    import distilkit.engine.pipeline as pl
+    from distilkit.registry import DATASETS
+
+    base = pipeline(tmp_path, tiny_recipe()).hashes
+    entry = DATASETS.entry("synthetic-lidar")
+    monkeypatch.setitem(entry.meta, "version", entry.meta["version"] + 1)
+    assert all(pipeline(tmp_path, tiny_recipe()).hashes[k] != base[k] for k in base)
+    monkeypatch.setitem(entry.meta, "version", entry.meta["version"] - 1)
+    monkeypatch.setattr(pl, "__version__", "99.0")
+    assert all(pipeline(tmp_path, tiny_recipe()).hashes[k] != base[k] for k in base)
+
+
+def test_rerun_retrains_the_stage_and_its_students_and_keeps_the_old_run(tmp_path) -> None:
+    pipeline(tmp_path, tiny_recipe(steps=1)).run()
+    pipe = pipeline(tmp_path, tiny_recipe(steps=1))
+    results = pipe.run(rerun=["teacher"])
+    assert [r.reused for r in results] == [False, False]  # the student depends on the teacher
+    kept = sorted(p.name for p in pipe.root.iterdir() if ".replaced-" in p.name)
+    assert len(kept) == 2 and all((pipe.root / k / "summary.json").is_file() for k in kept)
+    again = pipeline(tmp_path, tiny_recipe(steps=1)).run(rerun=["student"])
+    assert [r.reused for r in again] == [True, False]
+    from distilkit.errors import RecipeError
+
+    with pytest.raises(RecipeError, match="did you mean 'student'"):
+        pipeline(tmp_path, tiny_recipe(steps=1)).run(rerun=["studnet"])
+
+
+def test_a_nan_gradient_with_a_finite_loss_stops_before_the_weights_change(tmp_path, monkeypatch) -> None:
+    recipe = tiny_recipe(steps=3, distill=False)
+    pipe = pipeline(tmp_path, recipe)
+    calls = {"n": 0}
+    orig = Trainer.loss_terms
+
+    def poisoned(self, batch):
+        terms = orig(self, batch)
+        calls["n"] += 1
+        if calls["n"] >= 2:  # sqrt(0) = 0 is finite, its gradient is not (the blame pass recomputes it)
+            w = next(self.student.parameters())
+            terms["lovasz"] = terms["lovasz"] + torch.sqrt((w - w.detach()).abs().sum())
+        return terms
+
+    monkeypatch.setattr(Trainer, "loss_terms", poisoned)
+    with pytest.raises(NonFiniteLossError, match=r"stage 'teacher', step 2: the gradient .*lovasz"):
+        pipe.run()
+    ckpt = load_checkpoint(pipe.run_dir("teacher") / "checkpoints" / "last.pt")
+    assert ckpt["step"] == 1
+    assert all(torch.isfinite(v).all() for v in ckpt["student"].values() if v.is_floating_point())
+
+
+def test_resume_leaves_no_duplicate_log_lines(tmp_path) -> None:
+    recipe = tiny_recipe(steps=4, distill=False)
+    recipe["stages"]["teacher"]["train"].update(eval_every=4, checkpoint_every=2)
+    pipeline(tmp_path, recipe).run(stop_after=3)  # log lines for steps 1-3, checkpoint at step 2
+    pipe = pipeline(tmp_path, recipe)
+    pipe.run()
+    steps = [json.loads(x).get("step") for x in (pipe.run_dir("teacher") / "metrics.jsonl").read_text().splitlines()
+             if "loss" in json.loads(x)]
+    assert steps == [1, 2, 3, 4]
+
+
+def test_scores_are_reported_on_the_test_split_at_best_and_last(tmp_path) -> None:
+    results = pipeline(tmp_path, tiny_recipe(steps=2, distill=False)).run()
+    s = results[0].summary
+    assert s["report_split"] == "test"
+    assert {"best", "last", "best_step", "last_step"} <= set(s["test"])
+    assert s["test"]["best_step"] == s["best"]["step"]
+    report = (results[0].run_dir.parent / "report.md").read_text()
+    assert "test split" in report and "best validation mIoU" in report

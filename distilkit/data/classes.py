@@ -31,6 +31,7 @@ CLASS_NAMES: list[str] = [
 ]
 NUM_CLASSES = 20
 IGNORE_INDEX = 255
+SCRIBBLE_UNLABELLED = 254  # ScribbleSC: occupied, but no scribble label (distinct from empty = 0)
 
 
 def ssc_lut() -> np.ndarray:

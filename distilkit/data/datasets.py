@@ -4,7 +4,8 @@ A sample is a dict of numpy arrays:
 
 * ``points`` (M,4) x, y, z, intensity in the current sensor frame; ``point_frame`` (M,) frame
   offset (0 = current scan); ``point_label`` (M,) segmentation train id (0 = unlabelled);
-* ``voxel_label`` (X,Y,Z) SSC train ids (0 = empty, 255 = ignore); ``invalid`` (X,Y,Z) bool.
+* ``voxel_label`` (X,Y,Z) SSC train ids (0 = empty, 255 = ignore); ``invalid`` (X,Y,Z) bool;
+* optionally ``scribble`` (X,Y,Z) ScribbleSC labels (0 empty, 1-19, 254 unlabelled, 255 invalid).
 
 :func:`collate` concatenates points with a ``point_batch`` index and stacks the grids; it adds
 ``voxel_target`` = ``voxel_label`` with invalid voxels set to 255 (the training target).
@@ -22,6 +23,7 @@ from torch import Tensor
 
 from distilkit.data.classes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, remap, seg_lut, ssc_lut
 from distilkit.data.params import SemanticKittiParams, SyntheticParams
+from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.data import semantickitti as skio
 from distilkit.errors import DataError
 from distilkit.geometry.voxel import VoxelGrid
@@ -57,6 +59,7 @@ class ArrayDataset(torch.utils.data.Dataset):
             "point_label": self.a["point_label"][lo:hi],
             "voxel_label": self.a["voxel_label"][i],
             "invalid": self.a["invalid"][i],
+            **({"scribble": self.a["scribble"][i]} if "scribble" in self.a else {}),
         }
 
 
@@ -71,6 +74,8 @@ def collate(samples: list[dict[str, np.ndarray]]) -> dict[str, Tensor]:
         "voxel_label": torch.stack([torch.from_numpy(s["voxel_label"].astype(np.int64)) for s in samples]),
         "invalid": torch.stack([torch.from_numpy(s["invalid"].astype(bool)) for s in samples]),
     }
+    if all("scribble" in s for s in samples):  # ScribbleSC labels: 0 empty, 1-19, 254 unlabelled, 255 invalid
+        batch["scribble"] = torch.stack([torch.from_numpy(s["scribble"].astype(np.int64)) for s in samples])
     batch["voxel_target"] = batch["voxel_label"].masked_fill(batch["invalid"], IGNORE_INDEX)
     batch["batch_size"] = torch.tensor(len(samples))
     return batch
@@ -80,7 +85,7 @@ def build_synthetic(params: SyntheticParams, split: str,
                     progress: Callable[[int, int], None] | None = None) -> ArrayDataset:
     from distilkit.data.synthetic import generate_split
 
-    count = params.num_train if split == "train" else params.num_val
+    count = {"train": params.num_train, "val": params.num_val, "test": params.num_test}[split]
     arrays = generate_split(params, split, count, progress)
     return ArrayDataset(arrays, synthetic_info(params))
 
@@ -109,7 +114,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
     def __init__(self, params: SemanticKittiParams, split: str) -> None:
         self.p = params
         root = Path(params.root).expanduser()
-        seqs = params.train_sequences if split == "train" else params.val_sequences
+        seqs = {"train": params.train_sequences, "val": params.val_sequences, "test": params.test_sequences}[split]
         self.items: list[tuple[Path, int, int]] = []  # (sequence dir, frame, sequence length)
         for seq in seqs:
             d = root / "sequences" / seq
@@ -172,12 +177,14 @@ DATASETS.add(
     "synthetic-lidar", _synthetic_factory,
     description="procedural street scenes, ray-cast LiDAR scans, multi-frame input and SSC ground truth (cached on disk)",
     paper="distilkit (SemanticKITTI conventions, Behley et al. ICCV 2019)",
-    params=SyntheticParams, info=synthetic_info,
+    params=SyntheticParams, info=synthetic_info, version=GENERATOR_VERSION,
+    has_split=lambda p, split: True,
 )
 DATASETS.add(
     "semantickitti", _kitti_factory,
     description="a SemanticKITTI-format folder: velodyne/, labels/, voxels/*.label|.invalid, poses.txt, calib.txt",
     paper="Behley et al., SemanticKITTI, ICCV 2019",
     params=SemanticKittiParams,
-    info=lambda p: DataInfo(VoxelGrid.semantickitti(p.scale), input_frames=p.input_frames),
+    info=lambda p: DataInfo(VoxelGrid.semantickitti(p.scale), input_frames=p.input_frames), version=1,
+    has_split=lambda p, split: split != "test" or bool(p.test_sequences),
 )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 SCALES = (1, 2, 4, 8)
@@ -20,7 +22,8 @@ class SyntheticParams(BaseModel):
     seed: int = Field(0, description="scene seed (independent of the training seed)")
     scale: int = Field(4, description="grid coarsening: 1 = 256x256x32 at 0.2 m, 4 = 64x64x8 at 0.8 m")
     num_train: int = Field(16, ge=1)
-    num_val: int = Field(4, ge=1)
+    num_val: int = Field(16, ge=1, description="validation scenes (select the best checkpoint)")
+    num_test: int = Field(32, ge=1, description="test scenes (scores reported at the best and the last checkpoint)")
     input_frames: int = Field(5, ge=1, description="frames fused into the input (current + next T-1)")
     gt_frames: int = Field(10, ge=0, description="future scans voxelised with the current one for the SSC target")
     beams: int = Field(32, ge=2)
@@ -30,6 +33,11 @@ class SyntheticParams(BaseModel):
     max_range: float = Field(60.0, gt=0)
     range_noise: float = Field(0.02, ge=0, description="std of Gaussian range noise, metres")
     ego_speed: float = Field(1.0, ge=0, description="metres per frame (KITTI: about 1 m at 10 Hz)")
+    scribble: Literal["lines", "random"] = Field(
+        "lines", description="scribble labels: BEV line scribbles (ScribbleKITTI) or a random subset of points")
+    scribble_spacing: float = Field(7.5, gt=0, description="metres between parallel scribble lines")
+    scribble_width: float = Field(0.3, gt=0, description="width of a scribble line, metres")
+    scribble_fraction: float = Field(0.1, gt=0, le=1, description="share of points labelled with scribble: random")
 
     _scale = field_validator("scale")(_check_scale)
 
@@ -41,6 +49,8 @@ class SemanticKittiParams(BaseModel):
     root: str = Field(..., description="folder that holds sequences/")
     train_sequences: list[str] = ["00", "01", "02", "03", "04", "05", "06", "07", "09", "10"]
     val_sequences: list[str] = ["08"]
+    test_sequences: list[str] = Field(default_factory=list, description="labelled held-out sequences for test "
+                                      "scores (none: the validation split is reported, and says so)")
     scale: int = Field(1, description="grid coarsening of the 256x256x32 voxel files (majority pooling)")
     input_frames: int = Field(1, ge=1)
     stride: int = Field(5, ge=1, description="use every n-th scan (voxel files exist for every 5th)")

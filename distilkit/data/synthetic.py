@@ -2,9 +2,11 @@
 
 A scene is a straight street along +x (world frame, z up, ground at z = 0): a two-lane road,
 raised sidewalks, parking strips, terrain, buildings, fences, trees (trunk + crown), bushes,
-poles with traffic signs, parked cars and trucks (static) and moving cars, trucks, persons and
-bicyclists (each with an instance id and a constant velocity). The ego sensor drives along
-the right lane at ``ego_speed`` metres per frame, 1.73 m above the ground (KITTI).
+poles with traffic signs, gravel shoulders (other-ground), parked cars, trucks, motorcycles,
+trailers (other-vehicle) and bicycles (static), and moving cars, trucks, buses, persons,
+bicyclists and motorcyclists (each with an instance id and a constant velocity): all 19
+SemanticKITTI classes. The ego sensor drives along the right lane at ``ego_speed`` metres per
+frame, 1.73 m above the ground (KITTI); traffic in its lane never overlaps its footprint.
 
 For one sample with current frame 0 (SemanticKITTI conventions, data_metrics.md §1.5):
 
@@ -13,7 +15,11 @@ For one sample with current frame 0 (SemanticKITTI conventions, data_metrics.md 
   frames than the student);
 * SSC ground truth: the current and next ``gt_frames`` scans voxelised on the SSC grid,
   majority raw label per voxel (ties to the smallest id), remapped with the SSC LUT
-  (0 = empty); ``invalid`` marks voxels that no ray of those scans traversed or hit.
+  (0 = empty); ``invalid`` marks voxels that no ray of those scans traversed or hit;
+* scribble labels (ScribbleSC, Scribble2Scene §3): the same ground-truth points, but only those
+  on BEV line scribbles (``lines``) or a random subset (``random``) carry their class; a voxel's
+  scribble label is the majority over its labelled points, ``SCRIBBLE_UNLABELLED`` where it is
+  occupied but holds none, 0 where empty, 255 where invalid.
 """
 
 from __future__ import annotations
@@ -21,30 +27,34 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from distilkit.data.classes import RAW_IDS, remap, seg_lut, ssc_lut
+from distilkit.data.classes import IGNORE_INDEX, RAW_IDS, SCRIBBLE_UNLABELLED, remap, seg_lut, ssc_lut
 from distilkit.data.raycast import Primitives, cast, ray_directions
 from distilkit.data.params import SyntheticParams
 from distilkit.geometry.voxel import VoxelGrid
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # 2: ego-safe traffic, all 19 classes, scribbles, test split
 SENSOR_HEIGHT = 1.73
 ROAD_HALF = 4.0
 SIDEWALK_OUT = 6.5
 REFLECTANCE = {"road": 0.25, "sidewalk": 0.35, "parking": 0.3, "terrain": 0.45, "building": 0.5, "fence": 0.4,
                "vegetation": 0.6, "trunk": 0.4, "pole": 0.55, "traffic-sign": 0.9, "car": 0.7, "truck": 0.65,
-               "person": 0.35, "bicyclist": 0.45}
+               "person": 0.35, "bicyclist": 0.45, "bicycle": 0.5, "motorcycle": 0.6, "other-vehicle": 0.6,
+               "motorcyclist": 0.45, "other-ground": 0.3, "bus": 0.65}
+EGO_HALF_LENGTH = 2.6  # the ego car's footprint around the sensor along x (metres)
+EGO_LANE_Y = -1.75
 
 
 @dataclass
 class SceneSpec:
     prims: Primitives
     parking: np.ndarray  # (S,2) x ranges of parking strips on the left side
+    other_ground: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # right shoulder x ranges
 
 
 class _Builder:
@@ -78,8 +88,29 @@ class _Builder:
         return Primitives(*arrs(self.boxes, 6), *arrs(self.cyls, 5), *arrs(self.sphs, 4))
 
 
-def make_scene(rng: np.random.Generator, x_min: float, x_max: float, ego_speed: float) -> SceneSpec:
-    """Lay out one street between ``x_min`` and ``x_max`` (metres, world frame)."""
+def clear_of_ego(x_lo: float, length: float, v: float, ego_x0: float, ego_speed: float, n_frames: int,
+                 margin: float = 2.0) -> bool:
+    """True if a box in the ego lane (rear at ``x_lo``, moving ``v`` m/frame) keeps ``margin`` metres
+    from the ego footprint at every frame 0..n_frames (the gap is linear in time: check the ends)."""
+    for j in (0, n_frames):
+        ego = ego_x0 + ego_speed * j
+        lo, hi = x_lo + v * j, x_lo + length + v * j
+        if hi > ego - EGO_HALF_LENGTH - margin and lo < ego + EGO_HALF_LENGTH + margin:
+            return False
+    ahead0 = x_lo > ego_x0  # the box must stay on the same side of the ego throughout
+    aheadn = x_lo + v * n_frames > ego_x0 + ego_speed * n_frames
+    return ahead0 == aheadn
+
+
+def make_scene(rng: np.random.Generator, x_min: float, x_max: float, ego_speed: float,
+               ego_x0: float | None = None, n_frames: int = 0) -> SceneSpec:
+    """Lay out one street between ``x_min`` and ``x_max`` (metres, world frame).
+
+    ``ego_x0`` / ``n_frames``: the ego's start and trajectory length, kept clear of its lane's
+    traffic; the rarer classes are placed at least once in its forward view.
+    """
+    ego_x0 = x_min + 20 if ego_x0 is None else ego_x0
+    view = (ego_x0 + 4.0, ego_x0 + 45.0)  # in front of the sensor, inside the 51.2 m SSC volume
     b = _Builder()
     # Parking strips on the left; sidewalks elsewhere (raised 15 cm).
     parking, x = [], x_min
@@ -144,12 +175,22 @@ def make_scene(rng: np.random.Generator, x_min: float, x_max: float, ego_speed: 
     for _ in range(rng.integers(2, 6)):
         x, v = rng.uniform(x_min, x_max), -rng.uniform(0.6, 1.5) * max(ego_speed, 0.5)
         b.box((x, 0.85, 0), (x + 4.3, 2.65, 1.5), "moving-car", b.inst(), (v, 0.0))
-    for _ in range(rng.integers(1, 4)):
+    if rng.random() < 0.7:  # an oncoming bus (other-vehicle), in view
+        x, v = rng.uniform(*view), -rng.uniform(0.5, 1.0) * max(ego_speed, 0.5)
+        b.box((x, 0.75, 0), (x + 11.0, 3.25, 3.2), "moving-bus", b.inst(), (v, 0.0))
+    for _ in range(rng.integers(1, 4)):  # the ego's lane: placed so that the ego never drives into them
         truck = rng.random() < 0.2
         length, width, height = (8.0, 2.5, 3.3) if truck else (4.3, 1.8, 1.5)
-        x, v = rng.uniform(x_min + 15, x_max), rng.uniform(0.3, 1.2) * max(ego_speed, 0.5)
-        b.box((x, -1.75 - width / 2, 0), (x + length, -1.75 + width / 2, height),
-              "moving-truck" if truck else "moving-car", b.inst(), (v, 0.0))
+        for _try in range(20):
+            x, v = rng.uniform(x_min, x_max), rng.uniform(0.3, 1.2) * max(ego_speed, 0.5)
+            if clear_of_ego(x, length, v, ego_x0, ego_speed, n_frames):
+                b.box((x, EGO_LANE_Y - width / 2, 0), (x + length, EGO_LANE_Y + width / 2, height),
+                      "moving-truck" if truck else "moving-car", b.inst(), (v, 0.0))
+                break
+    for k in range(rng.integers(1, 3)):  # motorcyclists on the oncoming lane (one in view)
+        x = rng.uniform(*view) if k == 0 else rng.uniform(x_min, x_max)
+        v = -rng.uniform(0.8, 1.5) * max(ego_speed, 0.5)
+        b.box((x, 1.3, 0), (x + 2.1, 2.1, 1.6), "moving-motorcyclist", b.inst(), (v, 0.0))
     # Pedestrians on the sidewalks (some standing), bicyclists at the road edge.
     for _ in range(rng.integers(2, 8)):
         side = rng.choice([-1, 1])
@@ -159,10 +200,26 @@ def make_scene(rng: np.random.Generator, x_min: float, x_max: float, ego_speed: 
     for _ in range(rng.integers(0, 3)):
         x, v = rng.uniform(x_min, x_max), rng.uniform(0.35, 0.6)
         b.box((x, -3.7, 0), (x + 1.8, -3.1, 1.75), "moving-bicyclist", b.inst(), (v, 0.0))
-    return SceneSpec(b.build(), np.array(parking, np.float32).reshape(-1, 2))
+    # Parked bicycles and a motorcycle on the right sidewalk (one of each in view).
+    for k in range(rng.integers(1, 4)):
+        x = rng.uniform(*view) if k == 0 else rng.uniform(x_min, x_max)
+        b.box((x, -5.2, 0.15), (x + 1.7, -4.6, 1.2), "bicycle", b.inst())
+    x = rng.uniform(*view)
+    b.box((x, -6.3, 0.15), (x + 2.1, -5.5, 1.35), "motorcycle", b.inst())
+    # Gravel shoulders (other-ground) behind the right sidewalk, one in view.
+    shoulders = [(view[0] + rng.uniform(0, 15), 0.0)]
+    shoulders[0] = (shoulders[0][0], shoulders[0][0] + rng.uniform(8, 20))
+    x = x_min
+    while x < x_max:
+        seg = rng.uniform(6, 20)
+        if rng.random() < 0.25:
+            shoulders.append((x, x + seg))
+        x += seg + rng.uniform(10, 30)
+    return SceneSpec(b.build(), np.array(parking, np.float32).reshape(-1, 2),
+                     np.array(shoulders, np.float32).reshape(-1, 2))
 
 
-def _ground_labels(pts: np.ndarray, parking: np.ndarray) -> np.ndarray:
+def _ground_labels(pts: np.ndarray, parking: np.ndarray, other_ground: np.ndarray | None = None) -> np.ndarray:
     y, x = pts[:, 1], pts[:, 0]
     lab = np.full(len(pts), RAW_IDS["terrain"], np.int64)
     lab[np.abs(y) < ROAD_HALF] = RAW_IDS["road"]
@@ -173,6 +230,10 @@ def _ground_labels(pts: np.ndarray, parking: np.ndarray) -> np.ndarray:
     lab[left & in_park] = RAW_IDS["parking"]
     lab[left & ~in_park] = RAW_IDS["sidewalk"]  # under a sidewalk box (rarely visible)
     lab[(y <= -ROAD_HALF) & (y > -SIDEWALK_OUT)] = RAW_IDS["sidewalk"]
+    if other_ground is not None:
+        shoulder = (y <= -SIDEWALK_OUT) & (y > -SIDEWALK_OUT - 2.5)
+        for lo, hi in other_ground:
+            lab[shoulder & (x >= lo) & (x < hi)] = RAW_IDS["other-ground"]
     return lab
 
 
@@ -199,7 +260,7 @@ def cast_scan(scene: SceneSpec, origin: np.ndarray, frame: int, dirs: np.ndarray
         sel = kind == k
         label[sel], inst[sel] = lab[index[sel]], ins[index[sel]]
     g = kind == 1
-    label[g] = _ground_labels(xyz[g], scene.parking)
+    label[g] = _ground_labels(xyz[g], scene.parking, scene.other_ground)
     names = {RAW_IDS[n]: n for n in REFLECTANCE}
     base = np.array([REFLECTANCE.get(names.get(int(l), ""), 0.4) for l in range(300)], np.float32)
     refl = base[np.clip(_static_id(label), 0, 299)]
@@ -271,9 +332,9 @@ def make_sample(seed: int, p: SyntheticParams) -> dict[str, np.ndarray]:
     grid = VoxelGrid.semantickitti(p.scale)
     n_frames = max(p.input_frames, p.gt_frames + 1)
     x0 = rng.uniform(0, 20)
-    scene = make_scene(rng, x0 - 20, x0 + p.ego_speed * n_frames + 80, p.ego_speed)
+    scene = make_scene(rng, x0 - 20, x0 + p.ego_speed * n_frames + 80, p.ego_speed, x0, n_frames)
     dirs = ray_directions(p.beams, p.azimuth_steps, p.fov_up, p.fov_down)
-    ego0 = np.array([x0, -1.75, SENSOR_HEIGHT], np.float32)
+    ego0 = np.array([x0, EGO_LANE_Y, SENSOR_HEIGHT], np.float32)
     scans = []
     for j in range(n_frames):
         origin = ego0 + np.array([p.ego_speed * j, 0, 0], np.float32)
@@ -290,14 +351,50 @@ def make_sample(seed: int, p: SyntheticParams) -> dict[str, np.ndarray]:
     gt_raw = np.concatenate([s.label for s in gt])
     voxel_raw = voxelize_majority(gt_xyz, gt_raw, grid)
     seen = traversed([to_cur(s.origin[None])[0] for s in gt], [to_cur(s.xyz) for s in gt], grid)
+    invalid = ~seen & (voxel_raw == 0)
+    scribble = scribble_labels(gt_xyz, gt_raw, gt_xyz + ego0[None, :], voxel_raw, invalid, grid, p, rng)
     return {
         "points": points,
         "point_frame": frame,
         "point_label": remap(raw, seg_lut()).astype(np.uint8),
         "point_raw": raw.astype(np.uint32) | (inst.astype(np.uint32) << 16),
         "voxel_label": remap(voxel_raw, ssc_lut()).astype(np.uint8),
-        "invalid": ~seen & (voxel_raw == 0),
+        "invalid": invalid,
+        "scribble": scribble,
     }
+
+
+def scribble_mask(world_xyz: np.ndarray, p: SyntheticParams, rng: np.random.Generator) -> np.ndarray:
+    """(n,) bool: the ground-truth points an annotator labels.
+
+    ``lines``: two families of parallel BEV lines (random orientations and offsets, fixed in the
+    world, ``scribble_spacing`` m apart, ``scribble_width`` m wide), as ScribbleKITTI's line
+    scribbles on accumulated scans (about 2 * width / spacing of the points; 8 % there).
+    ``random``: each point with probability ``scribble_fraction`` (Scribble2Scene's SemanticPOSS
+    variant: 10 % of the full annotation).
+    """
+    if p.scribble == "random":
+        return rng.random(len(world_xyz)) < p.scribble_fraction
+    keep = np.zeros(len(world_xyz), bool)
+    for _ in range(2):
+        theta = rng.uniform(0, np.pi)
+        normal = np.array([np.cos(theta), np.sin(theta)], np.float64)
+        d = world_xyz[:, :2].astype(np.float64) @ normal + rng.uniform(0, p.scribble_spacing)
+        keep |= np.abs(d - p.scribble_spacing * np.round(d / p.scribble_spacing)) < p.scribble_width / 2
+    return keep
+
+
+def scribble_labels(xyz: np.ndarray, raw: np.ndarray, world_xyz: np.ndarray, voxel_raw: np.ndarray,
+                    invalid: np.ndarray, grid: VoxelGrid, p: SyntheticParams, rng: np.random.Generator) -> np.ndarray:
+    """(X,Y,Z) uint8 ScribbleSC labels: class ids of scribbled voxels, ``SCRIBBLE_UNLABELLED`` for
+    occupied voxels without a scribbled point, 0 for empty, 255 for invalid."""
+    keep = scribble_mask(world_xyz, p, rng)
+    lab = remap(voxelize_majority(xyz[keep], raw[keep], grid), ssc_lut())
+    out = np.where(voxel_raw != 0, SCRIBBLE_UNLABELLED, 0)
+    labelled = (lab != 0) & (lab != IGNORE_INDEX)
+    out = np.where(labelled & (voxel_raw != 0), lab, out)
+    out = np.where(invalid, IGNORE_INDEX, out)
+    return out.astype(np.uint8)
 
 
 def cache_root() -> Path:
@@ -309,7 +406,7 @@ def content_key(obj: Any) -> str:
 
 
 _ARRAYS = ("points", "point_frame", "point_label", "point_raw")
-_GRIDS = ("voxel_label", "invalid")
+_GRIDS = ("voxel_label", "invalid", "scribble")
 
 
 def generate_split(p: SyntheticParams, split: str, count: int,

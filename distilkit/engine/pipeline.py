@@ -1,8 +1,11 @@
 """The pipeline: stages in dependency order, each cached by the content hash of its config.
 
-A stage's identity is a hash of its resolved configuration, the data configuration, the seed
-and the identities of its upstream stages. ``runs/<recipe>/<stage>-<hash>/summary.json`` marks a
-finished stage, which is reused and never retrained; an unfinished one resumes from ``last.pt``.
+A stage's identity is a hash of its resolved configuration, the data configuration, the seed,
+the identities of its upstream stages and the versions of the code that produces it (distilkit,
+the dataset or synthetic generator, and the ``VERSION`` of its adapter, task losses and
+objectives). ``runs/<recipe>/<stage>-<hash>/summary.json`` marks a finished stage, which is
+reused; an unfinished one resumes from ``last.pt``. ``rerun`` retrains named stages (and the
+stages downstream of them) on purpose; the replaced folder is kept beside the new one.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import yaml
 from distilkit import __version__
 from distilkit.engine.io import atomic_write_text
 from distilkit.engine.resolve import ResolvedRecipe, ResolvedStage, resolve
+from distilkit.errors import RecipeError
 from distilkit.recipe import Recipe, load_recipe
 from distilkit.registry import DATASETS
 
@@ -46,6 +50,7 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
         else:
             teacher["checkpoint_sha256"] = _file_digest(spec.teacher.checkpoint or "")
     return {
+        "versions": code_versions(res, stage),
         "schema_version": res.recipe.schema_version,
         "seed": res.recipe.seed,
         "data": {"dataset": res.recipe.data.dataset, "params": res.data_params.model_dump(mode="json")},
@@ -58,6 +63,30 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
         "optimizer": spec.optimizer.model_dump(mode="json"),
         "train": spec.train.model_dump(mode="json", exclude={"log_every", "checkpoint_every", "device"}),
     }
+
+
+def code_versions(res: ResolvedRecipe, stage: ResolvedStage) -> dict[str, Any]:
+    """The code versions that produce a stage: a change in any of them retrains exactly its users."""
+    ds = DATASETS.entry(res.recipe.data.dataset)
+    out: dict[str, Any] = {
+        "distilkit": __version__,
+        "dataset": ds.meta.get("version", 1),
+        "adapter": getattr(stage.student.cls, "VERSION", 1),
+        "task_losses": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.task_losses},
+        "distill": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.distill},
+    }
+    if stage.teacher is not None and stage.teacher_from is None:  # a checkpoint teacher: its adapter's code
+        out["teacher_adapter"] = getattr(stage.teacher.cls, "VERSION", 1)
+    return out
+
+
+def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
+    """``names`` and every stage that uses one of them as its teacher, transitively."""
+    out = set(names)
+    for name in res.order:  # dependency order: an upstream stage comes first
+        if res.stages[name].teacher_from in out:
+            out.add(name)
+    return out
 
 
 def stage_hashes(res: ResolvedRecipe) -> tuple[dict[str, str], dict[str, dict[str, Any]]]:
@@ -85,9 +114,11 @@ class Pipeline:
     """Runs a recipe: resolves it, builds data lazily, trains or reuses each stage, writes a report."""
 
     def __init__(self, recipe: Recipe | str | Path, output: str | Path = "runs", console: Any = None,
-                 quiet: bool = False) -> None:
+                 quiet: bool = False, seed: int | None = None) -> None:
         self.source = str(recipe) if not isinstance(recipe, Recipe) else "recipe"
         self.recipe = recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
+        if seed is not None:  # a seed from the command line: a different identity for every stage
+            self.recipe = self.recipe.model_copy(update={"seed": seed})
         self.resolved = resolve(self.recipe, self.source)
         self.root = Path(output) / self.recipe.name
         self.hashes, self.configs = stage_hashes(self.resolved)
@@ -121,16 +152,43 @@ class Pipeline:
             return self.run_dir(t.from_) / "checkpoints" / f"{t.which}.pt"
         return Path(t.checkpoint or "").expanduser()
 
-    def run(self, stop_after: int | None = None) -> list[StageResult]:
+    def has_split(self, split: str) -> bool:
+        entry = DATASETS.entry(self.recipe.data.dataset)
+        return bool(entry.meta.get("has_split", lambda p, s: s != "test")(self.resolved.data_params, split))
+
+    def rerun_set(self, names: list[str] | None) -> set[str]:
+        """The stages ``--rerun`` names, checked, plus every stage downstream of them."""
+        if not names:
+            return set()
+        unknown = [n for n in names if n not in self.resolved.stages]
+        if unknown:
+            import difflib
+
+            hints = "".join(f"; did you mean {c[0]!r}?" for n in unknown
+                            if (c := difflib.get_close_matches(n, list(self.resolved.stages), n=1)))
+            raise RecipeError([("", f"--rerun: no stage named {', '.join(map(repr, unknown))}{hints} "
+                                    f"(stages: {', '.join(self.resolved.order)})")], self.source)
+        return downstream(self.resolved, set(names))
+
+    def run(self, stop_after: int | None = None, rerun: list[str] | None = None) -> list[StageResult]:
         from distilkit.engine.io import seed_everything
         from distilkit.engine.report import stage_progress, write_report
         from distilkit.engine.trainer import Trainer, load_teacher, pick_device, write_summary
 
         results: list[StageResult] = []
+        again = self.rerun_set(rerun)
         self.root.mkdir(parents=True, exist_ok=True)
         for name in self.resolved.order:
             stage = self.resolved.stages[name]
             run_dir = self.run_dir(name)
+            if name in again and run_dir.exists():  # keep the old results beside the new ones
+                stamp, n = time.strftime("%Y%m%d-%H%M%S"), 1
+                kept = run_dir.with_name(f"{run_dir.name}.replaced-{stamp}")
+                while kept.exists():
+                    n += 1
+                    kept = run_dir.with_name(f"{run_dir.name}.replaced-{stamp}-{n}")
+                run_dir.rename(kept)
+                self.console.print(f"stage [bold]{name}[/] retrained on request; the previous run is kept in {kept}")
             done = read_summary(run_dir)
             if done is not None:
                 self.console.print(f"[green]✓[/] stage [bold]{name}[/] reused from {run_dir}")
@@ -154,13 +212,16 @@ class Pipeline:
             if stop_after is not None and result.steps < trainer.total_steps:
                 self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")
                 return results
+            split = "test" if self.has_split("test") else "val"
+            test = trainer.evaluate_checkpoints(self.dataset(split))
             summary = {
                 "status": "finished", "stage": name, "hash": self.hashes[name], "label": stage.spec.label or name,
                 "adapter": stage.student.adapter, "frames": getattr(stage.student.params, "frames", None),
                 "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
                 "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill],
                 "steps": result.steps, "train_seconds": round(result.seconds, 2),
-                "best": result.best, "last": result.last, "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                "best": result.best, "last": result.last, "report_split": split, "test": test,
+                "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
             }
             write_summary(run_dir, summary)
             results.append(StageResult(name, run_dir, summary, reused=False))

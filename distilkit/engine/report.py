@@ -39,26 +39,42 @@ def stage_progress(console: Any, name: str) -> Iterator[Callable[[int, int, dict
 
 
 def _row(summary: dict[str, Any]) -> dict[str, Any]:
-    best = summary.get("best", {}).get("scores") or summary.get("last") or {}
+    """One stage's figures: test-split scores at the best-validation and the last checkpoint."""
+    test = summary.get("test") or {}
+    best = test.get("best") or summary.get("best", {}).get("scores") or summary.get("last") or {}
+    last = test.get("last") or summary.get("last") or {}
+    val = summary.get("best", {}).get("scores") or {}
+    nan = float("nan")
     return {"stage": summary["stage"], "label": summary.get("label", summary["stage"]), "adapter": summary["adapter"],
             "frames": summary.get("frames"), "teacher": summary.get("teacher") or "—",
-            "objectives": ", ".join(summary.get("objectives", [])) or "—", "miou": best.get("miou", float("nan")),
-            "iou": best.get("iou", float("nan")), "precision": best.get("precision", float("nan")),
-            "recall": best.get("recall", float("nan")), "steps": summary.get("steps"),
-            "class_iou": best.get("class_iou", [])}
+            "objectives": ", ".join(summary.get("objectives", [])) or "—", "miou": best.get("miou", nan),
+            "iou": best.get("iou", nan), "precision": best.get("precision", nan), "recall": best.get("recall", nan),
+            "best_step": test.get("best_step", summary.get("best", {}).get("step")),
+            "last_miou": last.get("miou", nan), "last_iou": last.get("iou", nan), "val_miou": val.get("miou", nan),
+            "steps": summary.get("steps"), "class_iou": best.get("class_iou", []),
+            "split": summary.get("report_split", "val")}
+
+
+def _header(rows: list[dict[str, Any]]) -> str:
+    split = rows[0]["split"] if rows else "test"
+    return (f"{split} split, SSC metrics in %: 'best' = the checkpoint with the best validation mIoU (its step "
+            f"shown), 'last' = the final step")
 
 
 def results_table(results: list[Any]) -> Any:
     from rich.table import Table
 
-    table = Table(title="distilkit results (validation split, best checkpoint; SemanticKITTI SSC metrics, %)")
-    for col in ("stage", "model", "frames", "teacher", "distillation", "mIoU", "IoU", "precision", "recall", "steps", ""):
-        table.add_column(col, justify="right" if col in ("frames", "mIoU", "IoU", "precision", "recall", "steps") else "left")
-    for r in results:
-        row = _row(r.summary)
+    rows = [_row(r.summary) for r in results]
+    table = Table(title=f"distilkit results — {_header(rows)}")
+    cols = ("stage", "model", "frames", "teacher", "distillation", "mIoU best", "IoU best", "best step",
+            "mIoU last", "IoU last", "val mIoU", "")
+    for col in cols:
+        table.add_column(col, justify="left" if col in ("stage", "model", "teacher", "distillation", "") else "right")
+    for r, row in zip(results, rows):
         table.add_row(row["label"], row["adapter"], str(row["frames"]), row["teacher"], row["objectives"],
-                      f"{100 * row['miou']:.2f}", f"{100 * row['iou']:.2f}", f"{100 * row['precision']:.2f}",
-                      f"{100 * row['recall']:.2f}", str(row["steps"]), "reused" if r.reused else "trained")
+                      f"{100 * row['miou']:.2f}", f"{100 * row['iou']:.2f}", str(row["best_step"]),
+                      f"{100 * row['last_miou']:.2f}", f"{100 * row['last_iou']:.2f}", f"{100 * row['val_miou']:.2f}",
+                      "reused" if r.reused else "trained")
     return table
 
 
@@ -82,14 +98,16 @@ def write_report(pipeline: Any, results: list[Any]) -> Path:
     pipeline.console.print(results_table(results))
     root: Path = pipeline.root
     rows = [_row(r.summary) for r in results]
-    lines = [f"# {pipeline.recipe.name}", "", "Validation split, best checkpoint, SemanticKITTI SSC metrics (%).", "",
-             "| stage | model | frames | teacher | distillation | mIoU | IoU | precision | recall | steps |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for row in rows:
+    lines = [f"# {pipeline.recipe.name}", "", f"Seed {pipeline.recipe.seed}; {_header(rows)}.", "",
+             "| stage | model | frames | teacher | distillation | mIoU best | IoU best | precision | recall | best step "
+             "| mIoU last | IoU last | val mIoU | run |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r, row in zip(results, rows):
         lines.append(f"| {row['label']} | {row['adapter']} | {row['frames']} | {row['teacher']} | {row['objectives']} | "
                      f"{100 * row['miou']:.2f} | {100 * row['iou']:.2f} | {100 * row['precision']:.2f} | "
-                     f"{100 * row['recall']:.2f} | {row['steps']} |")
-    lines += ["", "## Per-class IoU (%)", "", "| class | " + " | ".join(r["label"] for r in rows) + " |",
+                     f"{100 * row['recall']:.2f} | {row['best_step']} | {100 * row['last_miou']:.2f} | "
+                     f"{100 * row['last_iou']:.2f} | {100 * row['val_miou']:.2f} | {'reused' if r.reused else 'trained'} |")
+    lines += ["", "## Per-class IoU (%, best checkpoint)", "", "| class | " + " | ".join(r["label"] for r in rows) + " |",
               "|---|" + "---|" * len(rows)]
     for c, cname in enumerate(CLASS_NAMES[1:]):
         vals = [f"{100 * r['class_iou'][c]:.1f}" if len(r["class_iou"]) > c else "—" for r in rows]
@@ -124,7 +142,7 @@ def _plot(path: Path, results: list[Any], rows: list[dict[str, Any]]) -> None:
     ax2.bar(labels, [100 * r["miou"] for r in rows], color="tab:blue", label="mIoU")
     ax2.plot(labels, [100 * r["iou"] for r in rows], "o", color="tab:orange", label="completion IoU")
     ax2.set_ylabel("%")
-    ax2.set_title("validation")
+    ax2.set_title(f"{rows[0]['split'] if rows else 'test'} split, best-validation checkpoint")
     ax2.legend(fontsize=8)
     ax2.tick_params(axis="x", rotation=20)
     fig.tight_layout()

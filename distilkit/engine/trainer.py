@@ -21,7 +21,8 @@ from torch import Tensor, nn
 
 from distilkit.adapter import Adapter
 from distilkit.data.datasets import DataInfo, collate
-from distilkit.engine.io import atomic_torch_save, atomic_write_json, load_checkpoint, rng_state, set_rng_state
+from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint, rng_state,
+                                 set_rng_state)
 from distilkit.engine.resolve import ResolvedModel, ResolvedStage
 from distilkit.errors import NonFiniteLossError
 from distilkit.metrics.ssc import SSCMetric
@@ -136,6 +137,50 @@ class Trainer:
         with open(self.run_dir / "metrics.jsonl", "a", encoding="utf-8") as f:
             f.write(json.dumps(record) + "\n")
 
+    def _truncate_log(self, step: int) -> None:
+        """Drop log records written after ``step`` (the checkpoint a resume starts from): no duplicates."""
+        path = self.run_dir / "metrics.jsonl"
+        if not path.is_file():
+            return
+        keep = []
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                rec = json.loads(line)
+            except ValueError:  # a line cut by a kill
+                continue
+            if int(rec.get("step", 0)) <= step:
+                keep.append(line)
+        atomic_write_text(path, "".join(f"{line}\n" for line in keep))
+
+    # -- gradients ---------------------------------------------------------------------------
+    def _grad_norm(self, clip: float | None) -> Tensor:
+        """Total gradient norm of the trainables (clipping them to ``clip`` when it is set)."""
+        grads = [p for p in self.trainable if p.grad is not None]
+        if not grads:
+            return torch.zeros(())
+        if clip is not None:
+            return torch.nn.utils.clip_grad_norm_(grads, clip)
+        return torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(p.grad.detach()) for p in grads]))
+
+    def _blame(self, batch: dict[str, Tensor]) -> str:
+        """Name the term(s) whose gradient is not finite, by one backward pass per term on the same batch."""
+        try:
+            with torch.random.fork_rng(devices=[]):
+                terms = self.loss_terms(batch)
+                params = [p for p in self.trainable]
+                bad = []
+                for name, value in terms.items():
+                    if not value.requires_grad:
+                        continue
+                    grads = torch.autograd.grad(value, params, retain_graph=True, allow_unused=True)
+                    if any(g is not None and not bool(torch.isfinite(g).all()) for g in grads):
+                        bad.append(name)
+        except Exception as exc:  # diagnosis must never hide the original problem
+            return f"the term could not be told: {type(exc).__name__}"
+        if not bad:
+            return "no single term's gradient is non-finite on its own; check the learning rate"
+        return f"non-finite gradient from term(s) {', '.join(bad)}"
+
     # -- loop --------------------------------------------------------------------------------
     def _batch(self, step: int) -> dict[str, Tensor]:
         epoch, i = divmod(step, self.steps_per_epoch)
@@ -188,6 +233,7 @@ class Trainer:
             self.optimizer.load_state_dict(ckpt["optimizer"])
             set_rng_state(ckpt["rng"])
             start_step, best = int(ckpt["step"]), ckpt["best"]
+            self._truncate_log(start_step)
             self._log({"event": "resume", "step": start_step})
         t0 = time.perf_counter()
         self.student.train()
@@ -205,8 +251,12 @@ class Trainer:
                     f"({last_path}) is kept. Lower the learning rate or the term's weight.")
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            if spec.grad_clip is not None:
-                torch.nn.utils.clip_grad_norm_(self.trainable, spec.grad_clip)
+            grad_norm = self._grad_norm(spec.grad_clip)
+            if not torch.isfinite(grad_norm):
+                raise NonFiniteLossError(
+                    f"stage {self.stage.name!r}, step {step + 1}: the gradient became {float(grad_norm)} "
+                    f"({self._blame(batch)}) although every loss term was finite; no weight was updated, the last "
+                    f"checkpoint ({last_path}) is kept. Lower the learning rate or the term's weight.")
             self.optimizer.step()
             extra: dict[str, float] = {}
             for mod in self.objectives:
@@ -234,6 +284,21 @@ class Trainer:
             last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device)
         seconds = time.perf_counter() - t0
         return TrainResult(best=best, last=last_scores, steps=step, seconds=seconds)
+
+    def evaluate_checkpoints(self, dataset: Any) -> dict[str, Any]:
+        """Scores on ``dataset`` (the test split) of the best-validation checkpoint and of the last one."""
+        bs = self.stage.spec.train.batch_size
+        out: dict[str, Any] = {"last": evaluate(self.student, dataset, bs, self.device),
+                               "last_step": self.total_steps}
+        best_path = self.ckpt_dir / "best.pt"
+        if best_path.is_file():
+            ckpt = load_checkpoint(best_path)
+            model = build_model(self.stage.student, self.info).to(self.device)
+            model.load_state_dict(ckpt["student"])
+            out["best"], out["best_step"] = evaluate(model, dataset, bs, self.device), int(ckpt["step"])
+        else:
+            out["best"], out["best_step"] = out["last"], self.total_steps
+        return out
 
 
 def write_summary(run_dir: Path, summary: dict[str, Any]) -> None:

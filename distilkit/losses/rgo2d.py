@@ -39,7 +39,7 @@ def rgo2d_region(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor,
 
     Args:
         student_logits, teacher_logits: (B, K, *S) logits (temperature 1, as in the code).
-        labels: (B, *S) long scribble labels, 0 = unlabelled.
+        labels: (B, *S) long scribble labels; only 1..K-1 are classes (0 empty, 254 unlabelled, 255 ignore).
         mask: (B, *S) bool, the voxels of this region that are occupied in the dense geometry.
     """
     if student_logits.shape != teacher_logits.shape or student_logits.dim() < 3:
@@ -51,7 +51,8 @@ def rgo2d_region(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor,
     g_total, l_total = zero, zero
     b = student_logits.shape[0]
     for i in range(b):
-        sel = mask[i].bool() & (labels[i] != 0) & (labels[i] != ignore_index)
+        k = student_logits.shape[1]  # labels outside 1..K-1 (unlabelled 254, ignore 255) select nothing
+        sel = mask[i].bool() & (labels[i] > 0) & (labels[i] < k) & (labels[i] != ignore_index)
         m = mask[i].bool()
         if not bool(sel.any()):
             continue

@@ -19,6 +19,7 @@ class TaskLoss(nn.Module, ABC):
 
     Params: ClassVar[type[BaseModel]]
     CONSUMES: ClassVar[dict[str, str]] = {"student": "voxel_logits"}
+    VERSION: ClassVar[int] = 1  # bump when the loss's numbers change: stages using it retrain
 
     def __init__(self, params: BaseModel, taps: dict[str, str]) -> None:
         super().__init__()

@@ -24,6 +24,7 @@ class Objective(nn.Module, ABC):
     CONSUMES: ClassVar[dict[str, str]] = {}
     OPTIONAL: ClassVar[frozenset[str]] = frozenset()
     DEFAULT_WEIGHT: ClassVar[float] = 1.0
+    VERSION: ClassVar[int] = 1  # bump when the objective's numbers change: stages using it retrain
 
     def __init__(self, params: BaseModel) -> None:
         super().__init__()
