@@ -50,6 +50,14 @@ class Adapter(nn.Module, ABC):
         return outputs[self.LOGITS_TAP].argmax(dim=1)
 
     @classmethod
+    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> tuple[int, ...] | None:
+        """The voxel grid (X, Y, Z) a voxel tap lives on, known before training (default: the data's
+        SSC grid); None for taps that are not on a voxel grid. ``validate`` checks alignments with it."""
+        if cls.TAPS.get(tap) in ("sparse_features", "voxel_logits"):
+            return tuple(info.grid.shape)
+        return None
+
+    @classmethod
     def taps_of_kind(cls, kind: str) -> list[str]:
         return [name for name, k in cls.TAPS.items() if k == kind]
 

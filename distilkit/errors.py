@@ -34,3 +34,7 @@ class DataError(DistilkitError):
 
 class NonFiniteLossError(DistilkitError):
     """A loss term became NaN or infinite during training."""
+
+
+class GridMismatchError(DistilkitError):
+    """Two voxel grids that an objective must align cannot be aligned (no integer factor)."""

@@ -56,12 +56,24 @@ class LossSpec(_Strict):
                                  description="role -> tap name, e.g. {student: completion, teacher: completion}")
 
 
+class ParamGroupSpec(_Strict):
+    """Parameters whose qualified name matches ``match`` (a glob over ``student.<module path>``,
+    ``task.<term>.<param>``, ``distill.<objective>.<param>``; a bare name matches its last part)."""
+
+    match: str = Field(..., min_length=1, description="glob, e.g. 'task.uncertainty_multitask.log_var' or 'log_var'")
+    lr_scale: float = Field(1.0, gt=0, description="learning rate = optimizer lr x lr_scale")
+    weight_decay: float | None = Field(None, ge=0, description="(default: the optimizer's)")
+
+
 class OptimizerSpec(_Strict):
     name: Literal["adam", "adamw", "sgd"] = "adam"
     lr: float = Field(1e-3, gt=0)
     weight_decay: float = Field(0.0, ge=0)
     momentum: float = Field(0.9, ge=0, description="SGD only")
     betas: tuple[float, float] = (0.9, 0.999)
+    param_groups: list[ParamGroupSpec] | None = Field(
+        None, description="per-group learning rates, first match wins (default: the groups the stage's terms ask "
+                          "for, e.g. JS3C-Net's sigma at 10x; [] for none)")
 
 
 class TrainSpec(_Strict):

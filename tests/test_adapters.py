@@ -25,6 +25,9 @@ def batch() -> dict:
 
 
 def test_mpb_has_3_5_7_kernels_no_bias_no_batchnorm() -> None:
+    from distilkit_adapters.scpnet.model import kernels_for_voxel
+
+    assert kernels_for_voxel(0.2) == ((3, 5, 7), 3)  # the paper at full scale
     net = CompletionSubNetwork(4)
     convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv3d)]
     assert all(c.bias is None for c in convs)
@@ -102,3 +105,78 @@ def test_pixel_shuffle_3d_inverts_space_to_depth() -> None:
     assert y.shape == (1, 2, 4, 6, 2)
     # channel c*8 + (i*4 + j*2 + k) of coarse voxel (x,y,z) lands at fine (2x+i, 2y+j, 2z+k)
     assert y[0, 1, 3, 4, 1] == x[0, 8 + 4 + 0 + 1, 1, 2, 0]
+
+
+def test_js3cnet_class_weights_follow_the_paper(batch) -> None:
+    """(max f / f_c)^(1/3) from the training split, checked against a naive count in float64."""
+    import numpy as np
+
+    from distilkit.data.classes import NUM_CLASSES
+    from distilkit.losses.task import frequency_weights
+
+    ds = build_synthetic(P, "train")
+    loss = UncertaintyMultiTask(UncertaintyMultiTask.Params(), {"student": "logits", "points": "point_logits"})
+    loss.prepare(ds)
+    counts = np.zeros(NUM_CLASSES)
+    for i in range(len(ds)):
+        s = ds[i]
+        for v, inv in zip(s["voxel_label"].ravel(), s["invalid"].ravel()):
+            if not inv and v != 255:
+                counts[int(v)] += 1
+    f = counts / counts.sum()
+    present = counts > 0
+    want = np.where(present, (f[present].max() / np.where(present, f, 1)) ** (1 / 3), 0)
+    want[~present] = want[present].max()
+    assert np.allclose(loss.comp_weight.numpy(), want, rtol=1e-6)
+    assert loss.seg_weight[0] == 0  # unlabelled points carry no weight
+    assert torch.allclose(frequency_weights(torch.tensor([8.0, 1.0, 0.0])), torch.tensor([1.0, 2.0, 2.0]))
+    # the weights enter the CE terms
+    cls = ADAPTERS.get("js3cnet")
+    model = cls(cls.Params(frames=1, seg_channels=4, embed=4, ssc_channels=4, pvi_hidden=4, knn=4), synthetic_info(P))
+    out = model(batch)
+    l_comp = F.cross_entropy(out["logits"], batch["voxel_target"], ignore_index=255, weight=loss.comp_weight)
+    tgt = out["point_target"].masked_fill(out["point_target"] == 0, 255)
+    l_seg = F.cross_entropy(out["point_logits"], tgt, ignore_index=255, weight=loss.seg_weight)
+    assert loss(out, batch).item() == pytest.approx((0.5 * l_seg + 0.5 * l_comp).item(), rel=1e-5)
+
+
+def test_sigma_trains_at_ten_times_the_learning_rate_unless_the_recipe_says_otherwise(tmp_path) -> None:
+    from conftest import tiny_recipe
+    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.trainer import Trainer
+    from distilkit.recipe import recipe_from_dict
+
+    def groups(recipe: dict) -> dict[str, float]:
+        pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
+        stage = pipe.resolved.stages["teacher"]
+        tr = Trainer(stage, pipe.resolved.data_info, pipe.dataset("train"), pipe.dataset("val"), tmp_path / "x", 0)
+        return {g["name"]: (g["lr"], len(g["params"])) for g in tr.optimizer.param_groups}
+
+    recipe = tiny_recipe(distill=False, adapter="js3cnet")
+    recipe["stages"]["teacher"]["optimizer"] = {"lr": 0.002}
+    g = groups(recipe)
+    assert g["task.uncertainty_multitask.log_var"] == (pytest.approx(0.02), 1)
+    assert g["default"][0] == 0.002 and g["default"][1] > 10
+    recipe["stages"]["teacher"]["optimizer"]["param_groups"] = [{"match": "student.net.ssc.*", "lr_scale": 0.5}]
+    g = groups(recipe)
+    assert "task.uncertainty_multitask.log_var" not in g and g["student.net.ssc.*"][0] == pytest.approx(0.001)
+
+
+def test_scpnet_kernels_follow_the_grid_and_inactive_voxels_are_empty(batch) -> None:
+    from distilkit_adapters.scpnet.model import EMPTY_LOGIT, kernels_for_voxel
+
+    # receptive radius of the middle branch: 2 * conv radius + 2 * max MPB radius, in metres ~1.6 m
+    for voxel in (0.2, 0.4, 0.8):
+        paths, conv = kernels_for_voxel(voxel)
+        radius_m = (2 * (conv // 2) + 2 * (max(paths) // 2)) * voxel
+        assert radius_m == pytest.approx(1.6)
+    cls = ADAPTERS.get("scpnet")
+    model = cls(cls.Params(frames=1, channels=4, point_mlp=[8], seg_channels=4), synthetic_info(P))
+    out = model(batch)
+    active = torch.zeros(out["logits"].shape[:1] + out["logits"].shape[2:], dtype=torch.bool)
+    active[tuple(out["completion"].coords.T)] = True
+    assert 0 < active.float().mean() < 0.9
+    off = out["logits"].permute(0, 2, 3, 4, 1)[~active]
+    assert torch.all(off[:, 0] == EMPTY_LOGIT) and torch.all(off[:, 1:] == 0)
+    out["logits"][~active.unsqueeze(1).expand_as(out["logits"])].sum().backward(retain_graph=True)
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.net.segmentation.parameters())

@@ -11,6 +11,7 @@ from distilkit.adapter import Adapter, select_frames
 from distilkit.data.datasets import DataInfo
 from distilkit.registry import ADAPTERS
 from distilkit.taps import SparseVoxels
+from distilkit_adapters._blocks import channels_last
 from distilkit_adapters.js3cnet.model import JS3CNet
 
 
@@ -32,11 +33,19 @@ class JS3CNetAdapter(Adapter):
             "point_logits": "point_logits"}
     LOGITS_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "uncertainty_multitask", "weight": 1.0}]
+    VERSION = 2  # 2: channels-last volumes
 
     def __init__(self, params: JS3CNetParams, info: DataInfo) -> None:
         super().__init__(params, info)
         self.net = JS3CNet(info.grid, info.num_classes, params.seg_channels, params.embed, params.ssc_channels,
                            params.pvi_hidden, params.knn)
+        channels_last(self)
+
+    @classmethod
+    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> tuple[int, ...] | None:
+        if tap == "completion":  # the SSC decoder works at half resolution
+            return tuple(s // 2 for s in info.grid.shape)
+        return super().tap_grid(tap, params, info)
 
     def forward(self, batch: dict[str, Tensor]) -> dict[str, Any]:
         b = select_frames(batch, self.params.frames)

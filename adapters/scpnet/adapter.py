@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
@@ -11,7 +12,8 @@ from distilkit.adapter import Adapter, select_frames
 from distilkit.data.datasets import DataInfo
 from distilkit.geometry.voxel import dense_to_sparse
 from distilkit.registry import ADAPTERS
-from distilkit_adapters.scpnet.model import SCPNet
+from distilkit_adapters._blocks import channels_last
+from distilkit_adapters.scpnet.model import SCPNet, kernels_for_voxel, mask_inactive
 
 
 class SCPNetParams(BaseModel):
@@ -20,6 +22,10 @@ class SCPNetParams(BaseModel):
     channels: int = Field(32, ge=1, description="completion sub-network width (paper: 32)")
     point_mlp: list[int] = Field(default_factory=lambda: [64, 128], description="point MLP widths (paper: 64,128,256,256)")
     seg_channels: int = Field(32, ge=1, description="segmentation U-Net base width")
+    kernels: list[int] | None = Field(None, description="MPB path kernel sizes (paper: 3,5,7 at 0.2 m; default: "
+                                                        "scaled to the grid so the receptive field stays ~1.6 m)")
+    conv_kernel: int | None = Field(None, ge=1, description="ConvBlock kernel of the middle branch (paper: 3; "
+                                                            "default: scaled to the grid)")
 
 
 class SCPNetAdapter(Adapter):
@@ -30,16 +36,24 @@ class SCPNetAdapter(Adapter):
     LOGITS_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "ce", "weight": 1.0}, {"name": "lovasz", "weight": 1.0}]
 
+    VERSION = 2  # 2: grid-scaled kernels, empty logits outside the active set, channels-last volumes
+
     def __init__(self, params: SCPNetParams, info: DataInfo) -> None:
         super().__init__(params, info)
-        self.net = SCPNet(params.channels, params.point_mlp, params.seg_channels, info.num_classes)
+        kernels, conv = kernels_for_voxel(info.grid.voxel_size)
+        self.net = SCPNet(params.channels, params.point_mlp, params.seg_channels, info.num_classes,
+                          tuple(params.kernels or kernels), params.conv_kernel or conv)
+        channels_last(self)
 
     def forward(self, batch: dict[str, Tensor]) -> dict[str, Any]:
         b = select_frames(batch, self.params.frames)
         vox = self.net.voxelizer(b, self.info.grid, int(batch["voxel_label"].shape[0]))
         completed = self.net.completion(vox)
-        logits = self.net.segmentation(completed)
-        return {"completion": dense_to_sparse(completed), "completion_dense": completed, "logits": logits}
+        sparse = dense_to_sparse(completed)
+        active = torch.zeros(completed.shape[:1] + completed.shape[2:], dtype=torch.bool, device=completed.device)
+        active[tuple(sparse.coords.T)] = True
+        logits = mask_inactive(self.net.segmentation(completed), active)
+        return {"completion": sparse, "completion_dense": completed, "logits": logits}
 
 
 ADAPTERS.add("scpnet", SCPNetAdapter,

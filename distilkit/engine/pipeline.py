@@ -60,7 +60,7 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
                         for t in stage.task_losses],
         "distill": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps}
                     for t in stage.distill],
-        "optimizer": spec.optimizer.model_dump(mode="json"),
+        "optimizer": {**spec.optimizer.model_dump(mode="json"), "param_groups": stage.param_groups},
         "train": spec.train.model_dump(mode="json", exclude={"log_every", "checkpoint_every", "device"}),
     }
 

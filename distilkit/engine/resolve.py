@@ -9,7 +9,7 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 from distilkit.errors import RecipeError, UnknownNameError
-from distilkit.recipe import LossSpec, ModelSpec, Recipe, pydantic_problems, stage_order
+from distilkit.recipe import LossSpec, ModelSpec, ParamGroupSpec, Recipe, pydantic_problems, stage_order
 from distilkit.registry import ADAPTERS, DATASETS, OBJECTIVES, TASK_LOSSES, Registry
 
 
@@ -38,6 +38,7 @@ class ResolvedStage:
     teacher_from: str | None
     task_losses: list[ResolvedTerm] = field(default_factory=list)
     distill: list[ResolvedTerm] = field(default_factory=list)
+    param_groups: list[dict[str, Any]] = field(default_factory=list)  # optimizer groups in effect
 
 
 @dataclass
@@ -122,6 +123,46 @@ def _terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: dict[st
     return out
 
 
+def grid_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedModel | None], info: Any,
+                  path: str) -> list[tuple[str, str]]:
+    """Student/teacher tap pairs on voxel grids that cannot be aligned, known from the adapters' declarations:
+    sparse features must differ by integer factors per axis, voxel logits must share the grid."""
+    from distilkit.geometry.voxel import grid_factors
+
+    out = []
+    for i, term in enumerate(terms):
+        for role, tap in term.taps.items():
+            partner = "student" + role[len("teacher"):] if role.startswith("teacher") else None
+            if partner not in term.taps or models.get("student") is None or models.get("teacher") is None:
+                continue
+            s_model, t_model = models["student"], models["teacher"]
+            assert s_model is not None and t_model is not None
+            s_grid = s_model.cls.tap_grid(term.taps[partner], s_model.params, info)
+            t_grid = t_model.cls.tap_grid(tap, t_model.params, info)
+            if s_grid is None or t_grid is None:
+                continue
+            kind = term.cls.CONSUMES[role]
+            how = grid_factors(s_grid, t_grid)
+            if isinstance(how, str) or (kind == "voxel_logits" and how[0] != "same"):
+                why = how if isinstance(how, str) else f"{kind} must share one grid"
+                out.append((f"{path}[{i}]", f"{term.name}: student tap {term.taps[partner]!r} ({s_model.adapter}) on grid "
+                                             f"{s_grid} and teacher tap {tap!r} ({t_model.adapter}) on grid {t_grid} "
+                                             f"cannot be aligned: {why}"))
+    return out
+
+
+def param_groups(given: list[Any] | None, task: list[ResolvedTerm], distill: list[ResolvedTerm]) -> list[dict[str, Any]]:
+    """The optimizer's parameter groups: the recipe's, or else those the stage's terms ask for."""
+    if given is not None:
+        return [g.model_dump() for g in given]
+    out = []
+    for prefix, terms in (("task", task), ("distill", distill)):
+        for t in terms:
+            for g in getattr(t.cls, "DEFAULT_PARAM_GROUPS", []):
+                out.append(ParamGroupSpec.model_validate({**g, "match": f"{prefix}.{t.name}.{g['match']}"}).model_dump())
+    return out
+
+
 def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
     """Check everything that can be checked without training; raise :class:`RecipeError` listing all problems."""
     problems: list[tuple[str, str]] = []
@@ -164,8 +205,11 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         if teacher is not None and info is not None and getattr(teacher.params, "frames", 1) > info.input_frames:
             problems.append((f"{path}.teacher", f"teacher needs {teacher.params.frames} input frames, data provides "
                                                  f"{info.input_frames}"))
+        if info is not None:
+            problems.extend(grid_problems(distill, models, info, f"{path}.distill"))
         if student is not None:
-            stages[name] = ResolvedStage(name, spec, student, teacher, teacher_from, task, distill)
+            groups = param_groups(spec.optimizer.param_groups, task, distill)
+            stages[name] = ResolvedStage(name, spec, student, teacher, teacher_from, task, distill, groups)
     if problems:
         raise RecipeError(problems, source)
     assert data_params is not None

@@ -24,7 +24,7 @@ from distilkit.data.datasets import DataInfo, collate
 from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint, rng_state,
                                  set_rng_state)
 from distilkit.engine.resolve import ResolvedModel, ResolvedStage
-from distilkit.errors import NonFiniteLossError
+from distilkit.errors import DistilkitError, NonFiniteLossError
 from distilkit.metrics.ssc import SSCMetric
 
 
@@ -99,12 +99,42 @@ class Trainer:
         self.teacher = teacher
         self.steps_per_epoch = math.ceil(len(train_set) / spec.batch_size)
         self._setup_objectives()
+        for term in self.task:
+            term.prepare(train_set)
         self.trainable = [p for m in (self.student, self.task, self.objectives) for p in m.parameters() if p.requires_grad]
-        self.optimizer = self._optimizer(self.trainable)
+        self.optimizer = self._optimizer(self._param_groups())
         self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
         self.eval_every = spec.eval_every or self.steps_per_epoch
 
-    def _optimizer(self, params: list[nn.Parameter]) -> torch.optim.Optimizer:
+    def named_trainables(self) -> list[tuple[str, nn.Parameter]]:
+        """Trainable parameters by qualified name: ``student.*``, ``task.<term>.*``, ``distill.<objective>.*``."""
+        named = [(f"student.{n}", p) for n, p in self.student.named_parameters()]
+        for prefix, specs, mods in (("task", self.stage.task_losses, self.task),
+                                    ("distill", self.stage.distill, self.objectives)):
+            for spec, mod in zip(specs, mods):
+                named += [(f"{prefix}.{spec.name}.{n}", p) for n, p in mod.named_parameters()]
+        return [(n, p) for n, p in named if p.requires_grad]
+
+    def _param_groups(self) -> list[dict[str, Any]]:
+        """Optimizer groups: each parameter joins the first group whose ``match`` fits its name."""
+        from fnmatch import fnmatchcase
+
+        o = self.stage.spec.optimizer
+        groups = [{"params": [], "lr": o.lr * g["lr_scale"], "name": g["match"],
+                   **({"weight_decay": g["weight_decay"]} if g.get("weight_decay") is not None else {})}
+                  for g in self.stage.param_groups]
+        rest: dict[str, Any] = {"params": [], "lr": o.lr, "name": "default"}
+        for name, p in self.named_trainables():
+            for spec, group in zip(self.stage.param_groups, groups):
+                pat = spec["match"]
+                if fnmatchcase(name, pat) or ("." not in pat and fnmatchcase(name.rsplit(".", 1)[-1], pat)):
+                    group["params"].append(p)
+                    break
+            else:
+                rest["params"].append(p)
+        return [g for g in (rest, *groups) if g["params"]]
+
+    def _optimizer(self, params: list[dict[str, Any]]) -> torch.optim.Optimizer:
         o = self.stage.spec.optimizer
         if o.name == "adam":
             return torch.optim.Adam(params, lr=o.lr, betas=o.betas, weight_decay=o.weight_decay)
@@ -218,7 +248,15 @@ class Trainer:
             with torch.no_grad():
                 t_out = self.teacher(batch)
             for spec, mod in zip(self.stage.distill, self.objectives):
-                terms[f"kd_{spec.name}"] = spec.weight * mod.compute(self._taps(spec, s_out, t_out), batch)
+                try:
+                    terms[f"kd_{spec.name}"] = spec.weight * mod.compute(self._taps(spec, s_out, t_out), batch)
+                except DistilkitError as exc:  # one line naming where: stage and objective
+                    where = f"stage {self.stage.name!r}, objective {spec.name!r}: {exc}"
+                    try:
+                        err = type(exc)(where)
+                    except TypeError:
+                        err = DistilkitError(where)
+                    raise err from None
         return terms
 
     def fit(self) -> TrainResult:

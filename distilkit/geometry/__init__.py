@@ -2,10 +2,12 @@
 
 from distilkit.geometry.voxel import (
     VoxelGrid,
+    align_across_grids,
     align_sparse,
+    grid_factors,
     dense_to_sparse,
     voxel_hash,
 )
 from distilkit.geometry.knn import knn
 
-__all__ = ["VoxelGrid", "align_sparse", "dense_to_sparse", "voxel_hash", "knn"]
+__all__ = ["VoxelGrid", "align_across_grids", "align_sparse", "grid_factors", "dense_to_sparse", "voxel_hash", "knn"]

@@ -76,6 +76,57 @@ def align_sparse(target_coords: Tensor, source: SparseVoxels) -> tuple[Tensor, T
     return feats, found
 
 
+def grid_factors(target: tuple[int, ...], source: tuple[int, ...]) -> tuple[str, tuple[int, ...]] | str:
+    """How ``source`` voxels map onto ``target`` voxels of the same volume.
+
+    Returns ``("same", 1s)``, ``("coarser", f)`` (source voxels are f_d target voxels wide),
+    ``("finer", f)`` (f_d source voxels per target voxel), or a string saying why they cannot be aligned.
+    """
+    target, source = tuple(int(v) for v in target), tuple(int(v) for v in source)
+    if len(target) != len(source):
+        return f"grids {target} and {source} have different dimensions"
+    if target == source:
+        return "same", tuple(1 for _ in target)
+    if all(t % s == 0 for t, s in zip(target, source)):
+        return "coarser", tuple(t // s for t, s in zip(target, source))
+    if all(s % t == 0 for t, s in zip(target, source)):
+        return "finer", tuple(s // t for t, s in zip(target, source))
+    return (f"grids {target} and {source} differ by no integer factor per axis (voxels of one grid must tile "
+            f"the other's)")
+
+
+def align_across_grids(target_coords: Tensor, target_shape: tuple[int, int, int],
+                       source: SparseVoxels) -> tuple[Tensor, Tensor]:
+    """Source features at each target voxel, for grids of the same volume differing by integer factors.
+
+    * same grid: :func:`align_sparse` (exact lookup);
+    * source coarser: gather at scaled coordinates (each target voxel reads its parent voxel);
+    * source finer: pool first (the mean over the parent's active source voxels), then look up.
+
+    Returns (N, C) features and the (N,) bool mask of target voxels the source covers; raises
+    :class:`~distilkit.errors.GridMismatchError` naming both grids when they cannot be aligned.
+    """
+    from distilkit.errors import GridMismatchError
+
+    how = grid_factors(target_shape, source.spatial_shape)
+    if isinstance(how, str):
+        raise GridMismatchError(f"cannot align sparse voxels: {how}")
+    mode, f = how
+    if mode == "same":
+        return align_sparse(target_coords, source)
+    factor = torch.tensor((1, *f), device=target_coords.device, dtype=torch.long)
+    if mode == "coarser":
+        return align_sparse(target_coords // factor, source)
+    parent = source.coords // factor
+    shape = tuple(int(s) // int(k) for s, k in zip(source.spatial_shape, f))
+    keys, inv = torch.unique(voxel_hash(parent, shape), return_inverse=True)  # type: ignore[arg-type]
+    counts = torch.bincount(inv, minlength=keys.numel()).clamp_min(1).to(source.feats.dtype)
+    pooled = source.feats.new_zeros((keys.numel(), source.feats.shape[1])).index_add_(0, inv, source.feats)
+    coords = torch.zeros((keys.numel(), 4), dtype=torch.long, device=parent.device)
+    coords[inv] = parent
+    return align_sparse(target_coords, SparseVoxels(coords, pooled / counts[:, None], shape))  # type: ignore[arg-type]
+
+
 def dense_to_sparse(dense: Tensor) -> SparseVoxels:
     """Extract non-zero voxels of a dense (B, C, X, Y, Z) volume (``sum |feat| > 0``), SCPNet §3.2."""
     if dense.dim() != 5:

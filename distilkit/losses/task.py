@@ -9,7 +9,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 
-from distilkit.data.classes import IGNORE_INDEX
+from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
 from distilkit.registry import TASK_LOSSES
 
@@ -21,10 +21,16 @@ class TaskLoss(nn.Module, ABC):
     CONSUMES: ClassVar[dict[str, str]] = {"student": "voxel_logits"}
     VERSION: ClassVar[int] = 1  # bump when the loss's numbers change: stages using it retrain
 
+    # optimizer groups this term asks for by default (``optimizer.param_groups`` in a recipe overrides)
+    DEFAULT_PARAM_GROUPS: ClassVar[list[dict[str, Any]]] = []
+
     def __init__(self, params: BaseModel, taps: dict[str, str]) -> None:
         super().__init__()
         self.params = params
         self.taps = taps  # role -> tap name on the model
+
+    def prepare(self, train_set: Any) -> None:
+        """Statistics of the training split the term needs (e.g. class weights); default: none."""
 
     @abstractmethod
     def forward(self, outputs: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
@@ -64,6 +70,20 @@ class VoxelLovasz(TaskLoss):
 class _UncParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     init_log_var: float = Field(0.0, description="initial s = log sigma^2 of both tasks")
+    class_weights: str = Field("auto", pattern="^(auto|none)$",
+                               description="auto: (max f / f_c)^(1/3) from the training split's label frequencies "
+                                           "(JS3C-Net); none: unweighted CE")
+
+
+def frequency_weights(counts: Tensor, power: float = 1.0 / 3.0) -> Tensor:
+    """JS3C-Net's class weights (max_c f_c / f_c)^(1/3); a class that never occurs gets the largest weight."""
+    counts = counts.double()
+    present = counts > 0
+    if not bool(present.any()):
+        return torch.ones_like(counts, dtype=torch.float32)
+    f = counts / counts.sum()
+    w = torch.where(present, (f.max() / f.clamp_min(1e-30)) ** power, torch.zeros_like(f))
+    return w.masked_fill(~present, float(w[present].max())).float()
 
 
 class UncertaintyMultiTask(TaskLoss):
@@ -71,22 +91,38 @@ class UncertaintyMultiTask(TaskLoss):
 
     Parametrised by s_i = log sigma_i^2 (always finite, unlike the authors' raw sigma, seed_code.md §4):
     L = sum_i 0.5 * exp(-s_i) * L_i + 0.5 * s_i, over L_seg (point CE, unlabelled points ignored) and
-    L_complet (voxel CE, invalid voxels ignored). The s_i are trained with the student.
+    L_complet (voxel CE, invalid voxels ignored), each class-weighted by (max f / f_c)^(1/3) with the
+    frequencies of the training split (the authors hard-code SemanticKITTI's counts). The s_i are
+    trained with the student at 10x its learning rate, as the authors do (a default parameter group).
     """
 
     Params = _UncParams
     CONSUMES = {"student": "voxel_logits", "points": "point_logits"}
+    DEFAULT_PARAM_GROUPS = [{"match": "log_var", "lr_scale": 10.0}]
+    VERSION = 2  # 2: class weights, sigma at 10x the learning rate
 
     def __init__(self, params: _UncParams, taps: dict[str, str]) -> None:
         super().__init__(params, taps)
         self.log_var = nn.Parameter(torch.full((2,), float(params.init_log_var)))
+        self.register_buffer("seg_weight", torch.ones(NUM_CLASSES))
+        self.register_buffer("comp_weight", torch.ones(NUM_CLASSES))
+
+    def prepare(self, train_set: Any) -> None:
+        if self.params.class_weights == "none":
+            return
+        from distilkit.data.stats import label_counts
+
+        voxel, point = label_counts(train_set, NUM_CLASSES)
+        self.comp_weight.copy_(frequency_weights(voxel))
+        seg = frequency_weights(point[1:])  # point class 0 = unlabelled (ignored)
+        self.seg_weight.copy_(torch.cat([seg.new_zeros(1), seg]))
 
     def forward(self, outputs: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
         # adapters whose point logits cover a subset of the batch's points return their targets
         labels = outputs.get("point_target", batch["point_label"])
         seg_target = labels.masked_fill(labels == 0, IGNORE_INDEX)
-        l_seg = cross_entropy(outputs[self.taps["points"]], seg_target)
-        l_comp = cross_entropy(outputs[self.taps["student"]], batch["voxel_target"])
+        l_seg = cross_entropy(outputs[self.taps["points"]], seg_target, weight=self.seg_weight)
+        l_comp = cross_entropy(outputs[self.taps["student"]], batch["voxel_target"], weight=self.comp_weight)
         s = self.log_var
         return 0.5 * torch.exp(-s[0]) * l_seg + 0.5 * s[0] + 0.5 * torch.exp(-s[1]) * l_comp + 0.5 * s[1]
 

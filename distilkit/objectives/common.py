@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from distilkit.data.classes import IGNORE_INDEX
-from distilkit.geometry.voxel import align_sparse
+from distilkit.geometry.voxel import align_across_grids
 from distilkit.taps import SparseVoxels
 
 MaskName = Literal["all", "valid", "occupied"]
@@ -28,11 +28,21 @@ def voxel_mask(batch: dict[str, Tensor], which: str) -> Tensor | None:
 
 
 def aligned_pairs(student: SparseVoxels, teacher: SparseVoxels) -> tuple[Tensor, Tensor, Tensor]:
-    """Student rows, the (detached) teacher rows gathered at the student's coordinates (zero where
-    the teacher has no voxel), and the mask of voxels the teacher has."""
-    if tuple(student.spatial_shape) != tuple(teacher.spatial_shape):
-        raise ValueError(f"student grid {student.spatial_shape} and teacher grid {teacher.spatial_shape} differ")
-    t, found = align_sparse(student.coords, teacher.detach())
+    """Student rows, the (detached) teacher rows at the student's voxels (zero where the teacher has
+    none), and the mask of voxels the teacher has.
+
+    The student's voxels are the reference set. Across grids of the same volume that differ by
+    integer factors the alignment is geometric: a coarser teacher is gathered at the student's
+    scaled coordinates (its parent voxel); a finer teacher is first pooled into the student's
+    voxels (mean over the active child voxels). See :func:`distilkit.geometry.voxel.align_across_grids`.
+    """
+    from distilkit.errors import GridMismatchError
+
+    try:
+        t, found = align_across_grids(student.coords, student.spatial_shape, teacher.detach())
+    except GridMismatchError:
+        raise GridMismatchError(f"student grid {tuple(student.spatial_shape)} and teacher grid "
+                                f"{tuple(teacher.spatial_shape)} cannot be aligned (no integer factor per axis)") from None
     return student.feats, t, found
 
 
