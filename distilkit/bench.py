@@ -25,6 +25,7 @@ class Case:
     fast: Callable[[], Tensor]
     naive: Callable[[], Tensor] | None
     inputs: list[Tensor]
+    reference: Callable[[], Tensor] | None = None  # float64 value where the naive form does not fit
 
 
 def _peak_reset(device: torch.device) -> None:
@@ -106,7 +107,8 @@ def dskd_cases(device: torch.device, quick: bool) -> list[Case]:
         fs = torch.randn(n, 32, generator=g).to(device).requires_grad_(True)
         ft = torch.randn(n, 32, generator=g).to(device)
         cases.append(Case("dskd", f"{n:,} × 32", lambda fs=fs, ft=ft: dskd(fs, ft),
-                          (lambda fs=fs, ft=ft: naive_dskd(fs, ft)) if with_naive else None, [fs]))
+                          (lambda fs=fs, ft=ft: naive_dskd(fs, ft)) if with_naive else None, [fs],
+                          None if with_naive else (lambda fs=fs, ft=ft: dskd(fs.detach().double(), ft.double()))))
     return cases
 
 
@@ -240,7 +242,8 @@ def run_bench(names: list[str], device: str = "cpu", quick: bool = False, repeat
     console = make_console()
     table = Table(title=f"distilkit bench — forward+backward, {dev.type}, torch {torch.__version__}, "
                         f"{torch.get_num_threads()} threads")
-    for col in ("objective", "size", "fast ms", "fast peak", "naive ms", "naive peak", "speed-up", "|fast-naive|/naive"):
+    for col in ("objective", "size", "fast ms", "fast peak", "naive ms", "naive peak", "speed-up",
+                "rel. error (vs naive, or float64)"):
         table.add_column(col, justify="left" if col in ("objective", "size") else "right")
     rows = []
     reps = repeat or (3 if not quick else 2)
@@ -249,6 +252,10 @@ def run_bench(names: list[str], device: str = "cpu", quick: bool = False, repeat
             with console.status(f"{case.objective} {case.size}"):
                 ms, peak, val = time_fb(case.fast, case.inputs, dev, reps)
                 row = {"objective": case.objective, "size": case.size, "fast_ms": ms, "fast_peak": peak, "value": val}
+                if case.reference is not None:
+                    with torch.no_grad():
+                        ref = float(case.reference())
+                    row.update(rel_err=abs(val - ref) / max(abs(ref), 1e-30))
                 if case.naive is not None:
                     nms, npeak, nval = time_fb(case.naive, case.inputs, dev, reps)
                     row.update(naive_ms=nms, naive_peak=npeak, speedup=nms / ms,

@@ -235,3 +235,17 @@ def test_scale_free_when_the_grid_doubles(g) -> None:
     flat = lambda x: x.movedim(1, -1).reshape(-1, x.shape[1])  # noqa: E731
     assert close(L.dist(flat(s2), flat(t2)), L.dist(flat(s), flat(t)), 1e-9)
     assert close(L.rgo2d(s2, t2, l2, m2), L.rgo2d(s, t, labels, mask), 1e-9)
+
+
+@pytest.mark.parametrize("n,ds,dt,block", [(1, 3, 3, 4), (9, 4, 6, 2), (13, 5, 5, 4), (7, 3, 2, 100)])
+def test_pkt_fused_backward_matches_naive(g, n, ds, dt, block) -> None:
+    """A detached teacher (what objectives pass) takes the one-pass path with the hand-written gradient."""
+    s = torch.randn(n, ds, dtype=D, generator=g, requires_grad=True)
+    t = torch.randn(n, dt, dtype=D, generator=g)
+    assert close(L.pkt(s, t, block=block), naive_pkt(s, t))
+    if n > 2:  # a zero row normalises to zero, as in the naive form (whose gradient there is undefined)
+        z = s.detach().clone()
+        z[1] = 0.0
+        assert close(L.pkt(z, t, block=block), naive_pkt(z, t))
+    grads_close(lambda: L.pkt(s, t, block=block), lambda: naive_pkt(s, t), (s,))
+    assert torch.autograd.gradcheck(lambda x: L.pkt(x, t, block=block), (s.detach().clone().add_(0.1).requires_grad_(),))

@@ -6,9 +6,11 @@ relation matrices P_S = A A^T and P_T = B B^T, and eq. 2 is
     L = 1/N^2 * sum_ij (P_S(i,j) - P_T(i,j))^2 = ||A A^T - B B^T||_F^2 / N^2.
 
 The Frobenius identity ||A A^T - B B^T||_F^2 = ||A^T A||_F^2 + ||B^T B||_F^2 - 2 ||A^T B||_F^2
-makes this exact in O(N C^2) time and O(N C + C^2) memory: no N x N matrix is formed. The three
-C x C Gram products are accumulated in float64 over row blocks, so the value stays accurate
-(each term is O(N^2), their difference may be small) at millions of voxels.
+makes this exact in O(N C^2) time and O(N C + C^2) memory: no N x N matrix is formed. With equal
+widths the same number is computed from S = A + B and D = A - B (see :class:`_RelationGap`),
+which does not cancel large terms when the student is close to the teacher. The C x C Gram
+products are computed per row block in the input precision (float32: fast matrix units) and
+summed over blocks in float64; ``distilkit bench dskd`` reports the error against float64.
 A zero row (e.g. a voxel the teacher does not have) normalises to zero: its cosine
 similarity with every voxel is defined as 0.
 """
@@ -18,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-_BLOCK = 1 << 17  # rows per float64 block: bounds the float64 working set to BLOCK x C
+_BLOCK = 1 << 14  # rows per block: float32 Gram products of a block are exact enough to sum in float64
 
 
 def normalize_rows(x: Tensor) -> Tensor:
@@ -29,47 +31,90 @@ def normalize_rows(x: Tensor) -> Tensor:
     return x * inv
 
 
-def _grams(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    c_a, c_b = a.shape[1], b.shape[1]
-    gaa = a.new_zeros((c_a, c_a), dtype=torch.float64)
-    gbb = a.new_zeros((c_b, c_b), dtype=torch.float64)
-    gab = a.new_zeros((c_a, c_b), dtype=torch.float64)
-    for start in range(0, a.shape[0], _BLOCK):
-        ab = a[start:start + _BLOCK].double()
-        bb = b[start:start + _BLOCK].double()
-        gaa += ab.T @ ab
-        gbb += bb.T @ bb
-        gab += ab.T @ bb
-    return gaa, gbb, gab
+def _unit(x: Tensor) -> tuple[Tensor, Tensor]:
+    """Normalised rows and 1/||row|| (0 for a zero row)."""
+    norm = torch.linalg.vector_norm(x, dim=1, keepdim=True)
+    inv = torch.where(norm > 0, 1.0 / norm.clamp_min(torch.finfo(x.dtype).tiny), torch.zeros_like(norm))
+    return x * inv, inv
+
+
+def _block_units(s: Tensor, t: Tensor, start: int, sd: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One row block: (A, B) normalised, or (S = A + B, D = A - B) when ``sd``; plus 1/||row|| of each input."""
+    a, inv_a = _unit(s[start:start + _BLOCK])
+    b, inv_b = _unit(t[start:start + _BLOCK])
+    if sd:
+        return a + b, a - b, inv_a, inv_b
+    return a, b, inv_a, inv_b
+
+
+def _grams(s: Tensor, t: Tensor, sd: bool) -> tuple[Tensor, Tensor, Tensor]:
+    """X^T X, Y^T Y, Y^T X over all rows for (X, Y) = (A, B), or (S, D) when ``sd``: each block's
+    products in the input precision (float32 on the fast path), summed over blocks in float64."""
+    c_a, c_b = s.shape[1], t.shape[1]
+    gxx = s.new_zeros((c_a, c_a), dtype=torch.float64)
+    gyy = s.new_zeros((c_b, c_b), dtype=torch.float64)
+    gyx = s.new_zeros((c_b, c_a), dtype=torch.float64)
+    for start in range(0, s.shape[0], _BLOCK):
+        x, y, _, _ = _block_units(s, t, start, sd)
+        gxx += (x.T @ x).double()
+        gyy += (y.T @ y).double()
+        gyx += (y.T @ x).double()
+    return gxx, gyy, gyx
 
 
 class _RelationGap(torch.autograd.Function):
-    """||A A^T - B B^T||_F^2 / N^2 for already-normalised A, B via C x C Gram matrices."""
+    """||A A^T - B B^T||_F^2 / N^2 with A, B the row-normalised inputs, via C x C Gram matrices.
+
+    Equal widths use S = A + B, D = A - B: A A^T - B B^T = (S D^T + D S^T) / 2, so
+    N^2 L = (tr(G_SS G_DD) + tr(G_DS G_DS)) / 2 -- no cancellation of large terms when the student
+    is close to the teacher (float32 blocks stay accurate). Other widths use
+    N^2 L = ||A^T A||^2 + ||B^T B||^2 - 2 ||A^T B||^2. Normalisation is fused into the blocks and
+    recomputed in the backward pass, so no normalised copy of the inputs is kept.
+    """
 
     @staticmethod
-    def forward(ctx, a: Tensor, b: Tensor) -> Tensor:  # type: ignore[override]
-        n = a.shape[0]
-        gaa, gbb, gab = _grams(a, b)
-        value = (gaa.square().sum() + gbb.square().sum() - 2.0 * gab.square().sum()) / float(n) ** 2
-        ctx.save_for_backward(a, b, gaa, gbb, gab)
-        return value.to(a.dtype)
+    def forward(ctx, s: Tensor, t: Tensor) -> Tensor:  # type: ignore[override]
+        n = s.shape[0]
+        sd = s.shape[1] == t.shape[1]
+        gxx, gyy, gyx = _grams(s, t, sd)
+        if sd:
+            value = 0.5 * ((gxx * gyy).sum() + (gyx * gyx.T).sum()) / float(n) ** 2
+        else:
+            value = (gxx.square().sum() + gyy.square().sum() - 2.0 * gyx.square().sum()) / float(n) ** 2
+        ctx.sd = sd
+        ctx.save_for_backward(s, t, gxx, gyy, gyx)
+        return value.to(s.dtype)
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, Tensor | None]:  # type: ignore[override]
-        a, b, gaa, gbb, gab = ctx.saved_tensors
-        n = a.shape[0]
-        scale = grad.double() * 4.0 / float(n) ** 2
-        need_a, need_b = ctx.needs_input_grad
-        grad_a = torch.empty_like(a) if need_a else None
-        grad_b = torch.empty_like(b) if need_b else None
+        s, t, gxx, gyy, gyx = ctx.saved_tensors
+        n = s.shape[0]
+        scale = float(grad) / float(n) ** 2
+        need_s, need_t = ctx.needs_input_grad
+        # dL/dA = 4/N^2 (A A^T - B B^T) A, dL/dB = -4/N^2 (A A^T - B B^T) B, as C x C products:
+        if ctx.sd:  # = 2/N^2 (S D^T A + D S^T A), D^T A = (G_DS + G_DD)/2, S^T A = (G_SS + G_SD)/2, ...
+            m = [(scale * g).to(s.dtype) for g in (gyx + gyy, gxx + gyx.T, gyx - gyy, gxx - gyx.T)]
+        else:  # = 4/N^2 (A G_AA - B G_AB^T), 4/N^2 (B G_BB - A G_AB)
+            m = [(4.0 * scale * g).to(s.dtype) for g in (gxx, gyx, gyy, gyx.T)]
+        grad_s = torch.empty_like(s) if need_s else None
+        grad_t = torch.empty_like(t) if need_t else None
         for start in range(0, n, _BLOCK):
-            ab = a[start:start + _BLOCK].double()
-            bb = b[start:start + _BLOCK].double()
-            if grad_a is not None:  # d/dA = 4/N^2 (A A^T A - B B^T A)
-                grad_a[start:start + _BLOCK] = (scale * (ab @ gaa - bb @ gab.T)).to(a.dtype)
-            if grad_b is not None:  # d/dB = 4/N^2 (B B^T B - A A^T B)
-                grad_b[start:start + _BLOCK] = (scale * (bb @ gbb - ab @ gab)).to(b.dtype)
-        return grad_a, grad_b
+            sl = slice(start, start + _BLOCK)
+            x, y, inv_a, inv_b = _block_units(s, t, start, ctx.sd)
+            if ctx.sd:
+                a, b = (x + y) * 0.5, (x - y) * 0.5
+                ga = x @ m[0] + y @ m[1] if grad_s is not None else None
+                gb = -(x @ m[2] + y @ m[3]) if grad_t is not None else None
+            else:
+                a, b = x, y
+                ga = x @ m[0] - y @ m[1] if grad_s is not None else None
+                gb = y @ m[2] - x @ m[3] if grad_t is not None else None
+            # through a = x / ||x||: d/dx = (g - a <a, g>) / ||x||
+            if grad_s is not None:
+                grad_s[sl] = (ga - a * (a * ga).sum(1, keepdim=True)) * inv_a
+            if grad_t is not None:
+                grad_t[sl] = (gb - b * (b * gb).sum(1, keepdim=True)) * inv_b
+        return grad_s, grad_t
 
 
 def dskd(student: Tensor, teacher: Tensor) -> Tensor:
@@ -95,4 +140,4 @@ def dskd(student: Tensor, teacher: Tensor) -> Tensor:
     if student.shape[0] == 0:
         return student.sum() * 0.0 + teacher.sum() * 0.0
     teacher = teacher.to(student.dtype)
-    return _RelationGap.apply(normalize_rows(student), normalize_rows(teacher))
+    return _RelationGap.apply(student, teacher)

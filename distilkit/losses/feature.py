@@ -32,27 +32,104 @@ def _pkt_block(xs_blk: Tensor, xt_blk: Tensor, xs: Tensor, xt: Tensor, eps: floa
     return (pt * torch.log((pt + eps) / (ps + eps))).sum()
 
 
-def pkt(student: Tensor, teacher: Tensor, eps: float = 1e-7, block: int = 2048) -> Tensor:
+def _pkt_fused(xs: Tensor, xt: Tensor, eps: float, block: int, grad: bool) -> tuple[Tensor, Tensor | None]:
+    """Sum over all N^2 entries of p_t (log(p_t + eps) - log(p_s + eps)) and its gradient with respect
+    to the normalised student rows, in one pass over row blocks (no N x N matrix, no recomputation).
+
+    With k = (x x^T + 1)/2, r_i = sum_j k_ij = (N + x_i . sum_j x_j)/2 and k' = k + eps r:
+    p + eps = k'/r, so row i contributes (1/rt_i) sum_j kt_ij log kt'_ij - (1/rt_i) sum_j kt_ij log ks'_ij
+    - log rt_i + log rs_i. With Q = kt / ks', dL/dks_ij = -Q_ij/rt_i - c_i/rs_i, c_i = -1 + eps rs_i sum_j Q_ij / rt_i.
+    """
+    n = xs.shape[0]
+    sum_s, sum_t = xs.sum(0), xt.sum(0)
+    total = torch.zeros((), dtype=torch.float64, device=xs.device)
+    g_all = torch.zeros_like(xs) if grad else None
+    g_col = torch.zeros_like(xs) if grad else None
+    half = 0.5
+
+    def rowdot(a: Tensor, b: Tensor) -> Tensor:
+        return torch.bmm(a.unsqueeze(1), b.unsqueeze(2)).view(-1)
+
+    for start in range(0, n, block):
+        sl = slice(start, start + block)
+        xs_r, xt_r = xs[sl], xt[sl]
+        rs = half * (n + xs_r @ sum_s)  # (b,)
+        rt = half * (n + xt_r @ sum_t)
+        ks = torch.addmm(xs_r.new_full((1, 1), half), xs_r, xs.T, alpha=half)
+        ks.add_((eps * rs).unsqueeze(1))  # ks' = ks + eps r_s
+        kt = torch.addmm(xt_r.new_full((1, 1), half), xt_r, xt.T, alpha=half)
+        if grad:
+            q = kt / ks
+        logk = ks.log_()  # log ks' (ks' no longer needed)
+        b_term = rowdot(kt, logk)
+        kt.add_((eps * rt).unsqueeze(1))  # kt'
+        torch.log(kt, out=logk)  # log kt'
+        a_term = rowdot(kt, logk) - eps * rt * logk.sum(1)
+        rows = (a_term - b_term) / rt - torch.log(rt) + torch.log(rs)
+        total += rows.double().sum()
+        if grad:
+            assert g_all is not None and g_col is not None
+            c = -1.0 + eps * rs * q.sum(1) / rt
+            w = (c / rs).unsqueeze(1)  # row constant of dL/dks
+            inv_rt = (1.0 / rt).unsqueeze(1)
+            # dL/dxs_i (block rows) = 1/2 sum_j gk_ij xs_j; dL/dxs_j (all) += 1/2 sum_i gk_ij xs_i
+            g_all[sl] += -half * (inv_rt * (q @ xs)) - half * w * sum_s
+            g_col += -half * (q.T @ (xs_r * inv_rt)) - half * (w * xs_r).sum(0, keepdim=True)
+    if grad:
+        assert g_all is not None and g_col is not None
+        g_all += g_col
+    return total, g_all
+
+
+class _PKT(torch.autograd.Function):
+    """PKT with a hand-written backward: the gradient is accumulated in the forward pass."""
+
+    @staticmethod
+    def forward(ctx, student: Tensor, xt: Tensor, eps: float, block: int) -> Tensor:  # type: ignore[override]
+        norm = student.norm(dim=1, keepdim=True)
+        xs = torch.nan_to_num(student / (norm + eps), nan=0.0)
+        total, g = _pkt_fused(xs, xt, eps, block, ctx.needs_input_grad[0])
+        n2 = float(student.shape[0]) ** 2
+        ctx.save_for_backward(student, norm, g if g is not None else student.new_zeros(0))
+        ctx.n2, ctx.eps = n2, eps
+        return (total / n2).to(student.dtype)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, None, None, None]:  # type: ignore[override]
+        x, norm, g = ctx.saved_tensors
+        if g.numel() == 0:
+            return None, None, None, None
+        g = g * (grad / ctx.n2)
+        # through xs = x / (||x|| + eps): g / (n + eps) - x <x, g> / (n (n + eps)^2), 0 for the second at n = 0
+        inv = 1.0 / (norm + ctx.eps)
+        second = torch.where(norm > 0, (x * g).sum(1, keepdim=True) * inv * inv / norm.clamp_min(1e-30),
+                             torch.zeros_like(norm))
+        return g * inv - x * second, None, None, None
+
+
+def pkt(student: Tensor, teacher: Tensor, eps: float = 1e-7, block: int = 128) -> Tensor:
     """PKT: cosine kernels rescaled to [0, 1] and row-normalised into conditional probabilities;
     mean over all N^2 entries of p_t * log((p_t + eps) / (p_s + eps)).
 
-    (N, D_s) and (N, D_t) rows (voxels or points; D may differ). Exact, computed in row blocks with
-    recomputation in the backward pass, so memory is O(block * N), not O(N^2). N = 1 gives 0.
+    (N, D_s) and (N, D_t) rows (voxels or points; D may differ). Exact, in row blocks with the
+    gradient accumulated in the same pass (memory O(block * N), not O(N^2)). N = 1 gives 0.
+    A teacher that requires grad takes the autograd path (blocks recomputed in the backward pass).
     """
     if student.dim() != 2 or teacher.dim() != 2 or student.shape[0] != teacher.shape[0]:
         raise ValueError(f"pkt: expects (N, D_s) and (N, D_t) with the same N, got {tuple(student.shape)} and {tuple(teacher.shape)}")
     n = student.shape[0]
     if n == 0:
         return student.sum() * 0.0
+    teacher = teacher.to(student.dtype)
+    if not (torch.is_grad_enabled() and teacher.requires_grad):
+        xt = _pkt_normalise(teacher.detach(), eps)
+        return _PKT.apply(student, xt, eps, block)
     xs = _pkt_normalise(student, eps)
-    xt = _pkt_normalise(teacher.to(student.dtype), eps)
+    xt = _pkt_normalise(teacher, eps)
     total = student.new_zeros(())
-    for start in range(0, n, block):
-        sl = slice(start, start + block)
-        if torch.is_grad_enabled() and (xs.requires_grad or xt.requires_grad):
-            total = total + checkpoint(_pkt_block, xs[sl], xt[sl], xs, xt, eps, use_reentrant=False)
-        else:
-            total = total + _pkt_block(xs[sl], xt[sl], xs, xt, eps)
+    for start in range(0, n, 2048):
+        sl = slice(start, start + 2048)
+        total = total + checkpoint(_pkt_block, xs[sl], xt[sl], xs, xt, eps, use_reentrant=False)
     return total / float(n) ** 2
 
 

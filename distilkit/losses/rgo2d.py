@@ -33,6 +33,36 @@ def centre_affinity(y: Tensor, centres: Tensor) -> Tensor:
     return F.normalize(y, dim=1, eps=_EPS) @ F.normalize(centres, dim=1, eps=_EPS).T
 
 
+def _check(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, mask: Tensor) -> None:
+    if student_logits.shape != teacher_logits.shape or student_logits.dim() < 3:
+        raise ValueError(f"rgo2d: expects equal (B, K, *S) logits, got {tuple(student_logits.shape)} and {tuple(teacher_logits.shape)}")
+    expect = student_logits.shape[:1] + student_logits.shape[2:]
+    if labels.shape != expect or mask.shape != expect:
+        raise ValueError(f"rgo2d: labels {tuple(labels.shape)} and mask {tuple(mask.shape)} must be {tuple(expect)}")
+
+
+def _gather(logits: Tensor, idx: Tensor) -> Tensor:
+    """(M, K) rows of one sample's (K, *S) logits at flat voxel indices ``idx``: one gather, whose
+    backward is one scatter into the full grid (not one per region)."""
+    return logits.reshape(logits.shape[0], -1).index_select(1, idx).T
+
+
+def _terms(ys: Tensor, yt: Tensor, lab: Tensor, inter: float, intra: float, ignore_index: int) -> tuple[Tensor, Tensor] | None:
+    """(global, local) terms of one sample's region from its occupied voxels' rows (M, K) and labels (M,)."""
+    k = ys.shape[1]  # labels outside 1..K-1 (unlabelled 254, ignore 255) select nothing
+    sel = (lab > 0) & (lab < k) & (lab != ignore_index)
+    if not bool(sel.any()):
+        return None
+    classes, inv = torch.unique(lab[sel], return_inverse=True)
+    kc = classes.numel()
+    gs = _gsl(ys[sel], inv, kc)
+    gt = _gsl(yt[sel], inv, kc)
+    ps, pt = gs.softmax(1), gt.softmax(1)
+    glob = inter * (1 - pearson_rows(ps, pt).mean()) + intra * (1 - pearson_rows(ps.T, pt.T).mean())
+    # LSA over every occupied voxel of the region (labelled or not), as in the code
+    return glob, F.mse_loss(centre_affinity(ys, gs), centre_affinity(yt, gt))
+
+
 def rgo2d_region(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, mask: Tensor,
                  inter: float = 2.625, intra: float = 0.375, ignore_index: int = 255) -> tuple[Tensor, Tensor]:
     """(global, local) RGO²D terms of one region.
@@ -42,32 +72,16 @@ def rgo2d_region(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor,
         labels: (B, *S) long scribble labels; only 1..K-1 are classes (0 empty, 254 unlabelled, 255 ignore).
         mask: (B, *S) bool, the voxels of this region that are occupied in the dense geometry.
     """
-    if student_logits.shape != teacher_logits.shape or student_logits.dim() < 3:
-        raise ValueError(f"rgo2d: expects equal (B, K, *S) logits, got {tuple(student_logits.shape)} and {tuple(teacher_logits.shape)}")
-    expect = student_logits.shape[:1] + student_logits.shape[2:]
-    if labels.shape != expect or mask.shape != expect:
-        raise ValueError(f"rgo2d: labels {tuple(labels.shape)} and mask {tuple(mask.shape)} must be {tuple(expect)}")
+    _check(student_logits, teacher_logits, labels, mask)
     zero = student_logits.sum() * 0.0
     g_total, l_total = zero, zero
     b = student_logits.shape[0]
     for i in range(b):
-        k = student_logits.shape[1]  # labels outside 1..K-1 (unlabelled 254, ignore 255) select nothing
-        sel = mask[i].bool() & (labels[i] > 0) & (labels[i] < k) & (labels[i] != ignore_index)
-        m = mask[i].bool()
-        if not bool(sel.any()):
-            continue
-        ys = student_logits[i].flatten(1).T  # (V, K)
-        yt = teacher_logits[i].flatten(1).T.to(ys.dtype)
-        lab = labels[i].reshape(-1)[sel.reshape(-1)]
-        classes, inv = torch.unique(lab, return_inverse=True)
-        kc = classes.numel()
-        gs = _gsl(ys[sel.reshape(-1)], inv, kc)
-        gt = _gsl(yt[sel.reshape(-1)], inv, kc)
-        ps, pt = gs.softmax(1), gt.softmax(1)
-        g_total = g_total + inter * (1 - pearson_rows(ps, pt).mean()) + intra * (1 - pearson_rows(ps.T, pt.T).mean())
-        # LSA over every occupied voxel of the region (labelled or not), as in the code
-        vs, vt = ys[m.reshape(-1)], yt[m.reshape(-1)]
-        l_total = l_total + F.mse_loss(centre_affinity(vs, gs), centre_affinity(vt, gt))
+        idx = mask[i].reshape(-1).nonzero().squeeze(1)
+        out = _terms(_gather(student_logits[i], idx), _gather(teacher_logits[i].to(student_logits.dtype), idx),
+                     labels[i].reshape(-1)[idx], inter, intra, ignore_index)
+        if out is not None:
+            g_total, l_total = g_total + out[0], l_total + out[1]
     return g_total / b, l_total / b
 
 
@@ -96,17 +110,30 @@ def rgo2d(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, mask: 
     """Scribble2Scene eq. 2-4 without the image-feature term: sum_r w_r (global_r + local_r).
 
     ``regions``: ``"boxes"`` (default, the authors' nested boxes), ``"rings"``, or a list of bool
-    masks of shape (*S) or (B, *S), one per weight.
+    masks of shape (*S) or (B, *S), one per weight. The occupied voxels of all regions are gathered
+    once per sample (so the backward pass scatters once into the grid); each region then works on
+    its subset of those rows. Equal to ``sum_r w_r * sum(rgo2d_region(..., mask & region_r))``.
     """
+    _check(student_logits, teacher_logits, labels, mask)
     spatial = tuple(student_logits.shape[2:])
     masks = range_regions(spatial, regions, student_logits.device) if isinstance(regions, str) else list(regions)
     if len(masks) != len(region_weights):
         raise ValueError(f"rgo2d: {len(masks)} regions but {len(region_weights)} region weights")
-    total = student_logits.sum() * 0.0
-    for w, reg in zip(region_weights, masks):
+    b = student_logits.shape[0]
+    regs = []
+    for reg in masks:
         reg = reg.to(student_logits.device).bool()
-        if reg.shape == spatial:
-            reg = reg.unsqueeze(0)
-        g, l_ = rgo2d_region(student_logits, teacher_logits, labels, mask.bool() & reg, inter, intra)
-        total = total + w * (g + l_)
+        regs.append(reg.unsqueeze(0).expand(b, *spatial) if reg.shape == spatial else reg)
+    total = student_logits.sum() * 0.0
+    for i in range(b):
+        member = torch.stack([r[i].reshape(-1) for r in regs])  # (R, V)
+        idx = (mask[i].reshape(-1).bool() & member.any(0)).nonzero().squeeze(1)
+        ys = _gather(student_logits[i], idx)
+        yt = _gather(teacher_logits[i].to(student_logits.dtype), idx)
+        lab = labels[i].reshape(-1)[idx]
+        rows = member[:, idx]
+        for w, inside in zip(region_weights, rows):
+            out = _terms(ys[inside], yt[inside], lab[inside], inter, intra, 255)
+            if out is not None:
+                total = total + w * (out[0] + out[1]) / b
     return total

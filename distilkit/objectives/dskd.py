@@ -23,7 +23,10 @@ class DSKD(Objective):
 
     Alignment: the student's non-empty voxels are the reference set; teacher features are
     gathered at the student's coordinates and are zero where the teacher has no voxel (so their
-    relations count as 0). The loss is computed exactly over all voxels (no sampling).
+    relations count as 0). Across grids of the same volume that differ by integer factors, a
+    coarser teacher is gathered at the student's scaled coordinates (its parent voxel) and a finer
+    teacher is first mean-pooled over the active child voxels of each student voxel. The loss is
+    computed exactly over all voxels (no sampling).
     """
 
     Params = DSKDParams
@@ -44,4 +47,5 @@ class DSKD(Objective):
 register_objective("dskd", DSKD, description="dense-to-sparse relational KD: squared gap of voxel cosine-similarity matrices",
                paper="SCPNet (Xia et al., CVPR 2023), eq. 1-2",
                equation="1/N² Σ_ij (cos_S(i,j) − cos_T(i,j))², exact via ‖AᵀA‖² + ‖BᵀB‖² − 2‖AᵀB‖²",
-               shapes="sparse voxel features; teacher rows gathered at the student's coordinates")
+               shapes="sparse voxel features; teacher rows at the student's voxels (across grids: a coarser "
+                      "teacher read at the parent voxel, a finer one mean-pooled into the student's voxels)")

@@ -30,6 +30,8 @@ class PKT(Objective):
 
     Batches in SSC hold 1-4 scenes, so the probability distributions are built across voxels, not
     across samples. Default weight 500 = RepDistiller's 30000 at B = 64 rescaled by ``per_row``.
+    Alignment as DSKD: the student's voxels are the reference; across grids a coarser teacher is
+    read at the parent voxel, a finer one mean-pooled into the student's voxels.
     """
 
     Params = PKTParams
@@ -71,6 +73,8 @@ class PVKD(MultiTapObjective):
     exactly with the Gram identity; with ``num_supervoxels`` a difficulty-aware sample favours far
     cells (probability proportional to radial bin + 1). The authors released no code
     (seed_code.md §6): coefficients and the number of supervoxels are this implementation's.
+    Sparse alignment as DSKD (across grids: a coarser teacher read at the parent voxel, a finer one
+    mean-pooled into the student's voxels); the logits must share one grid.
     """
 
     Params = PVKDParams
@@ -115,8 +119,8 @@ class PVKD(MultiTapObjective):
 register_objective("pkt", PKT, description="PKT: KL between cosine-kernel probability distributions over sampled voxels",
                paper="Passalis & Tefas, ECCV 2018; SCPNet Table 4",
                equation="mean_ij p_t,ij log((p_t,ij + ε)/(p_s,ij + ε)), p_ij = k_ij / Σ_j k_ij, k = (cos + 1)/2",
-               shapes="sparse voxel features; M ≤ sample_size rows per scene")
+               shapes="sparse voxel features; M ≤ sample_size rows per scene (across grids: as dskd)")
 register_objective("pvkd", PVKD, description="PVKD: voxel-wise output KD + inter-voxel affinity inside cylindrical supervoxels",
                paper="Hou et al., CVPR 2022; SCPNet Table 4",
                equation="w_o · KD(s, t) + w_a · mean_sv ‖Â_sv Â_svᵀ − B̂_sv B̂_svᵀ‖² / n_sv²",
-               shapes="sparse voxel features and (B, K, X, Y, Z) logits")
+               shapes="sparse voxel features (across grids: as dskd) and (B, K, X, Y, Z) logits on one grid")
