@@ -19,6 +19,20 @@ def pipeline(tmp_path, recipe: dict) -> Pipeline:
     return Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
 
 
+def poison_terms(monkeypatch, change) -> None:
+    """Let ``change(trainer, terms, call)`` alter the loss terms of the ``call``-th evaluation (from 1)."""
+    calls = {"n": 0}
+    orig = Trainer.loss_terms
+
+    def poisoned(self, batch):
+        terms = orig(self, batch)
+        calls["n"] += 1
+        change(self, terms, calls["n"])
+        return terms
+
+    monkeypatch.setattr(Trainer, "loss_terms", poisoned)
+
+
 def test_run_then_reuse_every_stage(tmp_path) -> None:
     pipe = pipeline(tmp_path, tiny_recipe())
     first = pipe.run()
@@ -89,19 +103,13 @@ def test_resume_after_interruption(tmp_path) -> None:
 
 
 def test_nan_loss_stops_with_a_clear_error_and_keeps_the_checkpoint(tmp_path, monkeypatch) -> None:
-    recipe = tiny_recipe(steps=3, distill=False)
-    pipe = pipeline(tmp_path, recipe)
-    calls = {"n": 0}
-    orig = Trainer.loss_terms
+    pipe = pipeline(tmp_path, tiny_recipe(steps=3, distill=False))
 
-    def poisoned(self, batch):
-        terms = orig(self, batch)
-        calls["n"] += 1
-        if calls["n"] == 2:
+    def nan_ce(self, terms, call):
+        if call == 2:
             terms["ce"] = terms["ce"] * float("nan")
-        return terms
 
-    monkeypatch.setattr(Trainer, "loss_terms", poisoned)
+    poison_terms(monkeypatch, nan_ce)
     with pytest.raises(NonFiniteLossError, match="ce"):
         pipe.run()
     assert load_checkpoint(pipe.run_dir("teacher") / "checkpoints" / "last.pt")["step"] == 1
@@ -161,20 +169,14 @@ def test_rerun_retrains_the_stage_and_its_students_and_keeps_the_old_run(tmp_pat
 
 
 def test_a_nan_gradient_with_a_finite_loss_stops_before_the_weights_change(tmp_path, monkeypatch) -> None:
-    recipe = tiny_recipe(steps=3, distill=False)
-    pipe = pipeline(tmp_path, recipe)
-    calls = {"n": 0}
-    orig = Trainer.loss_terms
+    pipe = pipeline(tmp_path, tiny_recipe(steps=3, distill=False))
 
-    def poisoned(self, batch):
-        terms = orig(self, batch)
-        calls["n"] += 1
-        if calls["n"] >= 2:  # sqrt(0) = 0 is finite, its gradient is not (the blame pass recomputes it)
+    def sqrt_at_zero(self, terms, call):
+        if call >= 2:  # sqrt(0) = 0 is finite, its gradient is not (the blame pass recomputes it)
             w = next(self.student.parameters())
             terms["lovasz"] = terms["lovasz"] + torch.sqrt((w - w.detach()).abs().sum())
-        return terms
 
-    monkeypatch.setattr(Trainer, "loss_terms", poisoned)
+    poison_terms(monkeypatch, sqrt_at_zero)
     with pytest.raises(NonFiniteLossError, match=r"stage 'teacher', step 2: the gradient .*lovasz"):
         pipe.run()
     ckpt = load_checkpoint(pipe.run_dir("teacher") / "checkpoints" / "last.pt")

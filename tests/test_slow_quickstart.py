@@ -16,9 +16,24 @@ def test_quickstart_runs_and_reuses(tmp_path) -> None:
     cmd = [sys.executable, "-m", "distilkit", "run", str(ROOT / "recipes" / "quickstart.yaml"), "-o", str(tmp_path)]
     first = subprocess.run(cmd, capture_output=True, text=True)
     assert first.returncode == 0, first.stderr[-3000:]
-    assert "student + DSKD" in first.stdout and "mIoU" in first.stdout
+    assert "student + DSKD" in first.stdout and "mIoU" in first.stdout and "test split" in first.stdout
     t0 = time.perf_counter()
     second = subprocess.run(cmd, capture_output=True, text=True)
-    assert second.returncode == 0 and second.stdout.count("reused from") == 3
+    assert second.returncode == 0 and second.stdout.count("reused from") == 4
     assert time.perf_counter() - t0 < 60
     assert (tmp_path / "quickstart" / "report.md").is_file()
+
+
+@pytest.mark.slow
+def test_cross_adapter_recipe_runs_both_ways(tmp_path) -> None:
+    """The shipped recipe: SCPNet -> JS3C-Net and JS3C-Net -> SCPNet, DSKD across grids, to the end."""
+    import json
+
+    cmd = [sys.executable, "-m", "distilkit", "run", str(ROOT / "recipes" / "cross_adapters.yaml"), "-o", str(tmp_path),
+           "-q"]
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    summaries = [json.loads(p.read_text()) for p in (tmp_path / "cross_adapters").glob("*/summary.json")]
+    assert sorted(s["stage"] for s in summaries) == ["js3cnet_from_scpnet", "js3cnet_teacher", "scpnet_from_js3cnet",
+                                                    "scpnet_teacher"]
+    assert all(s["status"] == "finished" and 0 <= s["test"]["best"]["miou"] <= 1 for s in summaries)
