@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib
+
 import pytest
 import torch
 
@@ -9,6 +11,8 @@ import distilkit.losses as L
 from distilkit.geometry.voxel import align_sparse
 from distilkit.objectives.dskd import DSKD, DSKDParams
 from distilkit.taps import SparseVoxels
+
+dskd_module = importlib.import_module("distilkit.losses.dskd")  # the module (L.dskd is the function)
 
 
 def naive_dskd(fs: torch.Tensor, ft: torch.Tensor) -> torch.Tensor:
@@ -51,10 +55,11 @@ def test_zero_teacher_rows_count_as_zero_similarity() -> None:
     assert torch.isfinite(grad).all()
 
 
-def test_gradcheck() -> None:
+@pytest.mark.parametrize("ct", [6, 4])  # unequal widths, and the S/D form of equal widths
+def test_gradcheck(ct: int) -> None:
     g = torch.Generator().manual_seed(2)
     fs = torch.randn(9, 4, dtype=torch.float64, generator=g, requires_grad=True)
-    ft = torch.randn(9, 6, dtype=torch.float64, generator=g, requires_grad=True)
+    ft = torch.randn(9, ct, dtype=torch.float64, generator=g, requires_grad=True)
     assert torch.autograd.gradcheck(L.dskd, (fs, ft))
 
 
@@ -111,3 +116,17 @@ def test_objective_per_sample_mean() -> None:
     val = obj(SparseVoxels(coords, fs, (4, 1, 1)), SparseVoxels(coords, ft, (4, 1, 1)), {})
     expect = (naive_dskd(fs[:3], ft[:3]) + naive_dskd(fs[3:], ft[3:])) / 2
     assert val.item() == pytest.approx(expect.item(), rel=1e-9)
+
+
+@pytest.mark.parametrize("ct", [5, 3])
+def test_several_row_blocks_match_naive(monkeypatch: pytest.MonkeyPatch, ct: int) -> None:
+    # blocks of 8 rows over 29 rows: partial last block, Gram sums and gradients across blocks
+    monkeypatch.setattr(dskd_module, "_BLOCK", 8)
+    g = torch.Generator().manual_seed(4)
+    fs = torch.randn(29, 3, dtype=torch.float64, generator=g, requires_grad=True)
+    ft = torch.randn(29, ct, dtype=torch.float64, generator=g, requires_grad=True)
+    fast = L.dskd(fs, ft)
+    slow = naive_dskd(fs, ft)
+    assert torch.allclose(fast, slow, rtol=1e-9, atol=1e-14)
+    for a, b in zip(torch.autograd.grad(fast, (fs, ft)), torch.autograd.grad(slow, (fs, ft))):
+        assert (a - b).norm() <= 1e-9 * b.norm()

@@ -91,29 +91,28 @@ class _RelationGap(torch.autograd.Function):
         n = s.shape[0]
         scale = float(grad) / float(n) ** 2
         need_s, need_t = ctx.needs_input_grad
-        # dL/dA = 4/N^2 (A A^T - B B^T) A, dL/dB = -4/N^2 (A A^T - B B^T) B, as C x C products:
+        # dL/dA = 4/N^2 (A A^T - B B^T) A, dL/dB = -4/N^2 (A A^T - B B^T) B, written as
+        # dL/dA = A P + B Q and dL/dB = A R + B T with C x C matrices (float64, then cast):
         if ctx.sd:  # = 2/N^2 (S D^T A + D S^T A), D^T A = (G_DS + G_DD)/2, S^T A = (G_SS + G_SD)/2, ...
-            m = [(scale * g).to(s.dtype) for g in (gyx + gyy, gxx + gyx.T, gyx - gyy, gxx - gyx.T)]
+            m0, m1, m2, m3 = (scale * g for g in (gyx + gyy, gxx + gyx.T, gyx - gyy, gxx - gyx.T))
+            # with X = A + B, Y = A - B: dL/dA = X m0 + Y m1, dL/dB = -(X m2 + Y m3)
+            mats = (m0 + m1, m0 - m1, -(m2 + m3), m3 - m2)
         else:  # = 4/N^2 (A G_AA - B G_AB^T), 4/N^2 (B G_BB - A G_AB)
-            m = [(4.0 * scale * g).to(s.dtype) for g in (gxx, gyx, gyy, gyx.T)]
+            mats = (4.0 * scale * gxx, -4.0 * scale * gyx, -4.0 * scale * gyx.T, 4.0 * scale * gyy)
+        p, q, r, u = (m.to(s.dtype) for m in mats)
         grad_s = torch.empty_like(s) if need_s else None
         grad_t = torch.empty_like(t) if need_t else None
         for start in range(0, n, _BLOCK):
             sl = slice(start, start + _BLOCK)
-            x, y, inv_a, inv_b = _block_units(s, t, start, ctx.sd)
-            if ctx.sd:
-                a, b = (x + y) * 0.5, (x - y) * 0.5
-                ga = x @ m[0] + y @ m[1] if grad_s is not None else None
-                gb = -(x @ m[2] + y @ m[3]) if grad_t is not None else None
-            else:
-                a, b = x, y
-                ga = x @ m[0] - y @ m[1] if grad_s is not None else None
-                gb = y @ m[2] - x @ m[3] if grad_t is not None else None
-            # through a = x / ||x||: d/dx = (g - a <a, g>) / ||x||
-            if grad_s is not None:
-                grad_s[sl] = (ga - a * (a * ga).sum(1, keepdim=True)) * inv_a
-            if grad_t is not None:
-                grad_t[sl] = (gb - b * (b * gb).sum(1, keepdim=True)) * inv_b
+            a, inv_a = _unit(s[sl])
+            b, inv_b = _unit(t[sl])
+            for out, unit, inv, first, second in ((grad_s, a, inv_a, p, q), (grad_t, b, inv_b, r, u)):
+                if out is None:
+                    continue
+                g = torch.mm(a, first, out=out[sl]).addmm_(b, second)
+                # through unit = x / ||x||: d/dx = (g - unit <unit, g>) / ||x||
+                dot = torch.linalg.vecdot(unit, g, dim=1).unsqueeze(1)
+                g.addcmul_(unit, dot, value=-1.0).mul_(inv)
         return grad_s, grad_t
 
 

@@ -37,35 +37,40 @@ def _pkt_fused(xs: Tensor, xt: Tensor, eps: float, block: int, grad: bool) -> tu
     to the normalised student rows, in one pass over row blocks (no N x N matrix, no recomputation).
 
     With k = (x x^T + 1)/2, r_i = sum_j k_ij = (N + x_i . sum_j x_j)/2 and k' = k + eps r:
-    p + eps = k'/r, so row i contributes (1/rt_i) sum_j kt_ij log kt'_ij - (1/rt_i) sum_j kt_ij log ks'_ij
-    - log rt_i + log rs_i. With Q = kt / ks', dL/dks_ij = -Q_ij/rt_i - c_i/rs_i, c_i = -1 + eps rs_i sum_j Q_ij / rt_i.
+    p + eps = k'/r, so row i contributes (1/rt_i) sum_j kt_ij log(kt'_ij / ks'_ij) - log rt_i + log rs_i
+    (one logarithm of a ratio: no cancellation between two large sums). With Q = kt / ks',
+    dL/dks_ij = -Q_ij/rt_i - c_i/rs_i, c_i = -1 + eps rs_i sum_j Q_ij / rt_i.
+    The (block, N) work buffers are allocated once and reused (no page faults per block).
     """
     n = xs.shape[0]
     sum_s, sum_t = xs.sum(0), xt.sum(0)
+    xs_t, xt_t = xs.T.contiguous(), xt.T.contiguous()
     total = torch.zeros((), dtype=torch.float64, device=xs.device)
     g_all = torch.zeros_like(xs) if grad else None
     g_col = torch.zeros_like(xs) if grad else None
+    g_shift = xs.new_zeros(xs.shape[1])  # the part of dL/dxs_j shared by all rows j
     half = 0.5
-
-    def rowdot(a: Tensor, b: Tensor) -> Tensor:
-        return torch.bmm(a.unsqueeze(1), b.unsqueeze(2)).view(-1)
+    rows_max = min(block, n)
+    ks_buf, kt_buf = xs.new_empty(rows_max, n), xs.new_empty(rows_max, n)
+    q_buf = xs.new_empty(rows_max, n) if grad else None
 
     for start in range(0, n, block):
-        sl = slice(start, start + block)
-        xs_r, xt_r = xs[sl], xt[sl]
+        stop = min(start + block, n)
+        xs_r, xt_r = xs[start:stop], xt[start:stop]
         rs = half * (n + xs_r @ sum_s)  # (b,)
         rt = half * (n + xt_r @ sum_t)
-        ks = torch.addmm(xs_r.new_full((1, 1), half), xs_r, xs.T, alpha=half)
-        ks.add_((eps * rs).unsqueeze(1))  # ks' = ks + eps r_s
-        kt = torch.addmm(xt_r.new_full((1, 1), half), xt_r, xt.T, alpha=half)
+        ks, kt = ks_buf[: stop - start], kt_buf[: stop - start]
+        torch.mm(xs_r, xs_t, out=ks).mul_(half).add_((half + eps * rs).unsqueeze(1))  # ks'
+        torch.mm(xt_r, xt_t, out=kt).mul_(half).add_(half)  # kt
+        ks.reciprocal_()  # 1 / ks'
         if grad:
-            q = kt / ks
-        logk = ks.log_()  # log ks' (ks' no longer needed)
-        b_term = rowdot(kt, logk)
-        kt.add_((eps * rt).unsqueeze(1))  # kt'
-        torch.log(kt, out=logk)  # log kt'
-        a_term = rowdot(kt, logk) - eps * rt * logk.sum(1)
-        rows = (a_term - b_term) / rt - torch.log(rt) + torch.log(rs)
+            assert q_buf is not None
+            q = torch.mul(kt, ks, out=q_buf[: stop - start])
+            ratio = ks.mul_((eps * rt).unsqueeze(1)).add_(q)  # kt' / ks' = Q + eps rt / ks'
+        else:
+            ratio = ks.mul_(kt + (eps * rt).unsqueeze(1))
+        log_ratio = ratio.log_()
+        rows = torch.linalg.vecdot(kt, log_ratio, dim=1) / rt - torch.log(rt) + torch.log(rs)
         total += rows.double().sum()
         if grad:
             assert g_all is not None and g_col is not None
@@ -73,11 +78,12 @@ def _pkt_fused(xs: Tensor, xt: Tensor, eps: float, block: int, grad: bool) -> tu
             w = (c / rs).unsqueeze(1)  # row constant of dL/dks
             inv_rt = (1.0 / rt).unsqueeze(1)
             # dL/dxs_i (block rows) = 1/2 sum_j gk_ij xs_j; dL/dxs_j (all) += 1/2 sum_i gk_ij xs_i
-            g_all[sl] += -half * (inv_rt * (q @ xs)) - half * w * sum_s
-            g_col += -half * (q.T @ (xs_r * inv_rt)) - half * (w * xs_r).sum(0, keepdim=True)
+            g_all[start:stop] += -half * (inv_rt * (q @ xs)) - half * w * sum_s
+            g_col.addmm_(q.T, xs_r * inv_rt, alpha=-half)  # in place: no (N, D) temporary per block
+            g_shift -= half * (w * xs_r).sum(0)
     if grad:
         assert g_all is not None and g_col is not None
-        g_all += g_col
+        g_all += g_col + g_shift
     return total, g_all
 
 
@@ -107,7 +113,7 @@ class _PKT(torch.autograd.Function):
         return g * inv - x * second, None, None, None
 
 
-def pkt(student: Tensor, teacher: Tensor, eps: float = 1e-7, block: int = 128) -> Tensor:
+def pkt(student: Tensor, teacher: Tensor, eps: float = 1e-7, block: int = 64) -> Tensor:
     """PKT: cosine kernels rescaled to [0, 1] and row-normalised into conditional probabilities;
     mean over all N^2 entries of p_t * log((p_t + eps) / (p_s + eps)).
 
