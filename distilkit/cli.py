@@ -13,9 +13,18 @@ from typing import Sequence
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    if args.seed is not None and len(args.seed) > 1:
+        from distilkit.engine.seeds import run_seeds
+
+        run_seeds(args.recipe, args.output, args.seed, baseline=args.baseline, quiet=args.quiet, rerun=args.rerun)
+        return 0
+    if args.baseline is not None:
+        from distilkit.errors import DistilkitError
+
+        raise DistilkitError("--baseline compares stages over several seeds: give them, e.g. --seed 0 1 2")
     from distilkit.engine.pipeline import Pipeline
 
-    pipe = Pipeline(args.recipe, args.output, quiet=args.quiet, seed=args.seed)
+    pipe = Pipeline(args.recipe, args.output, quiet=args.quiet, seed=args.seed[0] if args.seed else None)
     pipe.run(stop_after=args.stop_after, rerun=args.rerun)
     return 0
 
@@ -93,7 +102,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", "-q", action="store_true", help="no progress bars or tables")
     r.add_argument("--rerun", nargs="+", metavar="STAGE", help="retrain these stages (and the stages that use "
                    "them as teacher) even if finished; the previous runs are kept beside the new ones")
-    r.add_argument("--seed", type=int, default=None, help="override the recipe's seed (each seed is its own run)")
+    r.add_argument("--seed", type=int, nargs="+", default=None, metavar="N",
+                   help="override the recipe's seed; several seeds run one after another (each its own run) and "
+                        "end in a table of mean ± std over the seeds, written to seeds.md")
+    r.add_argument("--baseline", metavar="STAGE", default=None,
+                   help="with several seeds: the stage the paired differences are taken to (default: the first "
+                        "stage without distillation that is nobody's teacher)")
     r.add_argument("--stop-after", type=int, default=None, metavar="STEPS", help=argparse.SUPPRESS)
     r.set_defaults(fn=_cmd_run)
     v = sub.add_parser("validate", help="check recipes without training (exit status 2 on a problem)")

@@ -51,9 +51,12 @@ def test_run_then_reuse_every_stage(tmp_path) -> None:
     ckpt = load_checkpoint(student.run_dir / "checkpoints" / "last.pt")
     assert set(ckpt) >= {"student", "optimizer", "rng", "step"} and "teacher" not in ckpt
     mtimes = [(r.run_dir / "summary.json").stat().st_mtime_ns for r in first]
-    again = pipeline(tmp_path, tiny_recipe()).run()
+    relabelled = tiny_recipe()
+    relabelled["stages"]["student"]["label"] = "student, renamed"  # cosmetic: reused, shown with the new label
+    again = pipeline(tmp_path, relabelled).run()
     assert [r.reused for r in again] == [True, True]
     assert [(r.run_dir / "summary.json").stat().st_mtime_ns for r in again] == mtimes
+    assert again[1].summary["label"] == "student, renamed"
 
 
 def test_changing_the_teacher_changes_the_student_identity(tmp_path) -> None:

@@ -156,18 +156,22 @@ class Pipeline:
         entry = DATASETS.entry(self.recipe.data.dataset)
         return bool(entry.meta.get("has_split", lambda p, s: s != "test")(self.resolved.data_params, split))
 
-    def rerun_set(self, names: list[str] | None) -> set[str]:
-        """The stages ``--rerun`` names, checked, plus every stage downstream of them."""
-        if not names:
-            return set()
+    def check_stages(self, option: str, names: list[str]) -> None:
+        """A one-line RecipeError for stage names (from ``option``) that the recipe does not have."""
         unknown = [n for n in names if n not in self.resolved.stages]
         if unknown:
             import difflib
 
             hints = "".join(f"; did you mean {c[0]!r}?" for n in unknown
                             if (c := difflib.get_close_matches(n, list(self.resolved.stages), n=1)))
-            raise RecipeError([("", f"--rerun: no stage named {', '.join(map(repr, unknown))}{hints} "
+            raise RecipeError([("", f"{option}: no stage named {', '.join(map(repr, unknown))}{hints} "
                                     f"(stages: {', '.join(self.resolved.order)})")], self.source)
+
+    def rerun_set(self, names: list[str] | None) -> set[str]:
+        """The stages ``--rerun`` names, checked, plus every stage downstream of them."""
+        if not names:
+            return set()
+        self.check_stages("--rerun", names)
         return downstream(self.resolved, set(names))
 
     def run(self, stop_after: int | None = None, rerun: list[str] | None = None) -> list[StageResult]:
@@ -192,6 +196,8 @@ class Pipeline:
             done = read_summary(run_dir)
             if done is not None:
                 self.console.print(f"[green]✓[/] stage [bold]{name}[/] reused from {run_dir}")
+                # the label is cosmetic (not part of the identity): show the recipe's current one
+                done = {**done, "label": stage.spec.label or name}
                 results.append(StageResult(name, run_dir, done, reused=True))
                 continue
             run_dir.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,80 @@
+"""Several seeds of one recipe: mean ± sample std per stage and paired differences to a baseline."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import tiny_recipe
+from distilkit.cli import main
+from distilkit.engine.resolve import resolve
+from distilkit.engine.seeds import default_baseline, seed_rows
+from distilkit.recipe import recipe_from_dict
+
+
+def fake(stage: str, miou: float, iou: float, last: float) -> SimpleNamespace:
+    summary = {"stage": stage, "label": stage, "adapter": "scpnet", "objectives": [],
+               "test": {"best": {"miou": miou, "iou": iou}, "last": {"miou": last, "iou": iou}, "best_step": 5},
+               "report_split": "test"}
+    return SimpleNamespace(name=stage, summary=summary, reused=False)
+
+
+def test_mean_std_and_paired_differences_match_numpy() -> None:
+    rng = np.random.default_rng(0)
+    values = {stage: rng.uniform(0.1, 0.3, size=(3, 3)) for stage in ("plain", "kd", "dskd")}
+    results = {seed: [fake(stage, *values[stage][i]) for stage in values] for i, seed in enumerate((0, 4, 7))}
+    rows = {r["stage"]: r for r in seed_rows(results, "plain")}
+    assert list(rows) == ["plain", "kd", "dskd"]
+    for stage, v in values.items():
+        row = rows[stage]
+        assert row["seeds"] == [0, 4, 7]
+        assert row["miou_mean"] == pytest.approx(v[:, 0].mean())
+        assert row["miou_std"] == pytest.approx(v[:, 0].std(ddof=1))
+        assert row["iou_std"] == pytest.approx(v[:, 1].std(ddof=1))
+        assert row["last_miou_mean"] == pytest.approx(v[:, 2].mean())
+    paired = values["dskd"][:, 0] - values["plain"][:, 0]
+    assert rows["dskd"]["delta"] == pytest.approx(list(paired))
+    assert rows["dskd"]["delta_std"] == pytest.approx(paired.std(ddof=1))
+    assert rows["plain"]["delta"] == []  # no difference of the baseline to itself
+
+
+def test_a_stage_missing_in_one_seed_is_paired_only_where_both_ran() -> None:
+    results = {0: [fake("plain", 0.2, 0.5, 0.2), fake("kd", 0.25, 0.5, 0.25)], 1: [fake("plain", 0.1, 0.5, 0.1)]}
+    rows = {r["stage"]: r for r in seed_rows(results, "plain")}
+    assert rows["kd"]["seeds"] == [0] and rows["kd"]["delta"] == pytest.approx([0.05])
+    assert np.isnan(rows["kd"]["miou_std"])  # one seed: no spread, shown without ±
+
+
+def test_default_baseline_is_the_plain_student() -> None:
+    r = tiny_recipe()
+    r["stages"]["plain"] = {**r["stages"]["student"]}
+    del r["stages"]["plain"]["distill"], r["stages"]["plain"]["teacher"]
+    assert default_baseline(resolve(recipe_from_dict(r), "test")) == "plain"
+    assert default_baseline(resolve(recipe_from_dict(tiny_recipe()), "test")) is None  # teacher + distilled only
+
+
+def test_cli_runs_each_seed_and_writes_the_table(tmp_path: Path, capsys) -> None:
+    r = tiny_recipe(steps=1)
+    r["stages"]["plain"] = {k: v for k, v in r["stages"]["student"].items() if k not in ("distill", "teacher")}
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(yaml.safe_dump(r))
+    out = tmp_path / "runs"
+    assert main(["run", str(recipe), "-o", str(out), "-q", "--seed", "0", "1"]) == 0
+    text = (out / "tiny" / "seeds.md").read_text()
+    assert "seeds 0, 1" in text and "paired difference" in text and "'plain'" in text
+    table = [line for line in text.splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert sorted(line.split(" | ")[0].strip("| ") for line in table) == ["plain", "student", "teacher"]
+    assert all(" ± " in line for line in table)
+    assert len(list((out / "tiny").glob("student-*"))) == 2  # one run per seed
+    # a baseline that is not a stage, a repeated seed, a baseline without seeds: one line each
+    capsys.readouterr()
+    assert main(["run", str(recipe), "-o", str(out), "-q", "--seed", "0", "1", "--baseline", "plian"]) == 2
+    assert "did you mean 'plain'" in capsys.readouterr().err
+    assert main(["run", str(recipe), "-o", str(out), "-q", "--seed", "0", "0"]) == 2
+    assert "each seed once" in capsys.readouterr().err
+    assert main(["run", str(recipe), "-o", str(out), "-q", "--baseline", "plain"]) == 2
+    assert "several seeds" in capsys.readouterr().err
