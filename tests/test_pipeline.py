@@ -206,3 +206,22 @@ def test_scores_are_reported_on_the_test_split_at_best_and_last(tmp_path) -> Non
     assert s["test"]["best_step"] == s["best"]["step"]
     report = (results[0].run_dir.parent / "report.md").read_text()
     assert "test split" in report and "best validation mIoU" in report
+
+
+def test_cuda_rng_state_round_trips_through_a_checkpoint(tmp_path, monkeypatch) -> None:
+    """No GPU here: the CUDA generator functions are replaced by fakes holding two devices' states."""
+    from distilkit.engine.io import atomic_torch_save, rng_state, set_rng_state
+
+    states = [torch.arange(8, dtype=torch.uint8), torch.arange(8, 16, dtype=torch.uint8)]
+    restored: list[list[torch.Tensor]] = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    monkeypatch.setattr(torch.cuda, "get_rng_state_all", lambda: [s.clone() for s in states])
+    monkeypatch.setattr(torch.cuda, "set_rng_state_all", lambda s: restored.append(list(s)))
+    atomic_torch_save(tmp_path / "c.pt", {"student": {}, "rng": rng_state()})
+    loaded = load_checkpoint(tmp_path / "c.pt")  # weights_only loading keeps the CUDA states
+    set_rng_state(loaded["rng"])
+    assert len(restored) == 1 and all(torch.equal(a, b) for a, b in zip(restored[0], states))
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)  # resumed on a machine with fewer GPUs: left alone
+    set_rng_state(loaded["rng"])
+    assert len(restored) == 1
