@@ -3,13 +3,16 @@
 An adapter is an ``nn.Module`` registered in :data:`distilkit.registry.ADAPTERS`. It declares
 
 * ``Params``: a pydantic model of its constructor parameters (validated when a recipe loads);
+* ``INPUTS``: the batch inputs ``forward`` reads (checked against the dataset's fields by ``validate``);
 * ``TAPS``: tap name -> tap kind (see :mod:`distilkit.taps`) that ``forward`` returns;
 * ``LOGITS_TAP``: the ``voxel_logits`` tap that predictions and evaluation use;
 * ``DEFAULT_TASK_LOSSES``: task losses used when a recipe stage names none;
 * ``VERSION``: bump it when the model's behaviour changes, so that stages using it retrain.
 
-``forward(batch)`` takes the collated batch (:func:`distilkit.data.datasets.collate`) and returns
-a dict with (at least) every declared tap.
+``forward(batch)`` takes the collated :class:`~distilkit.data.batch.Batch` (built by the dataset's
+registered collate) and returns a dict with (at least) every declared tap. ``check_data`` lets an
+adapter reject parameters the data cannot serve (e.g. more frames than it has); ``describe`` gives the
+short input description the results table shows.
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ import torch
 from pydantic import BaseModel, ConfigDict
 from torch import Tensor, nn
 
-from distilkit.data.datasets import DataInfo
+from distilkit.data.batch import Batch
+from distilkit.data.info import DataInfo
 
 
 class NoParams(BaseModel):
@@ -30,6 +34,7 @@ class NoParams(BaseModel):
 
 class Adapter(nn.Module, ABC):
     Params: ClassVar[type[BaseModel]] = NoParams
+    INPUTS: ClassVar[frozenset[str]] = frozenset()
     TAPS: ClassVar[dict[str, str]] = {}
     LOGITS_TAP: ClassVar[str] = "logits"
     DEFAULT_TASK_LOSSES: ClassVar[list[dict[str, Any]]] = [{"name": "ce", "weight": 1.0}]
@@ -41,7 +46,7 @@ class Adapter(nn.Module, ABC):
         self.info = info
 
     @abstractmethod
-    def forward(self, batch: dict[str, Tensor]) -> dict[str, Any]:
+    def forward(self, batch: Batch) -> dict[str, Any]:
         """Run the model on a collated batch; return every declared tap."""
 
     @torch.no_grad()
@@ -53,19 +58,20 @@ class Adapter(nn.Module, ABC):
     def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> tuple[int, ...] | None:
         """The voxel grid (X, Y, Z) a voxel tap lives on, known before training (default: the data's
         SSC grid); None for taps that are not on a voxel grid. ``validate`` checks alignments with it."""
-        if cls.TAPS.get(tap) in ("sparse_features", "voxel_logits"):
+        if info.grid is not None and cls.TAPS.get(tap) in ("sparse_features", "voxel_logits"):
             return tuple(info.grid.shape)
         return None
 
     @classmethod
+    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
+        """(parameter, problem) pairs for parameters this data cannot serve (default: none)."""
+        return []
+
+    @classmethod
+    def describe(cls, params: BaseModel) -> str:
+        """A short description of the model's input for the results table (default: empty)."""
+        return ""
+
+    @classmethod
     def taps_of_kind(cls, kind: str) -> list[str]:
         return [name for name, k in cls.TAPS.items() if k == kind]
-
-
-def select_frames(batch: dict[str, Tensor], frames: int) -> dict[str, Tensor]:
-    """Keep the points of the first ``frames`` scans (frame offset < frames)."""
-    keep = batch["point_frame"] < frames
-    out = dict(batch)
-    for k in ("points", "point_batch", "point_frame", "point_label"):
-        out[k] = batch[k][keep]
-    return out

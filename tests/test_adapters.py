@@ -7,7 +7,8 @@ import torch
 import torch.nn.functional as F
 
 from conftest import TINY_DATA
-from distilkit.data.datasets import build_synthetic, collate, synthetic_info
+from distilkit.data.datasets import build_synthetic, synthetic_info
+from distilkit.data.lidar import collate_lidar
 from distilkit.data.params import SyntheticParams
 from distilkit.losses.task import UncertaintyMultiTask
 from distilkit.registry import ADAPTERS
@@ -21,7 +22,7 @@ P = SyntheticParams(**TINY_DATA)
 @pytest.fixture(scope="module")
 def batch() -> dict:
     ds = build_synthetic(P, "train")
-    return collate([ds[0], ds[1]])
+    return collate_lidar([ds[0], ds[1]])
 
 
 def test_mpb_has_3_5_7_kernels_no_bias_no_batchnorm() -> None:
@@ -91,7 +92,7 @@ def test_js3cnet_taps_and_uncertainty_loss(batch) -> None:
     # JS3C-Net eq. 2 with s = log sigma^2: 1/(2 sigma^2) L + log sigma
     tgt = out["point_target"].masked_fill(out["point_target"] == 0, 255)
     l_seg = F.cross_entropy(out["point_logits"], tgt, ignore_index=255)
-    l_comp = F.cross_entropy(out["logits"], batch["voxel_target"], ignore_index=255)
+    l_comp = F.cross_entropy(out["logits"], batch.targets["voxel_target"], ignore_index=255)
     sigma2 = torch.exp(torch.tensor(0.3))
     want = l_seg / (2 * sigma2) + l_comp / (2 * sigma2) + 2 * torch.log(sigma2.sqrt())
     assert value.item() == pytest.approx(want.item(), rel=1e-5)
@@ -134,7 +135,7 @@ def test_js3cnet_class_weights_follow_the_paper(batch) -> None:
     cls = ADAPTERS.get("js3cnet")
     model = cls(cls.Params(frames=1, seg_channels=4, embed=4, ssc_channels=4, pvi_hidden=4, knn=4), synthetic_info(P))
     out = model(batch)
-    l_comp = F.cross_entropy(out["logits"], batch["voxel_target"], ignore_index=255, weight=loss.comp_weight)
+    l_comp = F.cross_entropy(out["logits"], batch.targets["voxel_target"], ignore_index=255, weight=loss.comp_weight)
     tgt = out["point_target"].masked_fill(out["point_target"] == 0, 255)
     l_seg = F.cross_entropy(out["point_logits"], tgt, ignore_index=255, weight=loss.seg_weight)
     assert loss(out, batch).item() == pytest.approx((0.5 * l_seg + 0.5 * l_comp).item(), rel=1e-5)
@@ -149,7 +150,8 @@ def test_sigma_trains_at_ten_times_the_learning_rate_unless_the_recipe_says_othe
     def groups(recipe: dict) -> dict[str, float]:
         pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
         stage = pipe.resolved.stages["teacher"]
-        tr = Trainer(stage, pipe.resolved.data_info, pipe.dataset("train"), pipe.dataset("val"), tmp_path / "x", 0)
+        tr = Trainer(stage, pipe.resolved.data_info, pipe.dataset("train"), pipe.dataset("val"), tmp_path / "x", 0,
+                     collate=pipe.collate)
         return {g["name"]: (g["lr"], len(g["params"])) for g in tr.optimizer.param_groups}
 
     recipe = tiny_recipe(distill=False, adapter="js3cnet")

@@ -8,7 +8,8 @@ import pytest
 from conftest import FIXTURES, TINY_DATA
 from distilkit.data import semantickitti as sk
 from distilkit.data.classes import CLASS_NAMES, NUM_CLASSES, ssc_lut
-from distilkit.data.datasets import build_synthetic, collate, pool_labels
+from distilkit.data.datasets import build_synthetic, pool_labels
+from distilkit.data.lidar import collate_lidar
 from distilkit.data.params import SyntheticParams
 from distilkit.data.raycast import Primitives, cast, ray_directions
 from distilkit.data.synthetic import generate_split, make_sample, make_scene, voxelize_majority
@@ -88,10 +89,10 @@ def test_cache_is_reused(tmp_path, monkeypatch) -> None:
 
 def test_collate_sets_invalid_to_ignore() -> None:
     ds = build_synthetic(P, "train")
-    batch = collate([ds[0], ds[1]])
-    assert batch["voxel_label"].shape == (2, 32, 32, 4)
-    assert (batch["voxel_target"][batch["invalid"]] == 255).all()
-    assert int(batch["point_batch"].max()) == 1 and len(batch["points"]) == len(ds[0]["points"]) + len(ds[1]["points"])
+    batch = collate_lidar([ds[0], ds[1]])
+    assert batch.targets["voxel_label"].shape == (2, 32, 32, 4)
+    assert (batch.targets["voxel_target"][batch.targets["invalid"]] == 255).all()
+    assert int(batch.inputs["point_batch"].max()) == 1 and len(batch.inputs["points"]) == len(ds[0]["points"]) + len(ds[1]["points"])
 
 
 def test_reads_the_real_semantickitti_scan() -> None:
@@ -247,18 +248,18 @@ def test_scribbles_travel_through_collate_and_reach_rgo2d() -> None:
     from distilkit.objectives.region import RGO2D, RGO2DParams
 
     samples = [make_sample(i, P) for i in range(2)]
-    batch = collate(samples)
-    assert batch["scribble"].shape == batch["voxel_label"].shape
-    assert torch.equal(batch["scribble"][1], torch.from_numpy(samples[1]["scribble"].astype(np.int64)))
+    batch = collate_lidar(samples)
+    assert batch.targets["scribble"].shape == batch.targets["voxel_label"].shape
+    assert torch.equal(batch.targets["scribble"][1], torch.from_numpy(samples[1]["scribble"].astype(np.int64)))
     g = torch.Generator().manual_seed(0)
-    shape = (2, NUM_CLASSES, *batch["voxel_label"].shape[1:])
+    shape = (2, NUM_CLASSES, *batch.targets["voxel_label"].shape[1:])
     s, t = torch.randn(shape, generator=g), torch.randn(shape, generator=g)
-    occ = (batch["voxel_target"] != 0) & (batch["voxel_target"] != 255)
+    occ = (batch.targets["voxel_target"] != 0) & (batch.targets["voxel_target"] != 255)
     obj = RGO2D(RGO2DParams())
     value = obj.compute({"student": s, "teacher": t}, batch)
-    assert torch.allclose(value, rgo2d(s, t, batch["scribble"], occ))
-    dense = rgo2d(s, t, batch["voxel_target"], occ)
+    assert torch.allclose(value, rgo2d(s, t, batch.targets["scribble"], occ))
+    dense = rgo2d(s, t, batch.targets["voxel_target"], occ)
     assert not torch.allclose(value, dense)  # the scribbles, not the dense labels, are used
     # unlabelled voxels (254) are no class: relabelling them as empty leaves the loss unchanged
-    as_empty = batch["scribble"].masked_fill(batch["scribble"] == SCRIBBLE_UNLABELLED, 0)
+    as_empty = batch.targets["scribble"].masked_fill(batch.targets["scribble"] == SCRIBBLE_UNLABELLED, 0)
     assert torch.allclose(value, rgo2d(s, t, as_empty, occ))

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import distilkit.losses as L
+from distilkit.data.batch import Batch
 from distilkit.geometry.voxel import align_sparse
 from distilkit.objectives.dskd import DSKD, DSKDParams
 from distilkit.taps import SparseVoxels
@@ -113,7 +114,7 @@ def test_objective_per_sample_mean() -> None:
     fs = torch.randn(5, 3, generator=g, dtype=torch.float64)
     ft = torch.randn(5, 3, generator=g, dtype=torch.float64)
     obj = DSKD(DSKDParams())
-    val = obj(SparseVoxels(coords, fs, (4, 1, 1)), SparseVoxels(coords, ft, (4, 1, 1)), {})
+    val = obj(SparseVoxels(coords, fs, (4, 1, 1)), SparseVoxels(coords, ft, (4, 1, 1)), Batch({}, {}, {"size": 1}))
     expect = (naive_dskd(fs[:3], ft[:3]) + naive_dskd(fs[3:], ft[3:])) / 2
     assert val.item() == pytest.approx(expect.item(), rel=1e-9)
 

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from conftest import tiny_recipe
+from distilkit.data.batch import Batch
 from distilkit.engine.io import load_checkpoint
 from distilkit.engine.pipeline import Pipeline
 from distilkit.errors import RecipeError
@@ -67,7 +68,7 @@ def test_pvkd_affinity_equals_grouped_dskd() -> None:
     ft = torch.randn(len(coords), 3, dtype=torch.float64, generator=g)
     obj = PVKD(PVKD.Params(output_weight=0.0, affinity_weight=1.0, radial_bins=2, angular_bins=2, height_bins=1))
     logits = torch.zeros(1, 2, 16, 16, 4, dtype=torch.float64)
-    batch = {"voxel_target": torch.zeros(1, 16, 16, 4, dtype=torch.long)}
+    batch = Batch({}, {"voxel_target": torch.zeros(1, 16, 16, 4, dtype=torch.long)}, {"size": 1})
     taps = {"student": SparseVoxels(coords, fs, (16, 16, 4)), "teacher": SparseVoxels(coords, ft, (16, 16, 4)),
             "student_logits": logits, "teacher_logits": logits}
     got = obj.compute(taps, batch)
@@ -113,8 +114,8 @@ def test_fitnets_regressor_2d_and_3d(dims) -> None:
     spatial = (6, 5) if dims == 2 else (6, 5, 2)
     s, t = torch.randn(2, 3, *spatial), torch.randn(2, 7, *spatial)
     obj = FitNets(FitNets.Params())
-    obj.setup({"student": s, "teacher": t}, {})
+    obj.setup({"student": s, "teacher": t}, Batch({}, {}, {"size": 1}))
     conv = obj.regressor
     assert conv.weight.shape[:2] == (7, 3) and conv.weight.dim() == dims + 2
     want = ((conv(s) - t) ** 2).mean()
-    assert obj(s, t, {}).item() == pytest.approx(want.item(), rel=1e-6)
+    assert obj(s, t, Batch({}, {}, {"size": 1})).item() == pytest.approx(want.item(), rel=1e-6)

@@ -79,7 +79,7 @@ def test_teacher_is_frozen_and_unchanged_by_a_step(tmp_path) -> None:
     before = {k: v.clone() for k, v in teacher.state_dict().items()}
     assert not teacher.training and not any(p.requires_grad for p in teacher.parameters())
     trainer = Trainer(stage, pipe.resolved.data_info, pipe.dataset("train"), pipe.dataset("val"), tmp_path / "s", 0,
-                      teacher)
+                      teacher, collate=pipe.collate)
     trainer.fit()
     after = teacher.state_dict()
     assert all(torch.equal(before[k], after[k]) for k in before)  # weights and BN buffers

@@ -5,10 +5,11 @@ from __future__ import annotations
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
-from torch import Tensor
 
-from distilkit.adapter import Adapter, select_frames
-from distilkit.data.datasets import DataInfo
+from distilkit.adapter import Adapter
+from distilkit.data.batch import Batch
+from distilkit.data.info import DataInfo
+from distilkit.data.lidar import LIDAR_INPUTS, frames_problems, select_frames
 from distilkit.registry import ADAPTERS
 from distilkit.taps import SparseVoxels
 from distilkit_adapters._blocks import channels_last
@@ -29,6 +30,7 @@ class JS3CNetAdapter(Adapter):
     """JS3C-Net with the uncertainty-weighted multi-task loss (eq. 2) as its task loss."""
 
     Params = JS3CNetParams
+    INPUTS = LIDAR_INPUTS
     TAPS = {"completion": "sparse_features", "ssc_dense": "feature_map", "logits": "voxel_logits",
             "point_logits": "point_logits"}
     LOGITS_TAP = "logits"
@@ -47,9 +49,17 @@ class JS3CNetAdapter(Adapter):
             return tuple(s // 2 for s in info.grid.shape)
         return super().tap_grid(tap, params, info)
 
-    def forward(self, batch: dict[str, Tensor]) -> dict[str, Any]:
+    @classmethod
+    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
+        return frames_problems(params, info)
+
+    @classmethod
+    def describe(cls, params: BaseModel) -> str:
+        return f"{params.frames} frame{'s' if params.frames > 1 else ''}"  # type: ignore[attr-defined]
+
+    def forward(self, batch: Batch) -> dict[str, Any]:
         b = select_frames(batch, self.params.frames)
-        out = self.net(b, int(batch["voxel_label"].shape[0]))
+        out = self.net(b.inputs, batch.size)
         shape = tuple(out["ssc_dense"].shape[2:])
         return {
             "logits": out["logits"],
@@ -58,7 +68,7 @@ class JS3CNetAdapter(Adapter):
             "completion": SparseVoxels(out["ssc_coords"], out["ssc_feats"], shape),  # type: ignore[arg-type]
             "ssc_dense": out["ssc_dense"],
             # segmentation targets of the points behind point_logits (input points inside the grid)
-            "point_target": b["point_label"][out["point_keep"]],
+            "point_target": b.targets["point_label"][out["point_keep"]],
         }
 
 

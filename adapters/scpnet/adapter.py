@@ -6,10 +6,11 @@ from typing import Any
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
-from torch import Tensor
 
-from distilkit.adapter import Adapter, select_frames
-from distilkit.data.datasets import DataInfo
+from distilkit.adapter import Adapter
+from distilkit.data.batch import Batch
+from distilkit.data.info import DataInfo
+from distilkit.data.lidar import LIDAR_INPUTS, frames_problems, select_frames
 from distilkit.geometry.voxel import dense_to_sparse
 from distilkit.registry import ADAPTERS
 from distilkit_adapters._blocks import channels_last
@@ -32,6 +33,7 @@ class SCPNetAdapter(Adapter):
     """SCPNet: MPB completion sub-network then segmentation; CE + Lovász task loss (eq. 4, alpha = 1)."""
 
     Params = SCPNetParams
+    INPUTS = LIDAR_INPUTS
     TAPS = {"completion": "sparse_features", "completion_dense": "feature_map", "logits": "voxel_logits"}
     LOGITS_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "ce", "weight": 1.0}, {"name": "lovasz", "weight": 1.0}]
@@ -45,9 +47,17 @@ class SCPNetAdapter(Adapter):
                           tuple(params.kernels or kernels), params.conv_kernel or conv)
         channels_last(self)
 
-    def forward(self, batch: dict[str, Tensor]) -> dict[str, Any]:
+    @classmethod
+    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
+        return frames_problems(params, info)
+
+    @classmethod
+    def describe(cls, params: BaseModel) -> str:
+        return f"{params.frames} frame{'s' if params.frames > 1 else ''}"  # type: ignore[attr-defined]
+
+    def forward(self, batch: Batch) -> dict[str, Any]:
         b = select_frames(batch, self.params.frames)
-        vox = self.net.voxelizer(b, self.info.grid, int(batch["voxel_label"].shape[0]))
+        vox = self.net.voxelizer(b.inputs, self.info.grid, batch.size)
         completed = self.net.completion(vox)
         sparse = dense_to_sparse(completed)
         active = torch.zeros(completed.shape[:1] + completed.shape[2:], dtype=torch.bool, device=completed.device)

@@ -29,6 +29,12 @@ CLASS_NAMES: list[str] = [
     "motorcyclist", "road", "parking", "sidewalk", "other-ground", "building", "fence", "vegetation",
     "trunk", "terrain", "pole", "traffic-sign",
 ]
+# RGB, from semantic-kitti.yaml's color_map (which is BGR) at each train id's raw id (learning_map_inv)
+CLASS_COLOURS: list[tuple[int, int, int]] = [
+    (0, 0, 0), (100, 150, 245), (100, 230, 245), (30, 60, 150), (80, 30, 180), (0, 0, 255), (255, 30, 30),
+    (255, 40, 200), (150, 30, 90), (255, 0, 255), (255, 150, 255), (75, 0, 75), (175, 0, 75), (255, 200, 0),
+    (255, 120, 50), (0, 175, 0), (135, 60, 0), (150, 240, 80), (255, 240, 150), (255, 0, 0),
+]
 NUM_CLASSES = 20
 IGNORE_INDEX = 255
 SCRIBBLE_UNLABELLED = 254  # ScribbleSC: occupied, but no scribble label (distinct from empty = 0)

@@ -1,44 +1,26 @@
-"""Registered datasets and the batch collation shared by every adapter.
+"""Registered datasets: the synthetic LiDAR scenes and SemanticKITTI-format folders.
 
-A sample is a dict of numpy arrays:
-
-* ``points`` (M,4) x, y, z, intensity in the current sensor frame; ``point_frame`` (M,) frame
-  offset (0 = current scan); ``point_label`` (M,) segmentation train id (0 = unlabelled);
-* ``voxel_label`` (X,Y,Z) SSC train ids (0 = empty, 255 = ignore); ``invalid`` (X,Y,Z) bool;
-* optionally ``scribble`` (X,Y,Z) ScribbleSC labels (0 empty, 1-19, 254 unlabelled, 255 invalid).
-
-:func:`collate` concatenates points with a ``point_batch`` index and stacks the grids; it adds
-``voxel_target`` = ``voxel_label`` with invalid voxels set to 255 (the training target).
+Both give LiDAR samples (:mod:`distilkit.data.lidar`) and register :func:`~distilkit.data.lidar.collate_lidar`
+as their collate; their :class:`~distilkit.data.info.DataInfo` names the fields it provides.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import torch
-from torch import Tensor
 
-from distilkit.data.classes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, remap, seg_lut, ssc_lut
+from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES, remap, seg_lut, ssc_lut
+from distilkit.data.info import DataInfo
+from distilkit.data.lidar import LIDAR_INPUTS, LIDAR_TARGETS, collate_lidar
 from distilkit.data.params import SemanticKittiParams, SyntheticParams
 from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.data import semantickitti as skio
 from distilkit.errors import DataError
 from distilkit.geometry.voxel import VoxelGrid
 from distilkit.registry import DATASETS
-
-
-@dataclass(frozen=True)
-class DataInfo:
-    """What an adapter needs to know about the data to build itself."""
-
-    grid: VoxelGrid
-    num_classes: int = NUM_CLASSES
-    class_names: tuple[str, ...] = tuple(CLASS_NAMES)
-    input_frames: int = 1
-    point_features: int = 4
 
 
 class ArrayDataset(torch.utils.data.Dataset):
@@ -63,24 +45,6 @@ class ArrayDataset(torch.utils.data.Dataset):
         }
 
 
-def collate(samples: list[dict[str, np.ndarray]]) -> dict[str, Tensor]:
-    """Concatenate points (with ``point_batch``) and stack voxel grids."""
-    pts = [torch.from_numpy(np.ascontiguousarray(s["points"], dtype=np.float32)) for s in samples]
-    batch = {
-        "points": torch.cat(pts),
-        "point_batch": torch.cat([torch.full((len(p),), b, dtype=torch.long) for b, p in enumerate(pts)]),
-        "point_frame": torch.cat([torch.from_numpy(s["point_frame"].astype(np.int64)) for s in samples]),
-        "point_label": torch.cat([torch.from_numpy(s["point_label"].astype(np.int64)) for s in samples]),
-        "voxel_label": torch.stack([torch.from_numpy(s["voxel_label"].astype(np.int64)) for s in samples]),
-        "invalid": torch.stack([torch.from_numpy(s["invalid"].astype(bool)) for s in samples]),
-    }
-    if all("scribble" in s for s in samples):  # ScribbleSC labels: 0 empty, 1-19, 254 unlabelled, 255 invalid
-        batch["scribble"] = torch.stack([torch.from_numpy(s["scribble"].astype(np.int64)) for s in samples])
-    batch["voxel_target"] = batch["voxel_label"].masked_fill(batch["invalid"], IGNORE_INDEX)
-    batch["batch_size"] = torch.tensor(len(samples))
-    return batch
-
-
 def build_synthetic(params: SyntheticParams, split: str,
                     progress: Callable[[int, int], None] | None = None) -> ArrayDataset:
     from distilkit.data.synthetic import generate_split
@@ -91,7 +55,13 @@ def build_synthetic(params: SyntheticParams, split: str,
 
 
 def synthetic_info(params: SyntheticParams) -> DataInfo:
-    return DataInfo(VoxelGrid.semantickitti(params.scale), input_frames=params.input_frames)
+    return DataInfo(VoxelGrid.semantickitti(params.scale), fields=LIDAR_INPUTS | LIDAR_TARGETS | {"scribble"},
+                    input_frames=params.input_frames)
+
+
+def kitti_info(params: SemanticKittiParams) -> DataInfo:
+    return DataInfo(VoxelGrid.semantickitti(params.scale), fields=LIDAR_INPUTS | LIDAR_TARGETS,
+                    input_frames=params.input_frames)
 
 
 def pool_labels(labels: np.ndarray, invalid: np.ndarray, scale: int) -> tuple[np.ndarray, np.ndarray]:
@@ -128,7 +98,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
                     self.items.append((d, frame, n))
         if not self.items:
             raise DataError(f"{root}: no voxels/*.label files under sequences {seqs} for split {split!r}")
-        self.info = DataInfo(VoxelGrid.semantickitti(params.scale), input_frames=params.input_frames)
+        self.info = kitti_info(params)
         self._poses: dict[Path, np.ndarray] = {}
 
     def __len__(self) -> int:
@@ -177,7 +147,7 @@ DATASETS.add(
     "synthetic-lidar", _synthetic_factory,
     description="procedural street scenes, ray-cast LiDAR scans, multi-frame input and SSC ground truth (cached on disk)",
     paper="distilkit (SemanticKITTI conventions, Behley et al. ICCV 2019)",
-    params=SyntheticParams, info=synthetic_info, version=GENERATOR_VERSION,
+    params=SyntheticParams, info=synthetic_info, collate=collate_lidar, version=GENERATOR_VERSION,
     has_split=lambda p, split: True,
 )
 DATASETS.add(
@@ -185,6 +155,6 @@ DATASETS.add(
     description="a SemanticKITTI-format folder: velodyne/, labels/, voxels/*.label|.invalid, poses.txt, calib.txt",
     paper="Behley et al., SemanticKITTI, ICCV 2019",
     params=SemanticKittiParams,
-    info=lambda p: DataInfo(VoxelGrid.semantickitti(p.scale), input_frames=p.input_frames), version=1,
+    info=kitti_info, collate=collate_lidar, version=1,
     has_split=lambda p, split: split != "test" or bool(p.test_sequences),
 )

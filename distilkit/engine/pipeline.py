@@ -152,6 +152,11 @@ class Pipeline:
             return self.run_dir(t.from_) / "checkpoints" / f"{t.which}.pt"
         return Path(t.checkpoint or "").expanduser()
 
+    @property
+    def collate(self) -> Any:
+        """The dataset's registered collate (samples -> :class:`~distilkit.data.batch.Batch`)."""
+        return DATASETS.entry(self.recipe.data.dataset).meta["collate"]
+
     def has_split(self, split: str) -> bool:
         entry = DATASETS.entry(self.recipe.data.dataset)
         return bool(entry.meta.get("has_split", lambda p, s: s != "test")(self.resolved.data_params, split))
@@ -213,7 +218,7 @@ class Pipeline:
             train_set, val_set = self.dataset("train"), self.dataset("val")
             with stage_progress(self.console, name) as on_step:
                 trainer = Trainer(stage, self.resolved.data_info, train_set, val_set, run_dir, self.recipe.seed,
-                                  teacher, on_step, stop_after)
+                                  teacher, on_step, stop_after, collate=self.collate)
                 result = trainer.fit()
             if stop_after is not None and result.steps < trainer.total_steps:
                 self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")
@@ -222,7 +227,7 @@ class Pipeline:
             test = trainer.evaluate_checkpoints(self.dataset(split))
             summary = {
                 "status": "finished", "stage": name, "hash": self.hashes[name], "label": stage.spec.label or name,
-                "adapter": stage.student.adapter, "frames": getattr(stage.student.params, "frames", None),
+                "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),
                 "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
                 "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill],
                 "steps": result.steps, "train_seconds": round(result.seconds, 2),

@@ -7,7 +7,6 @@ import json
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from distilkit.data.classes import CLASS_NAMES
 from distilkit.engine.io import atomic_write_text
 
 
@@ -46,7 +45,8 @@ def _row(summary: dict[str, Any]) -> dict[str, Any]:
     val = summary.get("best", {}).get("scores") or {}
     nan = float("nan")
     return {"stage": summary["stage"], "label": summary.get("label", summary["stage"]), "adapter": summary["adapter"],
-            "frames": summary.get("frames"), "teacher": summary.get("teacher") or "—",
+            "input": summary.get("input", f"{summary['frames']} frames" if summary.get("frames") else ""),
+            "teacher": summary.get("teacher") or "—",
             "objectives": ", ".join(summary.get("objectives", [])) or "—", "miou": best.get("miou", nan),
             "iou": best.get("iou", nan), "precision": best.get("precision", nan), "recall": best.get("recall", nan),
             "best_step": test.get("best_step", summary.get("best", {}).get("step")),
@@ -66,12 +66,12 @@ def results_table(results: list[Any]) -> Any:
 
     rows = [_row(r.summary) for r in results]
     table = Table(title=f"distilkit results — {_header(rows)}")
-    cols = ("stage", "model", "frames", "teacher", "distillation", "mIoU best", "IoU best", "best step",
+    cols = ("stage", "model", "input", "teacher", "distillation", "mIoU best", "IoU best", "best step",
             "mIoU last", "IoU last", "val mIoU", "")
     for col in cols:
-        table.add_column(col, justify="left" if col in ("stage", "model", "teacher", "distillation", "") else "right")
+        table.add_column(col, justify="left" if col in ("stage", "model", "input", "teacher", "distillation", "") else "right")
     for r, row in zip(results, rows):
-        table.add_row(row["label"], row["adapter"], str(row["frames"]), row["teacher"], row["objectives"],
+        table.add_row(row["label"], row["adapter"], row["input"], row["teacher"], row["objectives"],
                       f"{100 * row['miou']:.2f}", f"{100 * row['iou']:.2f}", str(row["best_step"]),
                       f"{100 * row['last_miou']:.2f}", f"{100 * row['last_iou']:.2f}", f"{100 * row['val_miou']:.2f}",
                       "reused" if r.reused else "trained")
@@ -99,17 +99,17 @@ def write_report(pipeline: Any, results: list[Any]) -> Path:
     root: Path = pipeline.root
     rows = [_row(r.summary) for r in results]
     lines = [f"# {pipeline.recipe.name}", "", f"Seed {pipeline.recipe.seed}; {_header(rows)}.", "",
-             "| stage | model | frames | teacher | distillation | mIoU best | IoU best | precision | recall | best step "
+             "| stage | model | input | teacher | distillation | mIoU best | IoU best | precision | recall | best step "
              "| mIoU last | IoU last | val mIoU | run |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r, row in zip(results, rows):
-        lines.append(f"| {row['label']} | {row['adapter']} | {row['frames']} | {row['teacher']} | {row['objectives']} | "
+        lines.append(f"| {row['label']} | {row['adapter']} | {row['input']} | {row['teacher']} | {row['objectives']} | "
                      f"{100 * row['miou']:.2f} | {100 * row['iou']:.2f} | {100 * row['precision']:.2f} | "
                      f"{100 * row['recall']:.2f} | {row['best_step']} | {100 * row['last_miou']:.2f} | "
                      f"{100 * row['last_iou']:.2f} | {100 * row['val_miou']:.2f} | {'reused' if r.reused else 'trained'} |")
     lines += ["", "## Per-class IoU (%, best checkpoint)", "", "| class | " + " | ".join(r["label"] for r in rows) + " |",
               "|---|" + "---|" * len(rows)]
-    for c, cname in enumerate(CLASS_NAMES[1:]):
+    for c, cname in enumerate(pipeline.resolved.data_info.class_names[1:]):
         vals = [f"{100 * r['class_iou'][c]:.1f}" if len(r["class_iou"]) > c else "—" for r in rows]
         lines.append(f"| {cname} | " + " | ".join(vals) + " |")
     lines += ["", "![training loss and validation mIoU](report.png)", ""]

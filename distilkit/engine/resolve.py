@@ -163,6 +163,17 @@ def param_groups(given: list[Any] | None, task: list[ResolvedTerm], distill: lis
     return out
 
 
+def data_problems(model: ResolvedModel, info: Any, path: str) -> list[tuple[str, str]]:
+    """The inputs the adapter reads that the data does not provide, and parameters it cannot serve."""
+    out = []
+    missing = sorted(model.cls.INPUTS - info.fields) if info.fields else []
+    if missing:
+        out.append((f"{path}.adapter", f"adapter {model.adapter!r} reads batch input(s) {', '.join(missing)}, which "
+                                       f"the data does not provide (it has: {', '.join(sorted(info.fields))})"))
+    out += [(f"{path}.params.{param}", problem) for param, problem in model.cls.check_data(model.params, info)]
+    return out
+
+
 def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
     """Check everything that can be checked without training; raise :class:`RecipeError` listing all problems."""
     problems: list[tuple[str, str]] = []
@@ -197,14 +208,11 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         if student is not None:
             if student.cls.LOGITS_TAP not in student.cls.TAPS:
                 problems.append((f"{path}.model.adapter", f"adapter {student.adapter!r} declares no logits tap"))
-            frames = getattr(student.params, "frames", 1)
-            if info is not None and frames > info.input_frames:
-                problems.append((f"{path}.model.params.frames",
-                                 f"{frames} input frames requested, but the data provides {info.input_frames} "
-                                 f"(raise data.params.input_frames)"))
-        if teacher is not None and info is not None and getattr(teacher.params, "frames", 1) > info.input_frames:
-            problems.append((f"{path}.teacher", f"teacher needs {teacher.params.frames} input frames, data provides "
-                                                 f"{info.input_frames}"))
+        if info is not None:
+            own_teacher = teacher if teacher_from is None else None  # a teacher stage was checked as a student
+            for model, where in ((student, f"{path}.model"), (own_teacher, f"{path}.teacher.model")):
+                if model is not None:
+                    problems.extend(data_problems(model, info, where))
         if info is not None:
             problems.extend(grid_problems(distill, models, info, f"{path}.distill"))
         if student is not None:

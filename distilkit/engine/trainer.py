@@ -20,7 +20,8 @@ import torch
 from torch import Tensor, nn
 
 from distilkit.adapter import Adapter
-from distilkit.data.datasets import DataInfo, collate
+from distilkit.data.batch import Batch
+from distilkit.data.info import DataInfo
 from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint, rng_state,
                                  set_rng_state)
 from distilkit.engine.resolve import ResolvedModel, ResolvedStage
@@ -34,8 +35,7 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def to_device(batch: dict[str, Tensor], device: torch.device) -> dict[str, Tensor]:
-    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+Collate = Callable[[list[Any]], Batch]
 
 
 def build_model(model: ResolvedModel, info: DataInfo) -> Adapter:
@@ -63,14 +63,14 @@ def load_teacher(model: ResolvedModel, info: DataInfo, checkpoint: Path, device:
 
 
 @torch.no_grad()
-def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device) -> dict[str, Any]:
+def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device, collate: Collate) -> dict[str, Any]:
     was_training = model.training
     model.eval()
     metric = SSCMetric(model.info.num_classes)
     for start in range(0, len(dataset), batch_size):
-        batch = to_device(collate([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))]), device)
+        batch = collate([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))]).to(device)
         pred = model.predict(model(batch))
-        metric.update(pred.cpu(), batch["voxel_label"].cpu(), batch["invalid"].cpu())
+        metric.update(pred.cpu(), batch.targets["voxel_label"].cpu(), batch.targets["invalid"].cpu())
     model.train(was_training)
     return metric.compute()
 
@@ -87,8 +87,9 @@ class TrainResult:
 class Trainer:
     def __init__(self, stage: ResolvedStage, info: DataInfo, train_set: Any, val_set: Any, run_dir: Path, seed: int,
                  teacher: Adapter | None = None, on_step: Callable[[int, int, dict[str, float]], None] | None = None,
-                 stop_after: int | None = None) -> None:
+                 stop_after: int | None = None, *, collate: Collate) -> None:
         self.stage, self.info, self.train_set, self.val_set = stage, info, train_set, val_set
+        self.collate = collate  # the dataset's registered collate
         self.run_dir, self.seed, self.on_step, self.stop_after = run_dir, seed, on_step, stop_after
         spec = stage.spec.train
         self.device = pick_device(spec.device)
@@ -192,7 +193,7 @@ class Trainer:
             return torch.nn.utils.clip_grad_norm_(grads, clip)
         return torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(p.grad.detach()) for p in grads]))
 
-    def _blame(self, batch: dict[str, Tensor]) -> str:
+    def _blame(self, batch: Batch) -> str:
         """Name the term(s) whose gradient is not finite, by one backward pass per term on the same batch."""
         try:
             with torch.random.fork_rng(devices=[]):
@@ -212,12 +213,12 @@ class Trainer:
         return f"non-finite gradient from term(s) {', '.join(bad)}"
 
     # -- loop --------------------------------------------------------------------------------
-    def _batch(self, step: int) -> dict[str, Tensor]:
+    def _batch(self, step: int) -> Batch:
         epoch, i = divmod(step, self.steps_per_epoch)
         g = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
         perm = torch.randperm(len(self.train_set), generator=g)
         bs = self.stage.spec.train.batch_size
-        return to_device(collate([self.train_set[int(j)] for j in perm[i * bs:(i + 1) * bs]]), self.device)
+        return self.collate([self.train_set[int(j)] for j in perm[i * bs:(i + 1) * bs]]).to(self.device)
 
     @staticmethod
     def _taps(spec: Any, s_out: dict[str, Any], t_out: dict[str, Any]) -> dict[str, Any]:
@@ -238,7 +239,7 @@ class Trainer:
         self.student.train(was)
         self.objectives.to(self.device)
 
-    def loss_terms(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    def loss_terms(self, batch: Batch) -> dict[str, Tensor]:
         s_out = self.student(batch)
         terms: dict[str, Tensor] = {}
         for spec, mod in zip(self.stage.task_losses, self.task):
@@ -307,7 +308,7 @@ class Trainer:
             if self.on_step:
                 self.on_step(step, self.total_steps, values)
             if step % self.eval_every == 0 or step == self.total_steps:
-                last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device)
+                last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device, self.collate)
                 self._log({"step": step, "eval": last_scores})
                 score = last_scores[spec.metric]
                 if score > best["score"]:
@@ -319,21 +320,21 @@ class Trainer:
             if self.stop_after is not None and step >= self.stop_after:
                 break
         if last_scores is None:  # resumed at the very end
-            last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device)
+            last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device, self.collate)
         seconds = time.perf_counter() - t0
         return TrainResult(best=best, last=last_scores, steps=step, seconds=seconds)
 
     def evaluate_checkpoints(self, dataset: Any) -> dict[str, Any]:
         """Scores on ``dataset`` (the test split) of the best-validation checkpoint and of the last one."""
         bs = self.stage.spec.train.batch_size
-        out: dict[str, Any] = {"last": evaluate(self.student, dataset, bs, self.device),
+        out: dict[str, Any] = {"last": evaluate(self.student, dataset, bs, self.device, self.collate),
                                "last_step": self.total_steps}
         best_path = self.ckpt_dir / "best.pt"
         if best_path.is_file():
             ckpt = load_checkpoint(best_path)
             model = build_model(self.stage.student, self.info).to(self.device)
             model.load_state_dict(ckpt["student"])
-            out["best"], out["best_step"] = evaluate(model, dataset, bs, self.device), int(ckpt["step"])
+            out["best"], out["best_step"] = evaluate(model, dataset, bs, self.device, self.collate), int(ckpt["step"])
         else:
             out["best"], out["best_step"] = out["last"], self.total_steps
         return out

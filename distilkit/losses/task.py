@@ -9,6 +9,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 
+from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
 from distilkit.registry import TASK_LOSSES
@@ -33,7 +34,7 @@ class TaskLoss(nn.Module, ABC):
         """Statistics of the training split the term needs (e.g. class weights); default: none."""
 
     @abstractmethod
-    def forward(self, outputs: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, outputs: dict[str, Any], batch: Batch) -> Tensor:
         """The scalar loss of the model's ``outputs`` on ``batch``."""
 
 
@@ -47,8 +48,8 @@ class VoxelCE(TaskLoss):
 
     Params = _CEParams
 
-    def forward(self, outputs: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
-        return cross_entropy(outputs[self.taps["student"]], batch["voxel_target"], self.params.ignore_index)
+    def forward(self, outputs: dict[str, Any], batch: Batch) -> Tensor:
+        return cross_entropy(outputs[self.taps["student"]], batch.targets["voxel_target"], self.params.ignore_index)
 
 
 class _LovaszParams(BaseModel):
@@ -62,8 +63,8 @@ class VoxelLovasz(TaskLoss):
 
     Params = _LovaszParams
 
-    def forward(self, outputs: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
-        return lovasz_softmax(outputs[self.taps["student"]], batch["voxel_target"], self.params.ignore_index,
+    def forward(self, outputs: dict[str, Any], batch: Batch) -> Tensor:
+        return lovasz_softmax(outputs[self.taps["student"]], batch.targets["voxel_target"], self.params.ignore_index,
                               self.params.classes)
 
 
@@ -117,12 +118,12 @@ class UncertaintyMultiTask(TaskLoss):
         seg = frequency_weights(point[1:])  # point class 0 = unlabelled (ignored)
         self.seg_weight.copy_(torch.cat([seg.new_zeros(1), seg]))
 
-    def forward(self, outputs: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, outputs: dict[str, Any], batch: Batch) -> Tensor:
         # adapters whose point logits cover a subset of the batch's points return their targets
-        labels = outputs.get("point_target", batch["point_label"])
+        labels = outputs.get("point_target", batch.targets["point_label"])
         seg_target = labels.masked_fill(labels == 0, IGNORE_INDEX)
         l_seg = cross_entropy(outputs[self.taps["points"]], seg_target, weight=self.seg_weight)
-        l_comp = cross_entropy(outputs[self.taps["student"]], batch["voxel_target"], weight=self.comp_weight)
+        l_comp = cross_entropy(outputs[self.taps["student"]], batch.targets["voxel_target"], weight=self.comp_weight)
         s = self.log_var
         return 0.5 * torch.exp(-s[0]) * l_seg + 0.5 * s[0] + 0.5 * torch.exp(-s[1]) * l_comp + 0.5 * s[1]
 

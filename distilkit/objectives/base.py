@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 
 from pydantic import BaseModel
 from torch import Tensor, nn
+from distilkit.data.batch import Batch
 
 
 class Objective(nn.Module, ABC):
@@ -30,15 +31,15 @@ class Objective(nn.Module, ABC):
         super().__init__()
         self.params = params
 
-    def setup(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> None:
+    def setup(self, taps: dict[str, Any], batch: Batch) -> None:
         """Build shape-dependent layers from one batch's taps (default: nothing to build)."""
 
-    def compute(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         """The loss from the taps of every role (default: ``forward(student, teacher, batch)``)."""
         return self(taps["student"], taps["teacher"], batch)
 
     @abstractmethod
-    def forward(self, student: Any, teacher: Any, batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, student: Any, teacher: Any, batch: Batch) -> Tensor:
         """The scalar distillation loss between the student's and the teacher's taps."""
 
     def update(self, step: int) -> dict[str, float]:
@@ -51,10 +52,10 @@ class MultiTapObjective(Objective):
     calling it with two taps is the same as ``compute({"student": ..., "teacher": ...})``."""
 
     @abstractmethod
-    def compute(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         """The loss from the taps of every role."""
 
-    def forward(self, student: Any, teacher: Any, batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, student: Any, teacher: Any, batch: Batch) -> Tensor:
         return self.compute({"student": student, "teacher": teacher}, batch)
 
 

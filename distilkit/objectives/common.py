@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX
 from distilkit.geometry.voxel import align_across_grids
 from distilkit.taps import SparseVoxels
@@ -15,11 +16,11 @@ from distilkit.taps import SparseVoxels
 MaskName = Literal["all", "valid", "occupied"]
 
 
-def voxel_mask(batch: dict[str, Tensor], which: str) -> Tensor | None:
+def voxel_mask(batch: Batch, which: str) -> Tensor | None:
     """(B, X, Y, Z) bool: ``all`` -> None, ``valid`` = observed and labelled, ``occupied`` = ground truth non-empty."""
     if which == "all":
         return None
-    target = batch["voxel_target"]
+    target = batch.targets["voxel_target"]
     if which == "valid":
         return target != IGNORE_INDEX
     if which == "occupied":

@@ -6,6 +6,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
+from distilkit.data.batch import Batch
 from distilkit.objectives.common import aligned_pairs
 from distilkit.losses.dskd import dskd
 from distilkit.objectives.base import Objective, register_objective
@@ -33,7 +34,7 @@ class DSKD(Objective):
     CONSUMES = {"student": "sparse_features", "teacher": "sparse_features"}
     DEFAULT_WEIGHT = 3000.0
 
-    def forward(self, student: SparseVoxels, teacher: SparseVoxels, batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, student: SparseVoxels, teacher: SparseVoxels, batch: Batch) -> Tensor:
         s_feats, t_feats, _ = aligned_pairs(student, teacher)
         if not self.params.per_sample:
             return dskd(s_feats, t_feats)

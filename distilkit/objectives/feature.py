@@ -8,6 +8,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 
+from distilkit.data.batch import Batch
 from distilkit.losses.feature import fitnet, nst
 from distilkit.objectives.base import Objective, register_objective
 from distilkit.objectives.common import conv1x1, match_spatial
@@ -26,11 +27,11 @@ class FitNets(Objective):
     CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
     DEFAULT_WEIGHT = 1.0
 
-    def setup(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> None:
+    def setup(self, taps: dict[str, Any], batch: Batch) -> None:
         s, t = taps["student"], taps["teacher"]
         self.regressor = conv1x1(s.shape[1], t.shape[1], s.dim() - 2)
 
-    def forward(self, student: Tensor, teacher: Tensor, batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, student: Tensor, teacher: Tensor, batch: Batch) -> Tensor:
         return fitnet(match_spatial(self.regressor(student), tuple(teacher.shape[2:])), teacher)
 
 
@@ -41,7 +42,7 @@ class NST(Objective):
     CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
     DEFAULT_WEIGHT = 50.0
 
-    def forward(self, student: Tensor, teacher: Tensor, batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, student: Tensor, teacher: Tensor, batch: Batch) -> Tensor:
         shape = tuple(min(a, b) for a, b in zip(student.shape[2:], teacher.shape[2:]))
         return nst(match_spatial(student, shape), match_spatial(teacher, shape))
 
@@ -59,14 +60,14 @@ class MGD(Objective):
     CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
     DEFAULT_WEIGHT = 1.0
 
-    def setup(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> None:
+    def setup(self, taps: dict[str, Any], batch: Batch) -> None:
         s, t = taps["student"], taps["teacher"]
         dims, c = s.dim() - 2, t.shape[1]
         conv = nn.Conv3d if dims == 3 else nn.Conv2d
         self.align = conv1x1(s.shape[1], c, dims) if s.shape[1] != c else nn.Identity()
         self.generator = nn.Sequential(conv(c, c, 3, padding=1), nn.ReLU(inplace=True), conv(c, c, 3, padding=1))
 
-    def forward(self, student: Tensor, teacher: Tensor, batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, student: Tensor, teacher: Tensor, batch: Batch) -> Tensor:
         x = match_spatial(self.align(student), tuple(teacher.shape[2:]))
         keep = (torch.rand((x.shape[0], 1, *x.shape[2:]), device=x.device) >= self.params.mask_ratio).to(x.dtype)
         return fitnet(self.generator(x * keep), teacher)

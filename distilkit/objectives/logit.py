@@ -5,6 +5,7 @@ from __future__ import annotations
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
+from distilkit.data.batch import Batch
 from distilkit.losses.logit import dist, kd
 from distilkit.objectives.base import Objective, register_objective
 from distilkit.objectives.common import MaskName, voxel_mask
@@ -26,7 +27,7 @@ class KD(Objective):
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     DEFAULT_WEIGHT = 1.0
 
-    def forward(self, student: Tensor, teacher: Tensor, batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, student: Tensor, teacher: Tensor, batch: Batch) -> Tensor:
         return kd(student, teacher, self.params.temperature, voxel_mask(batch, self.params.voxels))
 
 
@@ -45,7 +46,7 @@ class DIST(Objective):
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     DEFAULT_WEIGHT = 1.0
 
-    def forward(self, student: Tensor, teacher: Tensor, batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, student: Tensor, teacher: Tensor, batch: Batch) -> Tensor:
         k = student.shape[1]
         rows_s = student.movedim(1, -1).reshape(-1, k)
         rows_t = teacher.movedim(1, -1).reshape(-1, k)

@@ -9,6 +9,7 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
+from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX
 from distilkit.losses.feature import fitnet
 from distilkit.losses.rgo2d import _gsl, centre_affinity, rgo2d
@@ -22,12 +23,12 @@ LOGITS_AND_OPTIONAL_FEATURES = {"student": "voxel_logits", "teacher": "voxel_log
 FEATURE_ROLES = frozenset({"student_features", "teacher_features"})
 
 
-def labels_and_geometry(batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+def labels_and_geometry(batch: Batch) -> tuple[Tensor, Tensor]:
     """Scribble labels (``scribble`` if the data has them, else the dense target) and the dense-geometry
     occupancy mask (target neither empty nor ignored), as in the authors' code."""
     occupied = voxel_mask(batch, "occupied")
     assert occupied is not None
-    return batch.get("scribble", batch["voxel_target"]), occupied
+    return batch.targets.get("scribble", batch.targets["voxel_target"]), occupied
 
 
 def _feature_term(taps: dict[str, Any]) -> Tensor | None:
@@ -56,7 +57,7 @@ class RGO2D(MultiTapObjective):
     OPTIONAL = FEATURE_ROLES
     DEFAULT_WEIGHT = 1.0
 
-    def compute(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         p = self.params
         labels, geometry = labels_and_geometry(batch)
         loss = rgo2d(taps["student"], taps["teacher"], labels, geometry, p.regions, p.region_weights, p.inter, p.intra)
@@ -83,10 +84,10 @@ class CleanerS(MultiTapObjective):
     OPTIONAL = FEATURE_ROLES
     DEFAULT_WEIGHT = 0.25
 
-    def compute(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         p = self.params
         s_logits, t_logits = taps["student"], taps["teacher"]
-        labels = batch["voxel_target"]
+        labels = batch.targets["voxel_target"]
         zero = s_logits.sum() * 0.0
         sc, sa, n = zero, zero, 0
         for i in range(s_logits.shape[0]):

@@ -9,6 +9,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
+from distilkit.data.batch import Batch
 from distilkit.losses.dskd import dskd
 from distilkit.losses.feature import pkt
 from distilkit.losses.logit import kd
@@ -38,7 +39,7 @@ class PKT(Objective):
     CONSUMES = {"student": "sparse_features", "teacher": "sparse_features"}
     DEFAULT_WEIGHT = 500.0
 
-    def forward(self, student: SparseVoxels, teacher: SparseVoxels, batch: dict[str, Tensor]) -> Tensor:
+    def forward(self, student: SparseVoxels, teacher: SparseVoxels, batch: Batch) -> Tensor:
         fs, ft, found = aligned_pairs(student, teacher)
         b = student.coords[:, 0]
         losses = []
@@ -95,7 +96,7 @@ class PVKD(MultiTapObjective):
         n_cells = p.radial_bins * p.angular_bins * p.height_bins
         return coords[:, 0] * n_cells + cell, r_bin
 
-    def compute(self, taps: dict[str, Any], batch: dict[str, Tensor]) -> Tensor:
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         p = self.params
         out = kd(taps["student_logits"], taps["teacher_logits"], p.temperature, voxel_mask(batch, p.voxels))
         student: SparseVoxels = taps["student"]

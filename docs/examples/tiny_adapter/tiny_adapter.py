@@ -12,10 +12,12 @@ from typing import Any
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
-from torch import Tensor, nn
+from torch import nn
 
-from distilkit.adapter import Adapter, select_frames
-from distilkit.data.datasets import DataInfo
+from distilkit.adapter import Adapter
+from distilkit.data.batch import Batch
+from distilkit.data.info import DataInfo
+from distilkit.data.lidar import LIDAR_INPUTS, frames_problems, select_frames
 from distilkit.geometry.voxel import dense_to_sparse
 from distilkit.registry import ADAPTERS
 
@@ -30,6 +32,7 @@ class TinySSC(Adapter):
     """Voxel max-pooling, three bias-free 3x3x3 convolutions, a 1x1x1 classifier."""
 
     Params = TinyParams
+    INPUTS = LIDAR_INPUTS  # points, point_batch, point_frame
     TAPS = {"features": "sparse_features", "logits": "voxel_logits"}
     LOGITS_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "ce", "weight": 1.0}]
@@ -41,14 +44,18 @@ class TinySSC(Adapter):
         self.body = nn.Sequential(*[m for _ in range(3) for m in (nn.Conv3d(c, c, 3, padding=1, bias=False), nn.ReLU())])
         self.head = nn.Conv3d(c, info.num_classes, 1)
 
-    def forward(self, batch: dict[str, Tensor]) -> dict[str, Any]:
-        b = select_frames(batch, self.params.frames)
+    @classmethod
+    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
+        return frames_problems(params, info)  # `validate` rejects more frames than the data has
+
+    def forward(self, batch: Batch) -> dict[str, Any]:
+        inputs = select_frames(batch, self.params.frames).inputs
         grid = self.info.grid
-        idx, inside = grid.index(b["points"][:, :3])
+        idx, inside = grid.index(inputs["points"][:, :3])
         x, y, z = grid.shape
-        n = int(batch["voxel_label"].shape[0])
-        flat = ((b["point_batch"] * x + idx[:, 0]) * y + idx[:, 1]) * z + idx[:, 2]
-        feats = torch.relu(self.embed(b["points"][inside]))
+        n = batch.size
+        flat = ((inputs["point_batch"] * x + idx[:, 0]) * y + idx[:, 1]) * z + idx[:, 2]
+        feats = torch.relu(self.embed(inputs["points"][inside]))
         vol = feats.new_zeros(n * x * y * z, feats.shape[1])
         vol = vol.scatter_reduce(0, flat[inside, None].expand_as(feats), feats, "amax", include_self=False)
         dense = vol.view(n, x, y, z, -1).permute(0, 4, 1, 2, 3)
