@@ -3,9 +3,29 @@
 from __future__ import annotations
 
 import torch
+from pydantic import BaseModel
 from torch import Tensor, nn
 
+from distilkit.adapter import Adapter
+from distilkit.data.info import DataInfo
+from distilkit.data.lidar import LIDAR_INPUTS, frames_problems
 from distilkit.geometry.voxel import VoxelGrid
+
+
+class MultiFrameLidarAdapter(Adapter):
+    """An adapter on LiDAR points with a ``frames`` parameter (scans fused): declares the LiDAR inputs,
+    rejects more frames than the data has, and shows "N frames" in the results table."""
+
+    INPUTS = LIDAR_INPUTS
+
+    @classmethod
+    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
+        return frames_problems(params, info)
+
+    @classmethod
+    def describe(cls, params: BaseModel) -> str:
+        frames = int(getattr(params, "frames"))
+        return f"{frames} frame{'s' if frames > 1 else ''}"
 
 
 def channels_last(module: nn.Module) -> nn.Module:

@@ -6,13 +6,12 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
-from distilkit.data.lidar import LIDAR_INPUTS, frames_problems, select_frames
+from distilkit.data.lidar import select_frames
 from distilkit.registry import ADAPTERS
 from distilkit.taps import SparseVoxels
-from distilkit_adapters._blocks import channels_last
+from distilkit_adapters._blocks import MultiFrameLidarAdapter, channels_last
 from distilkit_adapters.js3cnet.model import JS3CNet
 
 
@@ -26,11 +25,10 @@ class JS3CNetParams(BaseModel):
     knn: int = Field(8, ge=1, description="neighbours per query in the PVI (paper code: 8)")
 
 
-class JS3CNetAdapter(Adapter):
+class JS3CNetAdapter(MultiFrameLidarAdapter):
     """JS3C-Net with the uncertainty-weighted multi-task loss (eq. 2) as its task loss."""
 
     Params = JS3CNetParams
-    INPUTS = LIDAR_INPUTS
     TAPS = {"completion": "sparse_features", "ssc_dense": "feature_map", "logits": "voxel_logits",
             "point_logits": "point_logits"}
     LOGITS_TAP = "logits"
@@ -48,14 +46,6 @@ class JS3CNetAdapter(Adapter):
         if tap == "completion":  # the SSC decoder works at half resolution
             return tuple(s // 2 for s in info.grid.shape)
         return super().tap_grid(tap, params, info)
-
-    @classmethod
-    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
-        return frames_problems(params, info)
-
-    @classmethod
-    def describe(cls, params: BaseModel) -> str:
-        return f"{params.frames} frame{'s' if params.frames > 1 else ''}"  # type: ignore[attr-defined]
 
     def forward(self, batch: Batch) -> dict[str, Any]:
         b = select_frames(batch, self.params.frames)

@@ -7,13 +7,12 @@ from typing import Any
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
-from distilkit.data.lidar import LIDAR_INPUTS, frames_problems, select_frames
+from distilkit.data.lidar import select_frames
 from distilkit.geometry.voxel import dense_to_sparse
 from distilkit.registry import ADAPTERS
-from distilkit_adapters._blocks import channels_last
+from distilkit_adapters._blocks import MultiFrameLidarAdapter, channels_last
 from distilkit_adapters.scpnet.model import SCPNet, kernels_for_voxel, mask_inactive
 
 
@@ -29,11 +28,10 @@ class SCPNetParams(BaseModel):
                                                             "default: scaled to the grid)")
 
 
-class SCPNetAdapter(Adapter):
+class SCPNetAdapter(MultiFrameLidarAdapter):
     """SCPNet: MPB completion sub-network then segmentation; CE + Lovász task loss (eq. 4, alpha = 1)."""
 
     Params = SCPNetParams
-    INPUTS = LIDAR_INPUTS
     TAPS = {"completion": "sparse_features", "completion_dense": "feature_map", "logits": "voxel_logits"}
     LOGITS_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "ce", "weight": 1.0}, {"name": "lovasz", "weight": 1.0}]
@@ -46,14 +44,6 @@ class SCPNetAdapter(Adapter):
         self.net = SCPNet(params.channels, params.point_mlp, params.seg_channels, info.num_classes,
                           tuple(params.kernels or kernels), params.conv_kernel or conv)
         channels_last(self)
-
-    @classmethod
-    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
-        return frames_problems(params, info)
-
-    @classmethod
-    def describe(cls, params: BaseModel) -> str:
-        return f"{params.frames} frame{'s' if params.frames > 1 else ''}"  # type: ignore[attr-defined]
 
     def forward(self, batch: Batch) -> dict[str, Any]:
         b = select_frames(batch, self.params.frames)
