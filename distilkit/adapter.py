@@ -5,7 +5,7 @@ An adapter is an ``nn.Module`` registered in :data:`distilkit.registry.ADAPTERS`
 * ``Params``: a pydantic model of its constructor parameters (validated when a recipe loads);
 * ``INPUTS``: the batch inputs ``forward`` reads (checked against the dataset's fields by ``validate``);
 * ``TAPS``: tap name -> tap kind (see :mod:`distilkit.taps`) that ``forward`` returns;
-* ``LOGITS_TAP``: the ``voxel_logits`` tap that predictions and evaluation use;
+* ``PREDICTION_TAP``: the tap (of any kind) that evaluation scores, with the metrics registered for its kind;
 * ``DEFAULT_TASK_LOSSES``: task losses used when a recipe stage names none;
 * ``VERSION``: bump it when the model's behaviour changes, so that stages using it retrain.
 
@@ -20,9 +20,8 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
-import torch
 from pydantic import BaseModel, ConfigDict
-from torch import Tensor, nn
+from torch import nn
 
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
@@ -36,7 +35,7 @@ class Adapter(nn.Module, ABC):
     Params: ClassVar[type[BaseModel]] = NoParams
     INPUTS: ClassVar[frozenset[str]] = frozenset()
     TAPS: ClassVar[dict[str, str]] = {}
-    LOGITS_TAP: ClassVar[str] = "logits"
+    PREDICTION_TAP: ClassVar[str] = "logits"
     DEFAULT_TASK_LOSSES: ClassVar[list[dict[str, Any]]] = [{"name": "ce", "weight": 1.0}]
     VERSION: ClassVar[int] = 1
 
@@ -48,11 +47,6 @@ class Adapter(nn.Module, ABC):
     @abstractmethod
     def forward(self, batch: Batch) -> dict[str, Any]:
         """Run the model on a collated batch; return every declared tap."""
-
-    @torch.no_grad()
-    def predict(self, outputs: dict[str, Any]) -> Tensor:
-        """(B, X, Y, Z) class ids from the logits tap."""
-        return outputs[self.LOGITS_TAP].argmax(dim=1)
 
     @classmethod
     def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> tuple[int, ...] | None:

@@ -85,7 +85,9 @@ class TrainSpec(_Strict):
     log_every: int = Field(10, ge=1)
     checkpoint_every: int = Field(20, ge=1, description="write last.pt every N steps (and at each evaluation)")
     device: str = Field("auto", description="'auto' (cuda if available), 'cpu' or 'cuda'")
-    metric: str = Field("miou", description="validation score that selects best.pt (miou or iou)")
+    metric: str = Field("miou", description="validation score that selects best.pt: a score of the metric for the "
+                                            "adapter's prediction kind ('miou', 'iou', ...), or 'METRIC.SCORE' "
+                                            "('ssc.miou'); see `distilkit list metrics`")
 
     @model_validator(mode="after")
     def _length(self) -> "TrainSpec":
@@ -93,8 +95,6 @@ class TrainSpec(_Strict):
             self.epochs = 1
         if self.epochs is not None and self.steps is not None:
             raise ValueError("give either `epochs` or `steps`, not both")
-        if self.metric not in ("miou", "iou"):
-            raise ValueError("metric must be 'miou' or 'iou'")
         return self
 
 

@@ -1,23 +1,27 @@
-"""Tap kinds: the named outputs an adapter's forward returns and objectives consume.
+"""Tap kinds: the named outputs an adapter's forward returns and objectives, task losses and metrics consume.
 
-| kind              | value                                                          |
-| ----------------- | -------------------------------------------------------------- |
-| sparse_features   | :class:`SparseVoxels`: coords (N,4) int64 = batch,x,y,z; feats (N,C) |
-| voxel_logits      | (B, K, X, Y, Z) class scores on the SSC grid                    |
-| feature_map       | (B, C, H, W) or (B, C, X, Y, Z) dense features                  |
-| point_logits      | (M, K) per-point class scores (points of the batch, concatenated) |
-| points            | (B, M, 3) points plus a (B, M) bool mask                        |
-| scalar            | a 0-d tensor                                                    |
+Each kind is registered with a check of its value (:data:`TAP_KINDS`); the trainer checks every declared
+tap of the student and the teacher on the first batch, so a wrong shape is one clear error up front.
+
+| kind              | value                                                                     |
+| ----------------- | ------------------------------------------------------------------------- |
+| sparse_features   | :class:`SparseVoxels`: coords (N,4) int64 = batch,x,y,z; feats (N,C); grid shape |
+| voxel_logits      | (B, K, X, Y, Z) class scores on a voxel grid                              |
+| feature_map       | (B, C, H, W) image or (B, C, X, Y, Z) volume features                     |
+| point_logits      | (M, K) per-point class scores (points of the batch, concatenated)         |
+| points            | :class:`PointCloud`: (B, M, D) padded points and (B,) lengths (PyTorch3D's convention) |
+| scalar            | a 0-d tensor                                                              |
+
+A plugin adds a kind with :func:`register_tap_kind`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
+import torch
 from torch import Tensor
-
-TAP_KINDS = ("sparse_features", "voxel_logits", "feature_map", "point_logits", "points", "scalar")
 
 
 @dataclass
@@ -47,21 +51,97 @@ class SparseVoxels:
         return SparseVoxels(self.coords, self.feats.detach(), self.spatial_shape)
 
 
+@dataclass
+class PointCloud:
+    """A batch of point clouds of different sizes: ``points`` (B, M, D) padded, ``lengths`` (B,) int64
+    (cloud b is ``points[b, :lengths[b]]``; D = 3 for xyz, more for features)."""
+
+    points: Tensor
+    lengths: Tensor
+
+    def __post_init__(self) -> None:
+        if self.points.dim() != 3:
+            raise ValueError(f"PointCloud.points must be (B, M, D), got {tuple(self.points.shape)}")
+        if self.lengths.shape != self.points.shape[:1] or self.lengths.dtype != torch.int64:
+            raise ValueError(f"PointCloud.lengths must be ({self.points.shape[0]},) int64, got "
+                             f"{tuple(self.lengths.shape)} {self.lengths.dtype}")
+        if len(self.lengths) and (int(self.lengths.min()) < 0 or int(self.lengths.max()) > self.points.shape[1]):
+            raise ValueError(f"PointCloud.lengths must lie in 0..{self.points.shape[1]}, got {self.lengths.tolist()}")
+
+    def cloud(self, b: int) -> Tensor:
+        """(lengths[b], D) points of cloud ``b``."""
+        return self.points[b, : int(self.lengths[b])]
+
+    @classmethod
+    def from_list(cls, clouds: list[Tensor]) -> "PointCloud":
+        """Pad a list of (M_b, D) clouds."""
+        m = max((len(c) for c in clouds), default=0)
+        d = clouds[0].shape[1] if clouds else 3
+        points = clouds[0].new_zeros((len(clouds), m, d)) if clouds else torch.zeros(0, 0, 3)
+        for b, c in enumerate(clouds):
+            points[b, : len(c)] = c
+        return cls(points, torch.tensor([len(c) for c in clouds], dtype=torch.int64, device=points.device))
+
+    def detach(self) -> "PointCloud":
+        return PointCloud(self.points.detach(), self.lengths)
+
+
+@dataclass(frozen=True)
+class TapKind:
+    """A registered kind: ``check(value)`` returns None when the value fits, else what is wrong."""
+
+    name: str
+    check: Callable[[Any], str | None]
+    description: str
+
+
+def _shape(value: Any) -> str:
+    return str(tuple(value.shape)) if isinstance(value, Tensor) else type(value).__name__
+
+
+def _tensor(dims: tuple[int, ...], what: str) -> Callable[[Any], str | None]:
+    def check(value: Any) -> str | None:
+        if isinstance(value, Tensor) and value.dim() in dims:
+            return None
+        return f"expected {what}, got {_shape(value)}"
+    return check
+
+
+def _instance(cls: type, what: str) -> Callable[[Any], str | None]:
+    def check(value: Any) -> str | None:
+        return None if isinstance(value, cls) else f"expected {what}, got {_shape(value)}"
+    return check
+
+
+TAP_KINDS: dict[str, TapKind] = {}
+
+
+def register_tap_kind(name: str, check: Callable[[Any], str | None], description: str) -> TapKind:
+    if name in TAP_KINDS:
+        raise ValueError(f"tap kind {name!r} is already registered")
+    TAP_KINDS[name] = kind = TapKind(name, check, description)
+    return kind
+
+
+register_tap_kind("sparse_features", _instance(SparseVoxels, "SparseVoxels(coords, feats, spatial_shape)"),
+                  "sparse voxel features on a grid")
+register_tap_kind("voxel_logits", _tensor((5,), "(B, K, X, Y, Z) class scores"), "class scores per voxel")
+register_tap_kind("feature_map", _tensor((4, 5), "(B, C, H, W) or (B, C, X, Y, Z) features"), "dense features")
+register_tap_kind("point_logits", _tensor((2,), "(M, K) per-point class scores"), "class scores per point")
+register_tap_kind("points", _instance(PointCloud, "PointCloud(points (B, M, D), lengths (B,))"),
+                  "padded point clouds with lengths")
+register_tap_kind("scalar", _tensor((0,), "a 0-d tensor"), "one number")
+
+
 def check_tap(value: Any, kind: str, where: str) -> None:
     """Raise a clear error when a tap's value does not have the declared kind."""
     from distilkit.errors import TapError
 
-    ok = {
-        "sparse_features": lambda v: isinstance(v, SparseVoxels),
-        "voxel_logits": lambda v: isinstance(v, Tensor) and v.dim() == 5,
-        "feature_map": lambda v: isinstance(v, Tensor) and v.dim() in (4, 5),
-        "point_logits": lambda v: isinstance(v, Tensor) and v.dim() == 2,
-        "points": lambda v: isinstance(v, Tensor) and v.dim() == 3,
-        "scalar": lambda v: isinstance(v, Tensor) and v.dim() == 0,
-    }[kind](value)
-    if not ok:
-        shape = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
-        raise TapError(f"{where}: expected a {kind} tap, got {shape}")
+    if kind not in TAP_KINDS:
+        raise TapError(f"{where}: unknown tap kind {kind!r} (registered: {', '.join(TAP_KINDS)})")
+    problem = TAP_KINDS[kind].check(value)
+    if problem is not None:
+        raise TapError(f"{where}: {problem} for a {kind} tap")
 
 
-__all__ = ["SparseVoxels", "TAP_KINDS", "check_tap"]
+__all__ = ["PointCloud", "SparseVoxels", "TAP_KINDS", "TapKind", "check_tap", "register_tap_kind"]

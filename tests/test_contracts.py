@@ -7,6 +7,7 @@ rejected by `validate`, naming the missing inputs.
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import numpy as np
@@ -14,7 +15,7 @@ import pytest
 import torch
 import yaml
 from pydantic import BaseModel, ConfigDict
-from torch import nn
+from torch import Tensor, nn
 
 from distilkit.adapter import Adapter
 from distilkit.cli import main
@@ -22,9 +23,13 @@ from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX
 from distilkit.data.info import Camera, ClassTable, DataInfo
 from distilkit.engine.pipeline import Pipeline
+from distilkit.errors import TapError
 from distilkit.geometry.voxel import VoxelGrid
+from distilkit.losses.task import TaskLoss
+from distilkit.metrics.base import Metric
 from distilkit.recipe import recipe_from_dict
-from distilkit.registry import ADAPTERS, DATASETS
+from distilkit.registry import ADAPTERS, DATASETS, METRICS, TASK_LOSSES
+from distilkit.taps import PointCloud, check_tap
 
 GRID = VoxelGrid((0.0, -3.2, -2.0), (8, 8, 2), 0.8)
 CLASSES = ClassTable(("empty", "car", "road"), ((0, 0, 0), (100, 150, 245), (255, 0, 255)))
@@ -70,7 +75,7 @@ class TinyCamera(Adapter):
     Params = TinyCameraParams
     INPUTS = frozenset({"image"})
     TAPS = {"image_features": "feature_map", "logits": "voxel_logits"}
-    LOGITS_TAP = "logits"
+    PREDICTION_TAP = "logits"
 
     def __init__(self, params: TinyCameraParams, info: DataInfo) -> None:
         super().__init__(params, info)
@@ -96,6 +101,15 @@ def camera_components() -> None:
                      consumes=tuple(TinyCamera.TAPS.values()))
 
 
+def validate_fails(recipe: dict[str, Any], tmp_path, capsys) -> str:
+    """`distilkit validate` on ``recipe``: exit status 2; returns what it printed."""
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    assert main(["validate", str(path)]) == 2
+    captured = capsys.readouterr()
+    return captured.out + captured.err
+
+
 def camera_recipe(adapter: str = "tiny-camera") -> dict[str, Any]:
     train = {"steps": 3, "batch_size": 2, "eval_every": 3}
     return {"schema_version": 1, "name": "camera", "seed": 0, "data": {"dataset": "tiny-camera-data", "params": {}},
@@ -115,11 +129,7 @@ def test_camera_style_adapter_trains_distils_and_is_scored(tmp_path) -> None:
 
 
 def test_lidar_adapter_on_camera_data_is_rejected_naming_the_inputs(tmp_path, capsys) -> None:
-    path = tmp_path / "r.yaml"
-    path.write_text(yaml.safe_dump(camera_recipe(adapter="scpnet")))
-    assert main(["validate", str(path)]) == 2
-    captured = capsys.readouterr()
-    out = captured.out + captured.err
+    out = validate_fails(camera_recipe(adapter="scpnet"), tmp_path, capsys)
     assert "stages.teacher.model.adapter" in out and "point_batch, point_frame, points" in out and "image" in out
 
 
@@ -131,3 +141,137 @@ def test_batch_field_lookup_names_what_exists() -> None:
         batch.field("scribble")
     moved = batch.to(torch.device("cpu"))
     assert torch.equal(moved.inputs["image"], batch.inputs["image"]) and moved.meta["cameras"] == [CAMERA]
+
+
+# -- a point-cloud completion model, its task loss and metric: all defined here -----------------------
+
+
+class PointDataParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    num_train: int = 4
+    num_val: int = 2
+    num_test: int = 2
+
+
+def point_sample(i: int) -> dict[str, np.ndarray]:
+    """A complete cloud symmetric in x and its visible half (x > 0): completion mirrors the partial scan."""
+    rng = np.random.default_rng(100 + i)
+    half = rng.uniform(0.1, 1.0, size=(int(rng.integers(8, 14)), 3)).astype(np.float32)
+    return {"partial": half, "complete": np.concatenate([half, half * np.array([-1, 1, 1], np.float32)])}
+
+
+def collate_points(samples: list[dict[str, np.ndarray]]) -> Batch:
+    partial = PointCloud.from_list([torch.from_numpy(s["partial"]) for s in samples])
+    complete = PointCloud.from_list([torch.from_numpy(s["complete"]) for s in samples])
+    return Batch({"partial": partial.points, "partial_lengths": partial.lengths},
+                 {"complete": complete.points, "complete_lengths": complete.lengths}, {"size": len(samples)})
+
+
+def chamfer(pred: PointCloud, target: PointCloud) -> Tensor:
+    """Mean over samples of the symmetric mean nearest-neighbour distance (a naive reference)."""
+    per = []
+    for b in range(len(pred.lengths)):
+        d = torch.cdist(pred.cloud(b), target.cloud(b))
+        per.append(d.min(1).values.mean() + d.min(0).values.mean())
+    return torch.stack(per).mean()
+
+
+class TinyPointCompletion(Adapter):
+    """Keeps the partial points and adds a learnt linear image of them (ideally the mirror)."""
+
+    Params = TinyCameraParams  # unused width; any params model works
+    INPUTS = frozenset({"partial", "partial_lengths"})
+    TAPS = {"completion": "points"}
+    PREDICTION_TAP = "completion"
+    DEFAULT_TASK_LOSSES = [{"name": "test-chamfer"}]
+
+    def __init__(self, params: TinyCameraParams, info: DataInfo) -> None:
+        super().__init__(params, info)
+        self.mirror = nn.Linear(3, 3)
+
+    def forward(self, batch: Batch) -> dict[str, Any]:
+        partial = PointCloud(batch.inputs["partial"], batch.inputs["partial_lengths"])
+        clouds = [torch.cat([partial.cloud(b), self.mirror(partial.cloud(b))]) for b in range(batch.size)]
+        return {"completion": PointCloud.from_list(clouds)}
+
+
+class _NoParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ChamferLoss(TaskLoss):
+    Params = _NoParams
+    CONSUMES = {"student": "points"}
+
+    def forward(self, outputs: dict[str, Any], batch: Batch) -> Tensor:
+        return chamfer(outputs[self.taps["student"]],
+                       PointCloud(batch.targets["complete"], batch.targets["complete_lengths"]))
+
+
+class ChamferScore(Metric):
+    SCORES = "points"
+    TARGETS = frozenset({"complete", "complete_lengths"})
+    KEYS = ("chamfer",)
+    LOWER_IS_BETTER = frozenset({"chamfer"})
+
+    def __init__(self, info: DataInfo) -> None:
+        super().__init__(info)
+        self.total, self.count = 0.0, 0
+
+    def update(self, prediction: PointCloud, batch: Batch) -> None:
+        self.total += float(chamfer(prediction, PointCloud(batch.targets["complete"],
+                                                            batch.targets["complete_lengths"]))) * batch.size
+        self.count += batch.size
+
+    def compute(self) -> dict[str, Any]:
+        return {"chamfer": self.total / max(self.count, 1)}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def point_components() -> None:
+    if "tiny-points-data" not in DATASETS:
+        DATASETS.add("tiny-points-data", lambda p, split, progress=None: [point_sample(i + 10 * ("train", "val", "test")
+                                                                                         .index(split))
+                                                                           for i in range(getattr(p, f"num_{split}"))],
+                     description="test: partial and complete point clouds", paper="tests", params=PointDataParams,
+                     info=lambda p: DataInfo(None, ClassTable(("point",), ((0, 0, 0),)),
+                                             frozenset({"partial", "partial_lengths", "complete", "complete_lengths"})),
+                     collate=collate_points, version=1, has_split=lambda p, s: True)
+    if "tiny-points" not in ADAPTERS:
+        ADAPTERS.add("tiny-points", TinyPointCompletion, description="test: point completion", paper="tests",
+                     consumes=("points",))
+        TASK_LOSSES.add("test-chamfer", ChamferLoss, description="test: Chamfer distance", paper="tests",
+                        consumes=("points",))
+        METRICS.add("test-chamfer", ChamferScore, description="test: Chamfer distance", paper="tests",
+                    consumes=("points",))
+
+
+def point_recipe(metric: str = "chamfer") -> dict[str, Any]:
+    return {"schema_version": 1, "name": "points", "seed": 0, "data": {"dataset": "tiny-points-data", "params": {}},
+            "stages": {"completion": {"model": {"adapter": "tiny-points"}, "optimizer": {"lr": 0.05},
+                                      "train": {"steps": 6, "batch_size": 2, "eval_every": 2, "metric": metric}}}}
+
+
+def test_point_cloud_adapter_trains_and_is_scored_by_its_metric(tmp_path) -> None:
+    (result,) = Pipeline(recipe_from_dict(point_recipe()), tmp_path / "runs", quiet=True).run()
+    evals = [json.loads(line)["eval"] for line in (result.run_dir / "metrics.jsonl").read_text().splitlines()
+             if "eval" in line]
+    assert len(evals) == 3 and all(set(e) == {"chamfer"} for e in evals)
+    # lower is better: best.pt holds the step with the smallest validation Chamfer distance
+    best = min(range(3), key=lambda i: evals[i]["chamfer"])
+    assert result.summary["best"]["step"] == 2 * (best + 1)
+    assert result.summary["test"]["best"]["chamfer"] > 0
+
+
+def test_a_metric_that_does_not_fit_the_prediction_is_rejected(tmp_path, capsys) -> None:
+    out = validate_fails(point_recipe(metric="miou"), tmp_path, capsys)
+    assert "stages.completion.train.metric" in out and "points predictions" in out and "test-chamfer.chamfer" in out
+
+
+def test_point_cloud_values_are_checked() -> None:
+    cloud = PointCloud.from_list([torch.ones(2, 3), torch.ones(5, 3)])
+    assert cloud.points.shape == (2, 5, 3) and cloud.lengths.tolist() == [2, 5] and cloud.cloud(0).shape == (2, 3)
+    with pytest.raises(ValueError, match="lengths must lie in 0..5"):
+        PointCloud(cloud.points, torch.tensor([2, 6]))
+    with pytest.raises(TapError, match="expected PointCloud.*got \\(2, 5, 3\\) for a points tap"):
+        check_tap(cloud.points, "points", "tap 'completion'")

@@ -31,7 +31,7 @@ class JS3CNetAdapter(MultiFrameLidarAdapter):
     Params = JS3CNetParams
     TAPS = {"completion": "sparse_features", "ssc_dense": "feature_map", "logits": "voxel_logits",
             "point_logits": "point_logits"}
-    LOGITS_TAP = "logits"
+    PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "uncertainty_multitask", "weight": 1.0}]
     VERSION = 2  # 2: channels-last volumes
 

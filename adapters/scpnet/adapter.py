@@ -33,7 +33,7 @@ class SCPNetAdapter(MultiFrameLidarAdapter):
 
     Params = SCPNetParams
     TAPS = {"completion": "sparse_features", "completion_dense": "feature_map", "logits": "voxel_logits"}
-    LOGITS_TAP = "logits"
+    PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "ce", "weight": 1.0}, {"name": "lovasz", "weight": 1.0}]
 
     VERSION = 2  # 2: grid-scaled kernels, empty logits outside the active set, channels-last volumes

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ValidationError
 
 from distilkit.errors import RecipeError, UnknownNameError
 from distilkit.recipe import LossSpec, ModelSpec, ParamGroupSpec, Recipe, pydantic_problems, stage_order
-from distilkit.registry import ADAPTERS, DATASETS, OBJECTIVES, TASK_LOSSES, Registry
+from distilkit.registry import ADAPTERS, DATASETS, METRICS, OBJECTIVES, TASK_LOSSES, Registry
 
 
 @dataclass
@@ -30,6 +30,19 @@ class ResolvedModel:
 
 
 @dataclass
+class ResolvedMetric:
+    """The registered metric that scores a stage's predictions and the score that selects ``best.pt``."""
+
+    name: str
+    cls: Any
+    key: str
+
+    @property
+    def higher_is_better(self) -> bool:
+        return self.key not in self.cls.LOWER_IS_BETTER
+
+
+@dataclass
 class ResolvedStage:
     name: str
     spec: Any
@@ -39,6 +52,7 @@ class ResolvedStage:
     task_losses: list[ResolvedTerm] = field(default_factory=list)
     distill: list[ResolvedTerm] = field(default_factory=list)
     param_groups: list[dict[str, Any]] = field(default_factory=list)  # optimizer groups in effect
+    metric: ResolvedMetric | None = None
 
 
 @dataclass
@@ -163,6 +177,28 @@ def param_groups(given: list[Any] | None, task: list[ResolvedTerm], distill: lis
     return out
 
 
+def resolve_metric(wanted: str, model: ResolvedModel, info: Any, path: str,
+                   problems: list[tuple[str, str]]) -> ResolvedMetric | None:
+    """``train.metric`` ("KEY" or "METRIC.KEY") among the metrics registered for the kind of the adapter's
+    prediction tap whose targets the data provides; the first registered that reports KEY."""
+    tap = model.cls.PREDICTION_TAP
+    kind = model.cls.TAPS.get(tap)
+    if kind is None:
+        problems.append((f"{path}.model.adapter", f"adapter {model.adapter!r} declares no prediction tap "
+                                                  f"(PREDICTION_TAP = {tap!r} is not among its TAPS)"))
+        return None
+    name, _, key = wanted.rpartition(".")
+    fields = info.fields if info is not None else None
+    usable = [e for e in METRICS if e.obj.SCORES == kind and (fields is None or not fields or e.obj.TARGETS <= fields)]
+    for entry in usable:
+        if (not name or entry.name == name) and key in entry.obj.KEYS:
+            return ResolvedMetric(entry.name, entry.obj, key)
+    offered = ", ".join(f"{e.name}.{k}" for e in usable for k in e.obj.KEYS) or "none"
+    problems.append((f"{path}.train.metric", f"no registered metric scores {kind} predictions (tap {tap!r}) with "
+                                             f"{wanted!r} on this data (available: {offered})"))
+    return None
+
+
 def data_problems(model: ResolvedModel, info: Any, path: str) -> list[tuple[str, str]]:
     """The inputs the adapter reads that the data does not provide, and parameters it cannot serve."""
     out = []
@@ -205,9 +241,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
             task_specs = [LossSpec.model_validate(d) for d in student.cls.DEFAULT_TASK_LOSSES]
         task = _terms(task_specs or [], TASK_LOSSES, f"{path}.task_losses", models, problems)
         distill = _terms(spec.distill, OBJECTIVES, f"{path}.distill", models, problems)
-        if student is not None:
-            if student.cls.LOGITS_TAP not in student.cls.TAPS:
-                problems.append((f"{path}.model.adapter", f"adapter {student.adapter!r} declares no logits tap"))
+        metric = resolve_metric(spec.train.metric, student, info, path, problems) if student is not None else None
         if info is not None:
             own_teacher = teacher if teacher_from is None else None  # a teacher stage was checked as a student
             for model, where in ((student, f"{path}.model"), (own_teacher, f"{path}.teacher.model")):
@@ -217,7 +251,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
             problems.extend(grid_problems(distill, models, info, f"{path}.distill"))
         if student is not None:
             groups = param_groups(spec.optimizer.param_groups, task, distill)
-            stages[name] = ResolvedStage(name, spec, student, teacher, teacher_from, task, distill, groups)
+            stages[name] = ResolvedStage(name, spec, student, teacher, teacher_from, task, distill, groups, metric)
     if problems:
         raise RecipeError(problems, source)
     assert data_params is not None

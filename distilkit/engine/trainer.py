@@ -26,7 +26,8 @@ from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_wr
                                  set_rng_state)
 from distilkit.engine.resolve import ResolvedModel, ResolvedStage
 from distilkit.errors import DistilkitError, NonFiniteLossError
-from distilkit.metrics.ssc import SSCMetric
+from distilkit.metrics.base import Metric
+from distilkit.taps import check_tap
 
 
 def pick_device(name: str) -> torch.device:
@@ -63,16 +64,17 @@ def load_teacher(model: ResolvedModel, info: DataInfo, checkpoint: Path, device:
 
 
 @torch.no_grad()
-def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device, collate: Collate) -> dict[str, Any]:
+def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device, collate: Collate,
+             metric: type[Metric]) -> dict[str, Any]:
+    """Scores of the model's prediction tap over ``dataset`` with a registered metric."""
     was_training = model.training
     model.eval()
-    metric = SSCMetric(model.info.num_classes)
+    acc = metric(model.info)
     for start in range(0, len(dataset), batch_size):
         batch = collate([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))]).to(device)
-        pred = model.predict(model(batch))
-        metric.update(pred.cpu(), batch.targets["voxel_label"].cpu(), batch.targets["invalid"].cpu())
+        acc.update(model(batch)[model.PREDICTION_TAP], batch)
     model.train(was_training)
-    return metric.compute()
+    return acc.compute()
 
 
 @dataclass
@@ -90,6 +92,9 @@ class Trainer:
                  stop_after: int | None = None, *, collate: Collate) -> None:
         self.stage, self.info, self.train_set, self.val_set = stage, info, train_set, val_set
         self.collate = collate  # the dataset's registered collate
+        self._checked: set[str] = set()  # roles whose outputs passed the tap checks
+        assert stage.metric is not None, "a resolved stage always has its metric"
+        self.metric = stage.metric
         self.run_dir, self.seed, self.on_step, self.stop_after = run_dir, seed, on_step, stop_after
         spec = stage.spec.train
         self.device = pick_device(spec.device)
@@ -234,13 +239,30 @@ class Trainer:
         self.student.eval()
         with torch.no_grad():
             s_out, t_out = self.student(batch), self.teacher(batch)
+            self._check_outputs(self.student, s_out, "student")
+            self._check_outputs(self.teacher, t_out, "teacher")
             for spec, mod in zip(self.stage.distill, self.objectives):
                 mod.setup(self._taps(spec, s_out, t_out), batch)
         self.student.train(was)
         self.objectives.to(self.device)
 
+    def _check_outputs(self, model: Adapter, outputs: dict[str, Any], role: str) -> None:
+        """Every tap the adapter declares, present and of its kind (checked once, on the first batch)."""
+        if role in self._checked:
+            return
+        from distilkit.errors import TapError
+
+        adapter = type(model).__name__
+        for tap, kind in model.TAPS.items():
+            if tap not in outputs:
+                raise TapError(f"stage {self.stage.name!r}: the {role} ({adapter}) declares tap {tap!r} but its "
+                               f"forward did not return it (returned: {', '.join(map(str, outputs))})")
+            check_tap(outputs[tap], kind, f"stage {self.stage.name!r}, {role} ({adapter}) tap {tap!r}")
+        self._checked.add(role)
+
     def loss_terms(self, batch: Batch) -> dict[str, Tensor]:
         s_out = self.student(batch)
+        self._check_outputs(self.student, s_out, "student")
         terms: dict[str, Tensor] = {}
         for spec, mod in zip(self.stage.task_losses, self.task):
             terms[spec.name] = spec.weight * mod(s_out, batch)
@@ -248,6 +270,7 @@ class Trainer:
             assert self.teacher is not None
             with torch.no_grad():
                 t_out = self.teacher(batch)
+            self._check_outputs(self.teacher, t_out, "teacher")
             for spec, mod in zip(self.stage.distill, self.objectives):
                 try:
                     terms[f"kd_{spec.name}"] = spec.weight * mod.compute(self._taps(spec, s_out, t_out), batch)
@@ -308,10 +331,11 @@ class Trainer:
             if self.on_step:
                 self.on_step(step, self.total_steps, values)
             if step % self.eval_every == 0 or step == self.total_steps:
-                last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device, self.collate)
+                last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device, self.collate, self.metric.cls)
                 self._log({"step": step, "eval": last_scores})
-                score = last_scores[spec.metric]
-                if score > best["score"]:
+                score = last_scores[self.metric.key]
+                if best["scores"] is None or (score > best["score"] if self.metric.higher_is_better
+                                              else score < best["score"]):
                     best = {"score": score, "step": step, "scores": last_scores}
                     self._save_best(step, last_scores)
                 self._save_last(step, best)
@@ -320,21 +344,21 @@ class Trainer:
             if self.stop_after is not None and step >= self.stop_after:
                 break
         if last_scores is None:  # resumed at the very end
-            last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device, self.collate)
+            last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device, self.collate, self.metric.cls)
         seconds = time.perf_counter() - t0
         return TrainResult(best=best, last=last_scores, steps=step, seconds=seconds)
 
     def evaluate_checkpoints(self, dataset: Any) -> dict[str, Any]:
         """Scores on ``dataset`` (the test split) of the best-validation checkpoint and of the last one."""
         bs = self.stage.spec.train.batch_size
-        out: dict[str, Any] = {"last": evaluate(self.student, dataset, bs, self.device, self.collate),
+        out: dict[str, Any] = {"last": evaluate(self.student, dataset, bs, self.device, self.collate, self.metric.cls),
                                "last_step": self.total_steps}
         best_path = self.ckpt_dir / "best.pt"
         if best_path.is_file():
             ckpt = load_checkpoint(best_path)
             model = build_model(self.stage.student, self.info).to(self.device)
             model.load_state_dict(ckpt["student"])
-            out["best"], out["best_step"] = evaluate(model, dataset, bs, self.device, self.collate), int(ckpt["step"])
+            out["best"], out["best_step"] = evaluate(model, dataset, bs, self.device, self.collate, self.metric.cls), int(ckpt["step"])
         else:
             out["best"], out["best_step"] = out["last"], self.total_steps
         return out

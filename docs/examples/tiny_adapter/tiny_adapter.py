@@ -34,7 +34,7 @@ class TinySSC(Adapter):
     Params = TinyParams
     INPUTS = LIDAR_INPUTS  # points, point_batch, point_frame
     TAPS = {"features": "sparse_features", "logits": "voxel_logits"}
-    LOGITS_TAP = "logits"
+    PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "ce", "weight": 1.0}]
 
     def __init__(self, params: TinyParams, info: DataInfo) -> None:
