@@ -1,0 +1,94 @@
+"""Every registered adapter, objective, task loss, metric and dataset keeps its contract.
+
+Parametrised over the registries at collection time (built-ins and installed plugins), so a new
+component is checked without a new test. Adapters run one real batch of data that provides their
+inputs and must return every declared tap with the declared kind.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from conftest import TINY_DATA
+from distilkit.data.datasets import build_synthetic, synthetic_info
+from distilkit.data.lidar import collate_lidar
+from distilkit.data.params import SyntheticParams
+from distilkit.metrics.base import Metric
+from distilkit.registry import ADAPTERS, DATASETS, METRICS, OBJECTIVES, TASK_LOSSES
+from distilkit.taps import TAP_KINDS, check_tap
+
+BUILTIN = {"adapters": ["scpnet", "js3cnet"], "metrics": ["ssc"]}
+
+
+def names(registry) -> list[str]:
+    return [e.name for e in registry]
+
+
+@pytest.mark.parametrize("name", names(ADAPTERS))
+def test_adapter_contract(name: str) -> None:
+    cls = ADAPTERS.get(name)
+    assert isinstance(cls.VERSION, int) and cls.VERSION >= 1
+    assert cls.PREDICTION_TAP in cls.TAPS, "the prediction tap must be declared"
+    assert set(cls.TAPS.values()) <= set(TAP_KINDS), "every tap kind is registered"
+    for loss in cls.DEFAULT_TASK_LOSSES:
+        task = TASK_LOSSES.get(loss["name"])
+        assert set(task.CONSUMES.values()) <= set(cls.TAPS.values()), f"default task loss {loss['name']} fits"
+    if not cls.INPUTS <= synthetic_info(SyntheticParams(**TINY_DATA)).fields:
+        return  # adapters on other data are run by the tests that define that data (tests/test_contracts.py)
+    params = cls.Params()
+    if "frames" in type(params).model_fields:
+        params = params.model_copy(update={"frames": 2})
+    info = synthetic_info(SyntheticParams(**TINY_DATA))
+    assert cls.check_data(params, info) == []
+    assert isinstance(cls.describe(params), str)
+    torch.manual_seed(0)
+    model = cls(params, info).eval()
+    ds = build_synthetic(SyntheticParams(**TINY_DATA), "train")
+    with torch.no_grad():
+        out = model(collate_lidar([ds[0], ds[1]]))
+    for tap, kind in cls.TAPS.items():
+        check_tap(out[tap], kind, f"{name}.{tap}")
+    assert set(ADAPTERS.entry(name).consumes) <= set(cls.TAPS.values())
+
+
+@pytest.mark.parametrize("name", names(OBJECTIVES))
+def test_objective_contract(name: str) -> None:
+    entry = OBJECTIVES.entry(name)
+    cls = entry.obj
+    params = cls.Params()  # every parameter has a default: `{name: X}` alone is a valid recipe line
+    mod = cls(params)
+    assert isinstance(mod, torch.nn.Module)
+    assert {"student", "teacher"} <= set(cls.CONSUMES), "objectives read a student and a teacher tap"
+    assert set(cls.CONSUMES.values()) <= set(TAP_KINDS)
+    assert cls.OPTIONAL <= set(cls.CONSUMES) and not ({"student", "teacher"} & cls.OPTIONAL)
+    assert cls.DEFAULT_WEIGHT > 0 and isinstance(cls.VERSION, int) and cls.VERSION >= 1
+    assert entry.paper and entry.meta.get("equation") and entry.meta.get("shapes"), "documented in objectives.md"
+
+
+@pytest.mark.parametrize("name", names(TASK_LOSSES))
+def test_task_loss_contract(name: str) -> None:
+    cls = TASK_LOSSES.get(name)
+    assert set(cls.CONSUMES.values()) <= set(TAP_KINDS) and "student" in cls.CONSUMES
+    cls(cls.Params(), {role: role for role in cls.CONSUMES})
+    assert isinstance(cls.VERSION, int) and cls.VERSION >= 1
+
+
+@pytest.mark.parametrize("name", names(METRICS))
+def test_metric_contract(name: str) -> None:
+    cls = METRICS.get(name)
+    assert issubclass(cls, Metric)
+    assert cls.SCORES in TAP_KINDS and cls.KEYS and cls.LOWER_IS_BETTER <= set(cls.KEYS)
+    assert METRICS.entry(name).consumes == (cls.SCORES,)
+
+
+@pytest.mark.parametrize("name", names(DATASETS))
+def test_dataset_contract(name: str) -> None:
+    entry = DATASETS.entry(name)
+    assert callable(entry.obj) and callable(entry.meta["collate"]) and callable(entry.meta["info"])
+    assert isinstance(entry.meta["version"], int) and entry.meta["params"] is not None
+
+
+def test_the_builtins_are_registered() -> None:
+    assert set(BUILTIN["adapters"]) <= set(names(ADAPTERS)) and set(BUILTIN["metrics"]) <= set(names(METRICS))
+    assert len(names(OBJECTIVES)) >= 10
