@@ -12,7 +12,8 @@ An adapter is an ``nn.Module`` registered in :data:`distilkit.registry.ADAPTERS`
 ``forward(batch)`` takes the collated :class:`~distilkit.data.batch.Batch` (built by the dataset's
 registered collate) and returns a dict with (at least) every declared tap. ``check_data`` lets an
 adapter reject parameters the data cannot serve (e.g. more frames than it has); ``describe`` gives the
-short input description the results table shows.
+short input description the results table shows; ``read_weights`` reads a published checkpoint
+format (recipes: ``init: {checkpoint: ...}`` and ``teacher: {checkpoint: ...}``).
 """
 
 from __future__ import annotations
@@ -55,6 +56,15 @@ class Adapter(nn.Module, ABC):
         if info.grid is not None and cls.TAPS.get(tap) in ("sparse_features", "voxel_logits"):
             return tuple(info.grid.shape)
         return None
+
+    @classmethod
+    def read_weights(cls, path: str) -> dict[str, Any]:
+        """The model's weights (a state dict) from a file, loaded safely. Default: a distilkit checkpoint
+        (its ``student``), or a file holding a state dict (also under ``state_dict`` or ``model``, as many
+        releases do). Override it to convert a model's published checkpoint format to this adapter's names."""
+        from distilkit.engine.io import read_state_dict
+
+        return read_state_dict(path)
 
     @classmethod
     def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:

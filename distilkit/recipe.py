@@ -46,6 +46,24 @@ class TeacherSpec(_Strict):
         return self
 
 
+class InitSpec(_Strict):
+    """Where a stage's student starts from (instead of random weights): an earlier stage or a weights file."""
+
+    from_: str | None = Field(None, alias="from", description="name of an earlier stage whose weights the student "
+                                                              "starts from (ScoreLiDAR: the teacher)")
+    which: Literal["best", "last"] = Field("best", description="checkpoint of the upstream stage to use")
+    checkpoint: str | None = Field(None, description="a weights file, read by the adapter's `read_weights` (a "
+                                                     "distilkit checkpoint or a state dict; weights_only=True)")
+    strict: bool = Field(True, description="every weight must fit the student (false: load the ones that fit by "
+                                           "name and shape, and list the rest in the log)")
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "InitSpec":
+        if (self.from_ is None) == (self.checkpoint is None):
+            raise ValueError("give exactly one of `from` (an earlier stage) or `checkpoint` (a file)")
+        return self
+
+
 class LossSpec(_Strict):
     """A weighted term: a task loss or a distillation objective."""
 
@@ -102,6 +120,7 @@ class StageSpec(_Strict):
     """One training stage: a student model, optionally a frozen teacher and distillation terms."""
 
     model: ModelSpec
+    init: InitSpec | None = Field(None, description="start the student from weights instead of random ones")
     teacher: TeacherSpec | None = None
     task_losses: list[LossSpec] | None = Field(None, description="supervised terms (default: the adapter's)")
     distill: list[LossSpec] = Field(default_factory=list, description="distillation objectives")
@@ -206,19 +225,21 @@ def stage_order(recipe: Recipe) -> list[str]:
         if state.get(name) == 2:
             return
         if state.get(name) == 1:
-            problems.append((f"stages.{name}.teacher.from", f"cycle: {' -> '.join(path + [name])}"))
+            problems.append((f"stages.{name}", f"cycle of teacher/init stages: {' -> '.join(path + [name])}"))
             return
         state[name] = 1
-        t = recipe.stages[name].teacher
-        if t is not None and t.from_ is not None:
-            if t.from_ not in recipe.stages:
+        stage = recipe.stages[name]
+        for field_name, src in (("teacher", stage.teacher), ("init", stage.init)):
+            if src is None or src.from_ is None:
+                continue
+            if src.from_ not in recipe.stages:
                 import difflib
 
-                close = difflib.get_close_matches(t.from_, list(recipe.stages), n=1)
+                close = difflib.get_close_matches(src.from_, list(recipe.stages), n=1)
                 hint = f"; did you mean {close[0]!r}?" if close else ""
-                problems.append((f"stages.{name}.teacher.from", f"no stage named {t.from_!r}{hint}"))
+                problems.append((f"stages.{name}.{field_name}.from", f"no stage named {src.from_!r}{hint}"))
             else:
-                visit(t.from_, path + [name])
+                visit(src.from_, path + [name])
         state[name] = 2
         order.append(name)
 

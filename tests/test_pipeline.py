@@ -11,7 +11,7 @@ from conftest import tiny_recipe
 from distilkit.engine.io import load_checkpoint
 from distilkit.engine.pipeline import Pipeline
 from distilkit.engine.trainer import Trainer, load_teacher
-from distilkit.errors import DataError, NonFiniteLossError
+from distilkit.errors import DataError, NonFiniteLossError, RecipeError
 from distilkit.recipe import recipe_from_dict
 
 
@@ -121,7 +121,7 @@ def test_nan_loss_stops_with_a_clear_error_and_keeps_the_checkpoint(tmp_path, mo
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path) -> None:
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
-    with pytest.raises(DataError, match="not a readable distilkit checkpoint"):
+    with pytest.raises(DataError, match="not a readable checkpoint"):
         load_checkpoint(bad)
 
 
@@ -225,3 +225,41 @@ def test_cuda_rng_state_round_trips_through_a_checkpoint(tmp_path, monkeypatch) 
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)  # resumed on a machine with fewer GPUs: left alone
     set_rng_state(loaded["rng"])
     assert len(restored) == 1
+
+
+def test_init_from_a_stage_starts_from_its_weights(tmp_path) -> None:
+    r = tiny_recipe(steps=2, distill=False)
+    r["stages"]["finetune"] = {**r["stages"]["teacher"], "init": {"from": "teacher"},
+                               "train": {**r["stages"]["teacher"]["train"], "steps": 1}}
+    pipe = pipeline(tmp_path, r)
+    assert pipe.resolved.order == ["teacher", "finetune"]
+    teacher, finetune = pipe.run()
+    log = [json.loads(x) for x in (finetune.run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert log[0]["event"] == "init" and log[0]["left_out"] == [] and "teacher-" in log[0]["from"]
+    # the fine-tuned weights differ from the teacher's by one optimizer step, not by a fresh initialisation
+    a = load_checkpoint(teacher.run_dir / "checkpoints" / "best.pt")["student"]
+    b = load_checkpoint(finetune.run_dir / "checkpoints" / "last.pt")["student"]
+    fresh = Pipeline(recipe_from_dict(tiny_recipe(distill=False)), tmp_path / "other", quiet=True)
+    w = next(k for k, v in a.items() if v.dtype.is_floating_point and v.numel() > 8)
+    step = (a[w] - b[w]).abs().max()
+    assert 0 < step < 0.05 and step < (a[w] - torch.zeros_like(a[w])).abs().max()
+    # retraining the teacher retrains the stage that starts from it
+    assert pipe.rerun_set(["teacher"]) == {"teacher", "finetune"}
+    assert fresh.hashes["teacher"] == pipe.hashes["teacher"] and "finetune" not in fresh.hashes
+
+
+def test_init_from_another_adapter_needs_strict_false_and_a_file_must_fit(tmp_path) -> None:
+    r = tiny_recipe(steps=1, distill=False)
+    r["stages"]["other"] = {"model": {"adapter": "js3cnet", "params": {"seg_channels": 4, "embed": 4, "ssc_channels": 4,
+                                                                        "pvi_hidden": 4, "knn": 4}},
+                            "init": {"from": "teacher"}, "train": r["stages"]["teacher"]["train"]}
+    with pytest.raises(RecipeError, match="stages.other.init.from.*strict: false"):
+        pipeline(tmp_path, r)
+    r["stages"]["other"]["init"]["strict"] = False
+    pipeline(tmp_path, r)  # allowed: loads what fits by name and shape
+    bad = tmp_path / "w.pt"
+    torch.save({"state_dict": {"not.a.weight": torch.zeros(3)}}, bad)
+    r2 = tiny_recipe(steps=1, distill=False)
+    r2["stages"]["teacher"]["init"] = {"checkpoint": str(bad)}
+    with pytest.raises(DataError, match="weights do not fit.*1 unexpected \\(e.g. not.a.weight\\)"):
+        pipeline(tmp_path, r2).run()

@@ -49,7 +49,15 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
             teacher["upstream_hash"] = hashes[spec.teacher.from_]
         else:
             teacher["checkpoint_sha256"] = _file_digest(spec.teacher.checkpoint or "")
+    init: dict[str, Any] = {}
+    if spec.init is not None:  # only when given: stages without one keep their identity
+        init = {"init": spec.init.model_dump(mode="json", by_alias=True)}
+        if spec.init.from_ is not None:
+            init["init"]["upstream_hash"] = hashes[spec.init.from_]
+        else:
+            init["init"]["checkpoint_sha256"] = _file_digest(spec.init.checkpoint or "")
     return {
+        **init,
         "versions": code_versions(res, stage),
         "schema_version": res.recipe.schema_version,
         "seed": res.recipe.seed,
@@ -81,10 +89,12 @@ def code_versions(res: ResolvedRecipe, stage: ResolvedStage) -> dict[str, Any]:
 
 
 def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
-    """``names`` and every stage that uses one of them as its teacher, transitively."""
+    """``names`` and every stage that uses one of them as its teacher or its initial weights, transitively."""
     out = set(names)
     for name in res.order:  # dependency order: an upstream stage comes first
-        if res.stages[name].teacher_from in out:
+        stage = res.stages[name]
+        init_from = stage.spec.init.from_ if stage.spec.init is not None else None
+        if stage.teacher_from in out or init_from in out:
             out.add(name)
     return out
 
@@ -157,6 +167,15 @@ class Pipeline:
         """The dataset's registered collate (samples -> :class:`~distilkit.data.batch.Batch`)."""
         return DATASETS.entry(self.recipe.data.dataset).meta["collate"]
 
+    def _init(self, stage: ResolvedStage) -> tuple[Path, bool] | None:
+        """The weights file a stage's student starts from, and whether all must fit."""
+        init = stage.spec.init
+        if init is None:
+            return None
+        if init.from_ is not None:
+            return self.run_dir(init.from_) / "checkpoints" / f"{init.which}.pt", init.strict
+        return Path(init.checkpoint or "").expanduser(), init.strict
+
     def has_split(self, split: str) -> bool:
         entry = DATASETS.entry(self.recipe.data.dataset)
         return bool(entry.meta.get("has_split", lambda p, s: s != "test")(self.resolved.data_params, split))
@@ -218,7 +237,7 @@ class Pipeline:
             train_set, val_set = self.dataset("train"), self.dataset("val")
             with stage_progress(self.console, name) as on_step:
                 trainer = Trainer(stage, self.resolved.data_info, train_set, val_set, run_dir, self.recipe.seed,
-                                  teacher, on_step, stop_after, collate=self.collate)
+                                  teacher, on_step, stop_after, collate=self.collate, init=self._init(stage))
                 result = trainer.fit()
             if stop_after is not None and result.steps < trainer.total_steps:
                 self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")

@@ -241,6 +241,13 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
             task_specs = [LossSpec.model_validate(d) for d in student.cls.DEFAULT_TASK_LOSSES]
         task = _terms(task_specs or [], TASK_LOSSES, f"{path}.task_losses", models, problems)
         distill = _terms(spec.distill, OBJECTIVES, f"{path}.distill", models, problems)
+        if spec.init is not None and spec.init.from_ is not None and student is not None and spec.init.strict:
+            up = stages.get(spec.init.from_)
+            if up is not None and (up.student.adapter, up.student.params) != (student.adapter, student.params):
+                problems.append((f"{path}.init.from", f"stage {spec.init.from_!r} trains {up.student.adapter!r} with "
+                                                      f"other params than this stage's {student.adapter!r}: its "
+                                                      "weights may not fit (set `strict: false` to load the ones "
+                                                      "that fit by name and shape)"))
         metric = resolve_metric(spec.train.metric, student, info, path, problems) if student is not None else None
         if info is not None:
             own_teacher = teacher if teacher_from is None else None  # a teacher stage was checked as a student

@@ -22,8 +22,8 @@ from torch import Tensor, nn
 from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
-from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint, rng_state,
-                                 set_rng_state)
+from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint,
+                                 load_weights, rng_state, set_rng_state)
 from distilkit.engine.resolve import ResolvedModel, ResolvedStage
 from distilkit.errors import DistilkitError, NonFiniteLossError
 from distilkit.metrics.base import Metric
@@ -52,14 +52,9 @@ def freeze(model: nn.Module) -> nn.Module:
 
 
 def load_teacher(model: ResolvedModel, info: DataInfo, checkpoint: Path, device: torch.device) -> Adapter:
+    """The frozen teacher: the adapter built from its params, its weights read by the adapter (all must fit)."""
     teacher = build_model(model, info)
-    ckpt = load_checkpoint(checkpoint)
-    try:
-        teacher.load_state_dict(ckpt["student"])
-    except RuntimeError as exc:
-        from distilkit.errors import DataError
-
-        raise DataError(f"{checkpoint}: weights do not fit adapter {model.adapter!r} with these params ({exc})") from None
+    load_weights(teacher, model.cls.read_weights(str(checkpoint)), True, f"teacher {checkpoint}")
     return freeze(teacher.to(device))  # type: ignore[return-value]
 
 
@@ -89,17 +84,23 @@ class TrainResult:
 class Trainer:
     def __init__(self, stage: ResolvedStage, info: DataInfo, train_set: Any, val_set: Any, run_dir: Path, seed: int,
                  teacher: Adapter | None = None, on_step: Callable[[int, int, dict[str, float]], None] | None = None,
-                 stop_after: int | None = None, *, collate: Collate) -> None:
+                 stop_after: int | None = None, *, collate: Collate, init: tuple[Path, bool] | None = None) -> None:
         self.stage, self.info, self.train_set, self.val_set = stage, info, train_set, val_set
         self.collate = collate  # the dataset's registered collate
         self._checked: set[str] = set()  # roles whose outputs passed the tap checks
+        self._init_log: dict[str, Any] | None = None
         assert stage.metric is not None, "a resolved stage always has its metric"
         self.metric = stage.metric
         self.run_dir, self.seed, self.on_step, self.stop_after = run_dir, seed, on_step, stop_after
         spec = stage.spec.train
         self.device = pick_device(spec.device)
         torch.manual_seed(seed)
-        self.student = build_model(stage.student, info).to(self.device)
+        self.student = build_model(stage.student, info)
+        if init is not None:  # start from other weights (a resumed run then loads last.pt over them)
+            path, strict = init
+            left = load_weights(self.student, stage.student.cls.read_weights(str(path)), strict, f"init {path}")
+            self._init_log = {"event": "init", "from": str(path), "left_out": left}
+        self.student = self.student.to(self.device)
         self.task = nn.ModuleList(t.cls(t.params, t.taps) for t in stage.task_losses).to(self.device)
         self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
         self.teacher = teacher
@@ -297,6 +298,8 @@ class Trainer:
             start_step, best = int(ckpt["step"]), ckpt["best"]
             self._truncate_log(start_step)
             self._log({"event": "resume", "step": start_step})
+        elif self._init_log is not None:
+            self._log(self._init_log)
         t0 = time.perf_counter()
         self.student.train()
         last_scores: dict[str, Any] | None = None
