@@ -44,6 +44,7 @@ class Adapter(nn.Module, ABC):
         super().__init__()
         self.params = params
         self.info = info
+        self.tap_kinds: dict[str, str] = dict(self.TAPS)  # plus taps a recipe records from submodules
 
     @abstractmethod
     def forward(self, batch: Batch) -> dict[str, Any]:

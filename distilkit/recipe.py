@@ -22,11 +22,21 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
 
 
+class HookTapSpec(_Strict):
+    """A tap recorded from any submodule by its dotted path (no adapter code needed)."""
+
+    module: str = Field(..., description="dotted path of the submodule, as in `model.named_modules()`")
+    kind: str = Field(..., description="tap kind of the recorded value (e.g. feature_map)")
+    at: Literal["output", "input"] = Field("output", description="record the submodule's output or its first input")
+
+
 class ModelSpec(_Strict):
     """A model: a registered adapter and its parameters."""
 
     adapter: str = Field(..., description="registered adapter name (see `distilkit list`)")
     params: dict[str, Any] = Field(default_factory=dict, description="the adapter's parameters")
+    taps: dict[str, HookTapSpec] = Field(default_factory=dict,
+                                         description="extra taps recorded from submodules by forward hooks")
 
 
 class TeacherSpec(_Strict):
@@ -36,6 +46,8 @@ class TeacherSpec(_Strict):
     checkpoint: str | None = Field(None, description="path of a distilkit checkpoint (loaded with weights_only=True)")
     model: ModelSpec | None = Field(None, description="the teacher's model (required with `checkpoint`)")
     which: Literal["best", "last"] = Field("best", description="checkpoint of the upstream stage to use")
+    taps: dict[str, HookTapSpec] = Field(default_factory=dict,
+                                         description="extra teacher taps recorded from submodules by forward hooks")
 
     @model_validator(mode="after")
     def _one_source(self) -> "TeacherSpec":

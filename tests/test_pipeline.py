@@ -11,7 +11,7 @@ from conftest import tiny_recipe
 from distilkit.engine.io import load_checkpoint
 from distilkit.engine.pipeline import Pipeline
 from distilkit.engine.trainer import Trainer, load_teacher
-from distilkit.errors import DataError, NonFiniteLossError, RecipeError
+from distilkit.errors import DataError, NonFiniteLossError, RecipeError, TapError
 from distilkit.recipe import recipe_from_dict
 
 
@@ -263,3 +263,39 @@ def test_init_from_another_adapter_needs_strict_false_and_a_file_must_fit(tmp_pa
     r2["stages"]["teacher"]["init"] = {"checkpoint": str(bad)}
     with pytest.raises(DataError, match="weights do not fit.*1 unexpected \\(e.g. not.a.weight\\)"):
         pipeline(tmp_path, r2).run()
+
+
+def test_recipe_taps_record_submodules_and_feed_objectives(tmp_path) -> None:
+    r = tiny_recipe(steps=1)
+    mid = {"module": "net.completion.upper", "kind": "feature_map"}
+    r["stages"]["teacher"]["model"]["taps"] = {"upper": mid}
+    r["stages"]["student"]["model"]["taps"] = {"upper": mid}
+    r["stages"]["student"]["distill"] = [{"name": "fitnets", "taps": {"student": "upper", "teacher": "upper"}}]
+    pipe = pipeline(tmp_path, r)
+    plain = pipeline(tmp_path / "b", tiny_recipe(steps=1))
+    assert pipe.hashes["teacher"] != plain.hashes["teacher"]  # recorded taps are part of the identity
+    _, student = pipe.run()
+    assert "kd_fitnets" in (student.run_dir / "metrics.jsonl").read_text()
+    # the recorded value is the submodule's output, every forward pass
+    from distilkit.engine.trainer import build_model
+    from distilkit.data.lidar import collate_lidar
+
+    model = build_model(pipe.resolved.stages["student"].student, pipe.resolved.data_info).eval()
+    seen = []
+    model.net.completion.upper.register_forward_hook(lambda m, a, out: seen.append(out))
+    with torch.no_grad():
+        out = model(collate_lidar([pipe.dataset("train")[0]]))
+    assert torch.equal(out["upper"], seen[0]) and out["upper"].dim() == 5
+
+
+def test_recipe_taps_name_a_wrong_module_or_kind(tmp_path) -> None:
+    r = tiny_recipe(steps=1, distill=False)
+    r["stages"]["teacher"]["model"]["taps"] = {"x": {"module": "net.completion.uper", "kind": "feature_map"}}
+    with pytest.raises(TapError, match="no submodule 'net.completion.uper'; did you mean 'net.completion.upper'"):
+        pipeline(tmp_path, r).run()
+    r["stages"]["teacher"]["model"]["taps"] = {"x": {"module": "net.completion.upper", "kind": "scalar"}}
+    with pytest.raises(TapError, match="teacher.*tap 'x': expected a 0-d tensor"):
+        pipeline(tmp_path / "2", r).run()
+    r["stages"]["teacher"]["model"]["taps"] = {"logits": {"module": "net", "kind": "vector"}}
+    with pytest.raises(RecipeError, match="(?s)already has a tap 'logits'.*unknown tap kind 'vector'"):
+        pipeline(tmp_path / "3", r)

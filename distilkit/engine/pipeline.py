@@ -45,6 +45,9 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
     teacher: dict[str, Any] | None = None
     if spec.teacher is not None:
         teacher = spec.teacher.model_dump(mode="json", by_alias=True)
+        for part in (teacher, teacher.get("model") or {}):  # recorded taps count only when there are some
+            if not part.get("taps"):
+                part.pop("taps", None)
         if spec.teacher.from_ is not None:
             teacher["upstream_hash"] = hashes[spec.teacher.from_]
         else:
@@ -62,7 +65,9 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
         "schema_version": res.recipe.schema_version,
         "seed": res.recipe.seed,
         "data": {"dataset": res.recipe.data.dataset, "params": res.data_params.model_dump(mode="json")},
-        "model": {"adapter": stage.student.adapter, "params": stage.student.params.model_dump(mode="json")},
+        "model": {"adapter": stage.student.adapter, "params": stage.student.params.model_dump(mode="json"),
+                  **({"taps": {n: h.model_dump(mode="json") for n, h in stage.student.hooks.items()}}
+                     if stage.student.hooks else {})},
         "teacher": teacher,
         "task_losses": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps}
                         for t in stage.task_losses],

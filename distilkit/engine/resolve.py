@@ -27,6 +27,12 @@ class ResolvedModel:
     adapter: str
     cls: Any
     params: BaseModel
+    hooks: dict[str, Any] = field(default_factory=dict)  # recipe taps recorded from submodules
+
+    @property
+    def taps(self) -> dict[str, str]:
+        """Tap name -> kind: the adapter's declared taps and the recipe's recorded ones."""
+        return {**self.cls.TAPS, **{name: h.kind for name, h in self.hooks.items() if name not in self.cls.TAPS}}
 
 
 @dataclass
@@ -85,7 +91,15 @@ def _model(spec: ModelSpec, path: str, problems: list[tuple[str, str]]) -> Resol
     if entry is None:
         return None
     params = _params(entry.obj.Params, spec.params, f"{path}.params", problems)
-    return None if params is None else ResolvedModel(spec.adapter, entry.obj, params)
+    from distilkit.taps import TAP_KINDS
+
+    for name, hook in spec.taps.items():
+        if name in entry.obj.TAPS:
+            problems.append((f"{path}.taps.{name}", f"adapter {spec.adapter!r} already has a tap {name!r}"))
+        if hook.kind not in TAP_KINDS:
+            problems.append((f"{path}.taps.{name}.kind", f"unknown tap kind {hook.kind!r} (registered: "
+                                                         f"{', '.join(TAP_KINDS)})"))
+    return None if params is None else ResolvedModel(spec.adapter, entry.obj, params, dict(spec.taps))
 
 
 def _resolve_taps(term_path: str, cls: Any, given: dict[str, str], models: dict[str, ResolvedModel | None],
@@ -100,7 +114,7 @@ def _resolve_taps(term_path: str, cls: Any, given: dict[str, str], models: dict[
         model = models.get("teacher" if role.startswith("teacher") else "student")
         if model is None or (role in optional and role not in given):
             continue
-        taps = model.cls.TAPS
+        taps = model.taps
         if role in given:
             tap = given[role]
             if tap not in taps:
@@ -235,6 +249,9 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
             else:
                 assert spec.teacher.model is not None
                 teacher = _model(spec.teacher.model, f"{path}.teacher.model", problems)
+            if teacher is not None and spec.teacher.taps:  # this stage records more of the teacher
+                teacher = ResolvedModel(teacher.adapter, teacher.cls, teacher.params,
+                                        {**teacher.hooks, **spec.teacher.taps})
         models = {"student": student, "teacher": teacher}
         task_specs = spec.task_losses
         if task_specs is None and student is not None:

@@ -22,6 +22,7 @@ from torch import Tensor, nn
 from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
+from distilkit.engine.recorders import attach_recorders
 from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint,
                                  load_weights, rng_state, set_rng_state)
 from distilkit.engine.resolve import ResolvedModel, ResolvedStage
@@ -39,8 +40,11 @@ def pick_device(name: str) -> torch.device:
 Collate = Callable[[list[Any]], Batch]
 
 
-def build_model(model: ResolvedModel, info: DataInfo) -> Adapter:
-    return model.cls(model.params, info)
+def build_model(model: ResolvedModel, info: DataInfo, role: str = "student") -> Adapter:
+    """The adapter, with the recipe's recorded taps attached (``model.taps`` in a recipe)."""
+    built = model.cls(model.params, info)
+    attach_recorders(built, model.hooks, role)
+    return built
 
 
 def freeze(model: nn.Module) -> nn.Module:
@@ -53,7 +57,7 @@ def freeze(model: nn.Module) -> nn.Module:
 
 def load_teacher(model: ResolvedModel, info: DataInfo, checkpoint: Path, device: torch.device) -> Adapter:
     """The frozen teacher: the adapter built from its params, its weights read by the adapter (all must fit)."""
-    teacher = build_model(model, info)
+    teacher = build_model(model, info, "teacher")
     load_weights(teacher, model.cls.read_weights(str(checkpoint)), True, f"teacher {checkpoint}")
     return freeze(teacher.to(device))  # type: ignore[return-value]
 
@@ -254,7 +258,7 @@ class Trainer:
         from distilkit.errors import TapError
 
         adapter = type(model).__name__
-        for tap, kind in model.TAPS.items():
+        for tap, kind in model.tap_kinds.items():
             if tap not in outputs:
                 raise TapError(f"stage {self.stage.name!r}: the {role} ({adapter}) declares tap {tap!r} but its "
                                f"forward did not return it (returned: {', '.join(map(str, outputs))})")
