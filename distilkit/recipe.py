@@ -84,6 +84,9 @@ class LossSpec(_Strict):
     params: dict[str, Any] = Field(default_factory=dict, description="the component's parameters")
     taps: dict[str, str] = Field(default_factory=dict,
                                  description="role -> tap name, e.g. {student: completion, teacher: completion}")
+    connector: Literal["linear", "none"] | None = Field(
+        None, description="learnable projection of the student tap to the teacher's channels before the objective "
+                          "(default: the objective's own; fitnets: linear)")
 
 
 class ParamGroupSpec(_Strict):

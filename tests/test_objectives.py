@@ -33,10 +33,10 @@ def test_every_objective_runs_by_name_and_weight(tmp_path) -> None:
         assert res.summary["status"] == "finished"
         log = (res.run_dir / "metrics.jsonl").read_text()
         assert f'"kd_{name}"' in log and "NaN" not in log
-    # objectives' own trainables (FitNets regressor, MGD generator) are saved with the student
-    for name, key in (("fitnets", "regressor.weight"), ("mgd", "generator.0.weight")):
+    # objectives' own trainables (FitNets' regressor connector, MGD generator) are saved with the student
+    for name, part, key in (("fitnets", "connectors", "proj.weight"), ("mgd", "objectives", "generator.0.weight")):
         ckpt = load_checkpoint(results[f"s_{name}"].run_dir / "checkpoints" / "last.pt")
-        assert any(k.endswith(key) for k in ckpt["objectives"])
+        assert any(k.endswith(key) for k in ckpt[part])
 
 
 def test_validate_rejects_taps_the_adapter_lacks(tmp_path) -> None:
@@ -109,13 +109,52 @@ def test_validate_rejects_an_adapter_without_the_tap_kind(tmp_path) -> None:
 
 @pytest.mark.parametrize("dims", [2, 3])
 def test_fitnets_regressor_2d_and_3d(dims) -> None:
+    from distilkit.objectives.connectors import Connector
     from distilkit.objectives.feature import FitNets
 
     spatial = (6, 5) if dims == 2 else (6, 5, 2)
     s, t = torch.randn(2, 3, *spatial), torch.randn(2, 7, *spatial)
-    obj = FitNets(FitNets.Params())
-    obj.setup({"student": s, "teacher": t}, Batch({}, {}, {"size": 1}))
-    conv = obj.regressor
+    assert FitNets.DEFAULT_CONNECTOR == "linear"  # the regressor is the linear connector the trainer applies
+    conv = Connector("linear", s, t).proj
     assert conv.weight.shape[:2] == (7, 3) and conv.weight.dim() == dims + 2
     want = ((conv(s) - t) ** 2).mean()
-    assert obj(s, t, Batch({}, {}, {"size": 1})).item() == pytest.approx(want.item(), rel=1e-6)
+    obj = FitNets(FitNets.Params())
+    assert obj(conv(s), t, Batch({}, {}, {"size": 1})).item() == pytest.approx(want.item(), rel=1e-6)
+
+
+def test_connectors_project_maps_rows_and_sparse_voxels() -> None:
+    from distilkit.objectives.connectors import Connector
+    from distilkit.taps import SparseVoxels
+
+    torch.manual_seed(0)
+    fmap = Connector("linear", torch.zeros(2, 3, 4, 4, 2), torch.zeros(2, 5, 4, 4, 2))
+    assert fmap(torch.randn(2, 3, 4, 4, 2)).shape == (2, 5, 4, 4, 2)
+    x = torch.randn(2, 3, 4, 4, 2)  # a 1x1x1 convolution is the same linear map at every voxel
+    w, b = fmap.proj.weight.view(5, 3), fmap.proj.bias
+    assert torch.allclose(fmap(x), torch.einsum("oc,bcxyz->boxyz", w, x) + b.view(1, 5, 1, 1, 1), atol=1e-6)
+    rows = Connector("linear", torch.zeros(7, 3), torch.zeros(7, 6))
+    assert rows(torch.randn(7, 3)).shape == (7, 6)
+    coords = torch.zeros(4, 4, dtype=torch.long)
+    sparse = Connector("linear", SparseVoxels(coords, torch.zeros(4, 3), (2, 2, 2)),
+                       SparseVoxels(coords, torch.zeros(4, 8), (2, 2, 2)))
+    out = sparse(SparseVoxels(coords, torch.randn(4, 3), (2, 2, 2)))
+    assert out.feats.shape == (4, 8) and out.coords is coords
+
+
+def test_a_recipe_connector_is_trained_with_the_student(tmp_path) -> None:
+    r = tiny_recipe(steps=2)
+    r["stages"]["student"]["distill"] = [{"name": "pkt", "connector": "linear",
+                                          "taps": {"student": "completion", "teacher": "completion"}}]
+    pipe = Pipeline(recipe_from_dict(r), tmp_path / "runs", quiet=True)
+    _, student = pipe.run()
+    ckpt = load_checkpoint(student.run_dir / "checkpoints" / "last.pt")
+    weights = {k: v for k, v in ckpt["connectors"].items() if k.endswith("weight")}
+    assert list(weights) == ["0.proj.weight"]
+    r["stages"]["student"]["distill"][0]["connector"] = "none"
+    plain = Pipeline(recipe_from_dict(r), tmp_path / "runs", quiet=True)
+    assert plain.hashes["student"] != pipe.hashes["student"]  # the connector is part of the identity
+    assert plain.resolved.stages["student"].distill[0].connector is None
+    # fitnets: its regressor is the default linear connector
+    r["stages"]["student"]["distill"] = [{"name": "fitnets"}]
+    assert Pipeline(recipe_from_dict(r), tmp_path / "x", quiet=True).resolved.stages["student"].distill[0].connector \
+        == "linear"

@@ -71,8 +71,8 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
         "teacher": teacher,
         "task_losses": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps}
                         for t in stage.task_losses],
-        "distill": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps}
-                    for t in stage.distill],
+        "distill": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps,
+                     **({"connector": t.connector} if t.connector else {})} for t in stage.distill],
         "optimizer": {**spec.optimizer.model_dump(mode="json"), "param_groups": stage.param_groups},
         "train": spec.train.model_dump(mode="json", exclude={"log_every", "checkpoint_every", "device"}),
     }

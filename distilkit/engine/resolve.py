@@ -20,6 +20,7 @@ class ResolvedTerm:
     params: BaseModel
     weight: float
     taps: dict[str, str]  # role -> tap name
+    connector: str | None = None  # projection of the student tap to the teacher's channels
 
 
 @dataclass
@@ -146,8 +147,10 @@ def _terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: dict[st
         params = _params(entry.obj.Params, spec.params, f"{p}.params", problems)
         taps = _resolve_taps(p, entry.obj, spec.taps, models, problems)
         weight = spec.weight if spec.weight is not None else float(getattr(entry.obj, "DEFAULT_WEIGHT", 1.0))
+        connector = getattr(spec, "connector", None) or getattr(entry.obj, "DEFAULT_CONNECTOR", None)
         if params is not None:
-            out.append(ResolvedTerm(spec.name, entry.obj, params, weight, taps))
+            out.append(ResolvedTerm(spec.name, entry.obj, params, weight, taps,
+                                    None if connector == "none" else connector))
     return out
 
 

@@ -28,6 +28,7 @@ from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_wr
 from distilkit.engine.resolve import ResolvedModel, ResolvedStage
 from distilkit.errors import DistilkitError, NonFiniteLossError
 from distilkit.metrics.base import Metric
+from distilkit.objectives.connectors import Connector
 from distilkit.taps import check_tap
 
 
@@ -108,11 +109,14 @@ class Trainer:
         self.task = nn.ModuleList(t.cls(t.params, t.taps) for t in stage.task_losses).to(self.device)
         self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
         self.teacher = teacher
+        # per objective: the projection of its student tap (nn.Identity where it has none)
+        self.connectors = nn.ModuleList(nn.Identity() for _ in stage.distill)
         self.steps_per_epoch = math.ceil(len(train_set) / spec.batch_size)
         self._setup_objectives()
         for term in self.task:
             term.prepare(train_set)
-        self.trainable = [p for m in (self.student, self.task, self.objectives) for p in m.parameters() if p.requires_grad]
+        self.trainable = [p for m in (self.student, self.task, self.objectives, self.connectors) for p in m.parameters()
+                          if p.requires_grad]
         self.optimizer = self._optimizer(self._param_groups())
         self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
         self.eval_every = spec.eval_every or self.steps_per_epoch
@@ -121,7 +125,8 @@ class Trainer:
         """Trainable parameters by qualified name: ``student.*``, ``task.<term>.*``, ``distill.<objective>.*``."""
         named = [(f"student.{n}", p) for n, p in self.student.named_parameters()]
         for prefix, specs, mods in (("task", self.stage.task_losses, self.task),
-                                    ("distill", self.stage.distill, self.objectives)):
+                                    ("distill", self.stage.distill, self.objectives),
+                                    ("connector", self.stage.distill, self.connectors)):
             for spec, mod in zip(specs, mods):
                 named += [(f"{prefix}.{spec.name}.{n}", p) for n, p in mod.named_parameters()]
         return [(n, p) for n, p in named if p.requires_grad]
@@ -161,7 +166,8 @@ class Trainer:
     def _save_last(self, step: int, best: dict[str, Any]) -> None:
         atomic_torch_save(self.ckpt_dir / "last.pt", {
             "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
-            "objectives": self.objectives.state_dict(), "optimizer": self.optimizer.state_dict(),
+            "objectives": self.objectives.state_dict(), "connectors": self.connectors.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
             "step": step, "best": best, "rng": rng_state(), "adapter": self.stage.student.adapter,
             "adapter_params": self.stage.student.params.model_dump(mode="json"),
         })
@@ -169,7 +175,8 @@ class Trainer:
     def _save_best(self, step: int, scores: dict[str, Any]) -> None:
         atomic_torch_save(self.ckpt_dir / "best.pt", {
             "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
-            "objectives": self.objectives.state_dict(), "step": step, "scores": json.dumps(scores),
+            "objectives": self.objectives.state_dict(), "connectors": self.connectors.state_dict(),
+            "step": step, "scores": json.dumps(scores),
             "adapter": self.stage.student.adapter, "adapter_params": self.stage.student.params.model_dump(mode="json"),
         })
 
@@ -246,10 +253,15 @@ class Trainer:
             s_out, t_out = self.student(batch), self.teacher(batch)
             self._check_outputs(self.student, s_out, "student")
             self._check_outputs(self.teacher, t_out, "teacher")
-            for spec, mod in zip(self.stage.distill, self.objectives):
-                mod.setup(self._taps(spec, s_out, t_out), batch)
+            for i, (spec, mod) in enumerate(zip(self.stage.distill, self.objectives)):
+                taps = self._taps(spec, s_out, t_out)
+                if spec.connector is not None:
+                    self.connectors[i] = Connector(spec.connector, taps["student"], taps["teacher"])
+                    taps["student"] = self.connectors[i](taps["student"])
+                mod.setup(taps, batch)
         self.student.train(was)
         self.objectives.to(self.device)
+        self.connectors.to(self.device)
 
     def _check_outputs(self, model: Adapter, outputs: dict[str, Any], role: str) -> None:
         """Every tap the adapter declares, present and of its kind (checked once, on the first batch)."""
@@ -276,9 +288,12 @@ class Trainer:
             with torch.no_grad():
                 t_out = self.teacher(batch)
             self._check_outputs(self.teacher, t_out, "teacher")
-            for spec, mod in zip(self.stage.distill, self.objectives):
+            for i, (spec, mod) in enumerate(zip(self.stage.distill, self.objectives)):
+                taps = self._taps(spec, s_out, t_out)
+                if spec.connector is not None:
+                    taps["student"] = self.connectors[i](taps["student"])
                 try:
-                    terms[f"kd_{spec.name}"] = spec.weight * mod.compute(self._taps(spec, s_out, t_out), batch)
+                    terms[f"kd_{spec.name}"] = spec.weight * mod.compute(taps, batch)
                 except DistilkitError as exc:  # one line naming where: stage and objective
                     where = f"stage {self.stage.name!r}, objective {spec.name!r}: {exc}"
                     try:
@@ -297,6 +312,7 @@ class Trainer:
             self.student.load_state_dict(ckpt["student"])
             self.task.load_state_dict(ckpt["task_losses"])
             self.objectives.load_state_dict(ckpt["objectives"])
+            self.connectors.load_state_dict(ckpt.get("connectors", {}))
             self.optimizer.load_state_dict(ckpt["optimizer"])
             set_rng_state(ckpt["rng"])
             start_step, best = int(ckpt["step"]), ckpt["best"]

@@ -25,6 +25,7 @@ class Objective(nn.Module, ABC):
     CONSUMES: ClassVar[dict[str, str]] = {}
     OPTIONAL: ClassVar[frozenset[str]] = frozenset()
     DEFAULT_WEIGHT: ClassVar[float] = 1.0
+    DEFAULT_CONNECTOR: ClassVar[str | None] = None  # e.g. "linear": the student tap is projected first
     VERSION: ClassVar[int] = 1  # bump when the objective's numbers change: stages using it retrain
 
     def __init__(self, params: BaseModel) -> None:

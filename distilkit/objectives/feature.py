@@ -20,19 +20,18 @@ class NoParams(BaseModel):
 
 class FitNets(Objective):
     """FitNets (Romero et al., ICLR 2015): MSE between a learnable 1x1 regression of the student's
-    features and the teacher's. The regressor (Conv2d or Conv3d, sized from the first batch) is
-    trained with the student; the student map is resampled to the teacher's spatial size if needed."""
+    features and the teacher's. The regressor is the ``linear`` connector (Conv2d or Conv3d, sized from
+    the first batch, trained with the student); the student map is resampled to the teacher's spatial
+    size if needed."""
 
     Params = NoParams
     CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
     DEFAULT_WEIGHT = 1.0
-
-    def setup(self, taps: dict[str, Any], batch: Batch) -> None:
-        s, t = taps["student"], taps["teacher"]
-        self.regressor = conv1x1(s.shape[1], t.shape[1], s.dim() - 2)
+    DEFAULT_CONNECTOR = "linear"
+    VERSION = 2  # 2: the regressor is a connector (same numbers, other checkpoint keys)
 
     def forward(self, student: Tensor, teacher: Tensor, batch: Batch) -> Tensor:
-        return fitnet(match_spatial(self.regressor(student), tuple(teacher.shape[2:])), teacher)
+        return fitnet(match_spatial(student, tuple(teacher.shape[2:])), teacher)
 
 
 class NST(Objective):
