@@ -66,6 +66,10 @@ class Registry(Generic[T]):
 
         return deco
 
+    def remove(self, name: str) -> None:
+        """Unregister ``name`` (tests and notebooks that register temporary components)."""
+        self._entries.pop(name, None)
+
     def entry(self, name: str) -> Entry[T]:
         load_plugins()
         try:

@@ -8,7 +8,7 @@ rejected by `validate`, naming the missing inputs.
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import pytest
@@ -60,6 +60,13 @@ def collate_camera(samples: list[dict[str, np.ndarray]]) -> Batch:
                  {"size": len(samples), "cameras": [CAMERA] * len(samples)})
 
 
+SPLIT_OFFSET = {"train": 0, "val": 100, "test": 200}  # different samples per split
+
+
+def camera_split(params: CameraDataParams, split: str, progress: Any = None) -> list[dict[str, np.ndarray]]:
+    return [camera_sample(SPLIT_OFFSET[split] + i) for i in range(getattr(params, f"num_{split}"))]
+
+
 def camera_info(params: CameraDataParams) -> DataInfo:
     return DataInfo(GRID, CLASSES, frozenset({"image", "voxel_label", "invalid", "voxel_target"}), (CAMERA,))
 
@@ -90,15 +97,15 @@ class TinyCamera(Adapter):
 
 
 @pytest.fixture(scope="module", autouse=True)
-def camera_components() -> None:
-    if "tiny-camera-data" not in DATASETS:
-        DATASETS.add("tiny-camera-data", lambda p, split, progress=None: [camera_sample(i + hash(split) % 97)
-                                                                           for i in range(getattr(p, f"num_{split}"))],
-                     description="test: images and voxel labels", paper="tests", params=CameraDataParams,
-                     info=camera_info, collate=collate_camera, version=1, has_split=lambda p, s: True)
-    if "tiny-camera" not in ADAPTERS:
-        ADAPTERS.add("tiny-camera", TinyCamera, description="test: camera-style model", paper="tests",
-                     consumes=tuple(TinyCamera.TAPS.values()))
+def camera_components() -> Iterator[None]:
+    DATASETS.add("tiny-camera-data", camera_split, description="test: images and voxel labels", paper="tests",
+                 params=CameraDataParams, info=camera_info, collate=collate_camera, version=1,
+                 has_split=lambda p, s: True)
+    ADAPTERS.add("tiny-camera", TinyCamera, description="test: camera-style model", paper="tests",
+                 consumes=tuple(TinyCamera.TAPS.values()))
+    yield
+    DATASETS.remove("tiny-camera-data")  # other tests iterate over the registries
+    ADAPTERS.remove("tiny-camera")
 
 
 def validate_fails(recipe: dict[str, Any], tmp_path, capsys) -> str:
@@ -158,6 +165,10 @@ def point_sample(i: int) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(100 + i)
     half = rng.uniform(0.1, 1.0, size=(int(rng.integers(8, 14)), 3)).astype(np.float32)
     return {"partial": half, "complete": np.concatenate([half, half * np.array([-1, 1, 1], np.float32)])}
+
+
+def point_split(params: PointDataParams, split: str, progress: Any = None) -> list[dict[str, np.ndarray]]:
+    return [point_sample(SPLIT_OFFSET[split] + i) for i in range(getattr(params, f"num_{split}"))]
 
 
 def collate_points(samples: list[dict[str, np.ndarray]]) -> Batch:
@@ -228,22 +239,22 @@ class ChamferScore(Metric):
 
 
 @pytest.fixture(scope="module", autouse=True)
-def point_components() -> None:
-    if "tiny-points-data" not in DATASETS:
-        DATASETS.add("tiny-points-data", lambda p, split, progress=None: [point_sample(i + 10 * ("train", "val", "test")
-                                                                                         .index(split))
-                                                                           for i in range(getattr(p, f"num_{split}"))],
-                     description="test: partial and complete point clouds", paper="tests", params=PointDataParams,
-                     info=lambda p: DataInfo(None, ClassTable(("point",), ((0, 0, 0),)),
-                                             frozenset({"partial", "partial_lengths", "complete", "complete_lengths"})),
-                     collate=collate_points, version=1, has_split=lambda p, s: True)
-    if "tiny-points" not in ADAPTERS:
-        ADAPTERS.add("tiny-points", TinyPointCompletion, description="test: point completion", paper="tests",
-                     consumes=("points",))
-        TASK_LOSSES.add("test-chamfer", ChamferLoss, description="test: Chamfer distance", paper="tests",
-                        consumes=("points",))
-        METRICS.add("test-chamfer", ChamferScore, description="test: Chamfer distance", paper="tests",
+def point_components() -> Iterator[None]:
+    DATASETS.add("tiny-points-data", point_split, description="test: partial and complete point clouds",
+                 paper="tests", params=PointDataParams,
+                 info=lambda p: DataInfo(None, ClassTable(("point",), ((0, 0, 0),)),
+                                         frozenset({"partial", "partial_lengths", "complete", "complete_lengths"})),
+                 collate=collate_points, version=1, has_split=lambda p, s: True)
+    ADAPTERS.add("tiny-points", TinyPointCompletion, description="test: point completion", paper="tests",
+                 consumes=("points",))
+    TASK_LOSSES.add("test-chamfer", ChamferLoss, description="test: Chamfer distance", paper="tests",
                     consumes=("points",))
+    METRICS.add("test-chamfer", ChamferScore, description="test: Chamfer distance", paper="tests",
+                consumes=("points",))
+    yield
+    for registry, name in ((DATASETS, "tiny-points-data"), (ADAPTERS, "tiny-points"), (TASK_LOSSES, "test-chamfer"),
+                           (METRICS, "test-chamfer")):
+        registry.remove(name)
 
 
 def point_recipe(metric: str = "chamfer") -> dict[str, Any]:

@@ -59,9 +59,10 @@ def test_objective_contract(name: str) -> None:
     params = cls.Params()  # every parameter has a default: `{name: X}` alone is a valid recipe line
     mod = cls(params)
     assert isinstance(mod, torch.nn.Module)
-    assert {"student", "teacher"} <= set(cls.CONSUMES), "objectives read a student and a teacher tap"
+    assert "student" in cls.CONSUMES and cls.TEACHER_ROLES <= set(cls.CONSUMES), "roles and their sources"
     assert set(cls.CONSUMES.values()) <= set(TAP_KINDS)
-    assert cls.OPTIONAL <= set(cls.CONSUMES) and not ({"student", "teacher"} & cls.OPTIONAL)
+    assert cls.OPTIONAL <= set(cls.CONSUMES) and "student" not in cls.OPTIONAL
+    assert all(isinstance(c, str) and c.isidentifier() for c in cls.REQUIRES), "teacher capabilities are methods"
     assert cls.DEFAULT_WEIGHT > 0 and isinstance(cls.VERSION, int) and cls.VERSION >= 1
     assert entry.paper and entry.meta.get("equation") and entry.meta.get("shapes"), "documented in objectives.md"
 

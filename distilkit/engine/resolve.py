@@ -112,7 +112,7 @@ def _resolve_taps(term_path: str, cls: Any, given: dict[str, str], models: dict[
             problems.append((f"{term_path}.taps.{role}", f"unknown role (this component takes {sorted(cls.CONSUMES)})"))
     optional = getattr(cls, "OPTIONAL", frozenset())
     for role, kind in cls.CONSUMES.items():
-        model = models.get("teacher" if role.startswith("teacher") else "student")
+        model = models.get("teacher" if role in getattr(cls, "TEACHER_ROLES", frozenset()) else "student")
         if model is None or (role in optional and role not in given):
             continue
         taps = model.taps
@@ -163,7 +163,8 @@ def grid_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedModel | N
     out = []
     for i, term in enumerate(terms):
         for role, tap in term.taps.items():
-            partner = "student" + role[len("teacher"):] if role.startswith("teacher") else None
+            # a teacher role pairs with the student role of the same suffix (teacher_logits: student_logits)
+            partner = "student" + role[len("teacher"):] if role in term.cls.TEACHER_ROLES else None
             if partner not in term.taps or models.get("student") is None or models.get("teacher") is None:
                 continue
             s_model, t_model = models["student"], models["teacher"]
@@ -276,6 +277,11 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
                     problems.extend(data_problems(model, info, where))
         if info is not None:
             problems.extend(grid_problems(distill, models, info, f"{path}.distill"))
+        for i, term in enumerate(distill):  # teacher capabilities the objective calls
+            for cap in sorted(term.cls.REQUIRES):
+                if teacher is not None and not callable(getattr(teacher.cls, cap, None)):
+                    problems.append((f"{path}.distill[{i}]", f"{term.name} calls the teacher's {cap}(), which adapter "
+                                                              f"{teacher.adapter!r} does not provide"))
         if student is not None:
             groups = param_groups(spec.optimizer.param_groups, task, distill)
             stages[name] = ResolvedStage(name, spec, student, teacher, teacher_from, task, distill, groups, metric)

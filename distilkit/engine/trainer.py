@@ -28,6 +28,7 @@ from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_wr
 from distilkit.engine.resolve import ResolvedModel, ResolvedStage
 from distilkit.errors import DistilkitError, NonFiniteLossError
 from distilkit.metrics.base import Metric
+from distilkit.objectives.base import TermContext
 from distilkit.objectives.connectors import Connector
 from distilkit.taps import check_tap
 
@@ -94,6 +95,8 @@ class Trainer:
         self.collate = collate  # the dataset's registered collate
         self._checked: set[str] = set()  # roles whose outputs passed the tap checks
         self._init_log: dict[str, Any] | None = None
+        self._last_taps: dict[int, dict[str, Any]] = {}  # per objective, detached, for its update()
+        self.own_optimizers: list[torch.optim.Optimizer | None] = []
         assert stage.metric is not None, "a resolved stage always has its metric"
         self.metric = stage.metric
         self.run_dir, self.seed, self.on_step, self.stop_after = run_dir, seed, on_step, stop_after
@@ -115,8 +118,9 @@ class Trainer:
         self._setup_objectives()
         for term in self.task:
             term.prepare(train_set)
-        self.trainable = [p for m in (self.student, self.task, self.objectives, self.connectors) for p in m.parameters()
-                          if p.requires_grad]
+        own = [m for m, o in zip(self.objectives, self.own_optimizers) if o is not None]  # they train themselves
+        self.trainable = [p for m in (self.student, self.task, *[o for o in self.objectives if o not in own],
+                                      self.connectors) for p in m.parameters() if p.requires_grad]
         self.optimizer = self._optimizer(self._param_groups())
         self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
         self.eval_every = spec.eval_every or self.steps_per_epoch
@@ -129,7 +133,8 @@ class Trainer:
                                     ("connector", self.stage.distill, self.connectors)):
             for spec, mod in zip(specs, mods):
                 named += [(f"{prefix}.{spec.name}.{n}", p) for n, p in mod.named_parameters()]
-        return [(n, p) for n, p in named if p.requires_grad]
+        mine = {id(p) for p in self.trainable}
+        return [(n, p) for n, p in named if p.requires_grad and id(p) in mine]
 
     def _param_groups(self) -> list[dict[str, Any]]:
         """Optimizer groups: each parameter joins the first group whose ``match`` fits its name."""
@@ -168,6 +173,7 @@ class Trainer:
             "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
             "objectives": self.objectives.state_dict(), "connectors": self.connectors.state_dict(),
             "optimizer": self.optimizer.state_dict(),
+            "objective_optimizers": [o.state_dict() if o is not None else {} for o in self.own_optimizers],
             "step": step, "best": best, "rng": rng_state(), "adapter": self.stage.student.adapter,
             "adapter_params": self.stage.student.params.model_dump(mode="json"),
         })
@@ -239,7 +245,21 @@ class Trainer:
 
     @staticmethod
     def _taps(spec: Any, s_out: dict[str, Any], t_out: dict[str, Any]) -> dict[str, Any]:
-        return {role: (t_out if role.startswith("teacher") else s_out)[tap] for role, tap in spec.taps.items()}
+        return {role: (t_out if role in spec.cls.TEACHER_ROLES else s_out)[tap] for role, tap in spec.taps.items()}
+
+    @property
+    def _teacher_outputs_needed(self) -> bool:
+        """Whether some objective reads a teacher tap (else the teacher runs only when an objective calls it)."""
+        return any(role in spec.cls.TEACHER_ROLES for spec in self.stage.distill for role in spec.taps)
+
+    def _teacher_outputs(self, batch: Batch) -> dict[str, Any]:
+        if not self._teacher_outputs_needed:
+            return {}
+        assert self.teacher is not None
+        with torch.no_grad():
+            t_out = self.teacher(batch)
+        self._check_outputs(self.teacher, t_out, "teacher")
+        return t_out
 
     def _setup_objectives(self) -> None:
         """Size the objectives' own layers from one real batch (before the optimizer exists)."""
@@ -250,9 +270,8 @@ class Trainer:
         was = self.student.training
         self.student.eval()
         with torch.no_grad():
-            s_out, t_out = self.student(batch), self.teacher(batch)
+            s_out, t_out = self.student(batch), self._teacher_outputs(batch)
             self._check_outputs(self.student, s_out, "student")
-            self._check_outputs(self.teacher, t_out, "teacher")
             for i, (spec, mod) in enumerate(zip(self.stage.distill, self.objectives)):
                 taps = self._taps(spec, s_out, t_out)
                 if spec.connector is not None:
@@ -262,6 +281,9 @@ class Trainer:
         self.student.train(was)
         self.objectives.to(self.device)
         self.connectors.to(self.device)
+        for mod in self.objectives:
+            mod.bind(TermContext(self.student, self.teacher, self.device))
+        self.own_optimizers = [mod.own_optimizer() for mod in self.objectives]
 
     def _check_outputs(self, model: Adapter, outputs: dict[str, Any], role: str) -> None:
         """Every tap the adapter declares, present and of its kind (checked once, on the first batch)."""
@@ -284,14 +306,12 @@ class Trainer:
         for spec, mod in zip(self.stage.task_losses, self.task):
             terms[spec.name] = spec.weight * mod(s_out, batch)
         if len(self.objectives):
-            assert self.teacher is not None
-            with torch.no_grad():
-                t_out = self.teacher(batch)
-            self._check_outputs(self.teacher, t_out, "teacher")
+            t_out = self._teacher_outputs(batch)
             for i, (spec, mod) in enumerate(zip(self.stage.distill, self.objectives)):
                 taps = self._taps(spec, s_out, t_out)
                 if spec.connector is not None:
                     taps["student"] = self.connectors[i](taps["student"])
+                self._last_taps[i] = {role: v.detach() if hasattr(v, "detach") else v for role, v in taps.items()}
                 try:
                     terms[f"kd_{spec.name}"] = spec.weight * mod.compute(taps, batch)
                 except DistilkitError as exc:  # one line naming where: stage and objective
@@ -313,6 +333,9 @@ class Trainer:
             self.task.load_state_dict(ckpt["task_losses"])
             self.objectives.load_state_dict(ckpt["objectives"])
             self.connectors.load_state_dict(ckpt.get("connectors", {}))
+            for opt, state in zip(self.own_optimizers, ckpt.get("objective_optimizers", [])):
+                if opt is not None and state:
+                    opt.load_state_dict(state)
             self.optimizer.load_state_dict(ckpt["optimizer"])
             set_rng_state(ckpt["rng"])
             start_step, best = int(ckpt["step"]), ckpt["best"]
@@ -344,8 +367,8 @@ class Trainer:
                     f"checkpoint ({last_path}) is kept. Lower the learning rate or the term's weight.")
             self.optimizer.step()
             extra: dict[str, float] = {}
-            for mod in self.objectives:
-                extra.update(mod.update(step))
+            for i, mod in enumerate(self.objectives):
+                extra.update(mod.update(step, batch, self._last_taps.get(i, {})))
             step += 1
             values = {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}, **extra}
             if step % spec.log_every == 0 or step == self.total_steps:

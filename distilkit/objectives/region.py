@@ -54,6 +54,7 @@ class RGO2D(MultiTapObjective):
 
     Params = RGO2DParams
     CONSUMES = LOGITS_AND_OPTIONAL_FEATURES
+    TEACHER_ROLES = frozenset({"teacher", "teacher_features"})
     OPTIONAL = FEATURE_ROLES
     DEFAULT_WEIGHT = 1.0
 
@@ -81,6 +82,7 @@ class CleanerS(MultiTapObjective):
 
     Params = CleanerSParams
     CONSUMES = LOGITS_AND_OPTIONAL_FEATURES
+    TEACHER_ROLES = frozenset({"teacher", "teacher_features"})
     OPTIONAL = FEATURE_ROLES
     DEFAULT_WEIGHT = 0.25
 

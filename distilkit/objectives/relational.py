@@ -81,6 +81,7 @@ class PVKD(MultiTapObjective):
     Params = PVKDParams
     CONSUMES = {"student": "sparse_features", "teacher": "sparse_features",
                 "student_logits": "voxel_logits", "teacher_logits": "voxel_logits"}
+    TEACHER_ROLES = frozenset({"teacher", "teacher_logits"})
     DEFAULT_WEIGHT = 1.0
 
     def supervoxel_ids(self, coords: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
