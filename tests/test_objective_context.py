@@ -115,7 +115,8 @@ def test_an_objective_trains_its_own_network_and_calls_a_teacher_capability(tmp_
 
 
 def test_the_student_optimizer_leaves_an_objectives_own_parameters_alone(tmp_path) -> None:
-    from distilkit.engine.trainer import Trainer, load_teacher
+    from distilkit.engine.models import load_teacher
+    from distilkit.engine.trainer import Trainer
 
     pipe = Pipeline(recipe_from_dict(recipe()), tmp_path / "runs", quiet=True)
     pipe.run()

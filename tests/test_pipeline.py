@@ -10,7 +10,8 @@ import torch
 from conftest import tiny_recipe
 from distilkit.engine.io import load_checkpoint
 from distilkit.engine.pipeline import Pipeline
-from distilkit.engine.trainer import Trainer, load_teacher
+from distilkit.engine.models import load_teacher
+from distilkit.engine.trainer import Trainer
 from distilkit.errors import DataError, NonFiniteLossError, RecipeError, TapError
 from distilkit.recipe import recipe_from_dict
 
@@ -277,7 +278,7 @@ def test_recipe_taps_record_submodules_and_feed_objectives(tmp_path) -> None:
     _, student = pipe.run()
     assert "kd_fitnets" in (student.run_dir / "metrics.jsonl").read_text()
     # the recorded value is the submodule's output, every forward pass
-    from distilkit.engine.trainer import build_model
+    from distilkit.engine.models import build_model
     from distilkit.data.lidar import collate_lidar
 
     model = build_model(pipe.resolved.stages["student"].student, pipe.resolved.data_info).eval()

@@ -206,7 +206,8 @@ class Pipeline:
     def run(self, stop_after: int | None = None, rerun: list[str] | None = None) -> list[StageResult]:
         from distilkit.engine.io import seed_everything
         from distilkit.engine.report import stage_progress, write_report
-        from distilkit.engine.trainer import Trainer, load_teacher, pick_device, write_summary
+        from distilkit.engine.models import load_teacher, pick_device
+        from distilkit.engine.trainer import Trainer, write_summary
 
         results: list[StageResult] = []
         again = self.rerun_set(rerun)

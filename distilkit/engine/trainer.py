@@ -1,10 +1,12 @@
 """The trainer: one stage's student, its frozen teacher, task losses and distillation objectives.
 
-Per step: ``s_out = student(batch)``; ``t_out = teacher(batch)`` under ``no_grad`` (only when the
-stage has objectives); ``loss = sum_j w_j task_j + sum_i w_i objective_i(s_tap, t_tap, batch)``;
-backward, gradient clipping, optimizer step, then ``objective.update``. ``last.pt`` is written
-every ``checkpoint_every`` steps and at each evaluation, ``best.pt`` when the validation score
-improves; a run started again resumes from ``last.pt`` (model, optimizer, RNG and data order).
+Per step (:meth:`Trainer.train_step`): ``s_out = student(batch)``; the teacher's outputs under
+``no_grad`` when a term reads a teacher tap; ``loss = sum_j w_j task_j + sum_i w_i objective_i(taps)``;
+backward, a finite-gradient check, clipping, the optimizer step, then each objective's own ``update``.
+After each step the lifecycle hooks (:mod:`distilkit.engine.hooks`) log, report progress, evaluate
+(``best.pt``) and checkpoint (``last.pt``); a run started again resumes from ``last.pt`` (models,
+optimizers, RNG and data order). Models are built in :mod:`~distilkit.engine.models` and scored in
+:mod:`~distilkit.engine.evaluate`.
 """
 
 from __future__ import annotations
@@ -22,60 +24,16 @@ from torch import Tensor, nn
 from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
-from distilkit.engine.recorders import attach_recorders
+from distilkit.engine.evaluate import Collate, evaluate
+from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, LoopState, ProgressHook
 from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint,
                                  load_weights, rng_state, set_rng_state)
-from distilkit.engine.resolve import ResolvedModel, ResolvedStage
+from distilkit.engine.models import build_model, pick_device
+from distilkit.engine.resolve import ResolvedStage
 from distilkit.errors import DistilkitError, NonFiniteLossError
-from distilkit.metrics.base import Metric
 from distilkit.objectives.base import TermContext
 from distilkit.objectives.connectors import Connector
 from distilkit.taps import check_tap
-
-
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
-Collate = Callable[[list[Any]], Batch]
-
-
-def build_model(model: ResolvedModel, info: DataInfo, role: str = "student") -> Adapter:
-    """The adapter, with the recipe's recorded taps attached (``model.taps`` in a recipe)."""
-    built = model.cls(model.params, info)
-    attach_recorders(built, model.hooks, role)
-    return built
-
-
-def freeze(model: nn.Module) -> nn.Module:
-    """Teacher semantics: eval mode (BatchNorm statistics frozen) and no gradients."""
-    model.eval()
-    for p in model.parameters():
-        p.requires_grad_(False)
-    return model
-
-
-def load_teacher(model: ResolvedModel, info: DataInfo, checkpoint: Path, device: torch.device) -> Adapter:
-    """The frozen teacher: the adapter built from its params, its weights read by the adapter (all must fit)."""
-    teacher = build_model(model, info, "teacher")
-    load_weights(teacher, model.cls.read_weights(str(checkpoint)), True, f"teacher {checkpoint}")
-    return freeze(teacher.to(device))  # type: ignore[return-value]
-
-
-@torch.no_grad()
-def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device, collate: Collate,
-             metric: type[Metric]) -> dict[str, Any]:
-    """Scores of the model's prediction tap over ``dataset`` with a registered metric."""
-    was_training = model.training
-    model.eval()
-    acc = metric(model.info)
-    for start in range(0, len(dataset), batch_size):
-        batch = collate([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))]).to(device)
-        acc.update(model(batch)[model.PREDICTION_TAP], batch)
-    model.train(was_training)
-    return acc.compute()
 
 
 @dataclass
@@ -124,6 +82,9 @@ class Trainer:
         self.optimizer = self._optimizer(self._param_groups())
         self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
         self.eval_every = spec.eval_every or self.steps_per_epoch
+        # the loop's lifecycle, in order: log, progress, evaluate (best.pt), checkpoint (last.pt)
+        self.hooks: list[Hook] = [LogHook(), *([ProgressHook(on_step)] if on_step else []), EvalHook(),
+                                  CheckpointHook()]
 
     def named_trainables(self) -> list[tuple[str, nn.Parameter]]:
         """Trainable parameters by qualified name: ``student.*``, ``task.<term>.*``, ``distill.<objective>.*``."""
@@ -324,7 +285,6 @@ class Trainer:
         return terms
 
     def fit(self) -> TrainResult:
-        spec = self.stage.spec.train
         start_step, best = 0, {"score": -1.0, "step": -1, "scores": None}
         last_path = self.ckpt_dir / "last.pt"
         if last_path.is_file():
@@ -343,68 +303,57 @@ class Trainer:
             self._log({"event": "resume", "step": start_step})
         elif self._init_log is not None:
             self._log(self._init_log)
-        t0 = time.perf_counter()
+        state = LoopState(start_step, self.total_steps, best)
         self.student.train()
-        last_scores: dict[str, Any] | None = None
-        step = start_step
-        while step < self.total_steps:
-            batch = self._batch(step)
-            terms = self.loss_terms(batch)
-            loss = torch.stack(list(terms.values())).sum()
-            bad = [k for k, v in terms.items() if not torch.isfinite(v)]
-            if bad:
-                raise NonFiniteLossError(
-                    f"stage {self.stage.name!r}, step {step + 1}: loss term(s) {', '.join(bad)} became "
-                    f"{', '.join(str(float(terms[k].detach())) for k in bad)}; training stopped, the last checkpoint "
-                    f"({last_path}) is kept. Lower the learning rate or the term's weight.")
-            self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            grad_norm = self._grad_norm(spec.grad_clip)
-            if not torch.isfinite(grad_norm):
-                raise NonFiniteLossError(
-                    f"stage {self.stage.name!r}, step {step + 1}: the gradient became {float(grad_norm)} "
-                    f"({self._blame(batch)}) although every loss term was finite; no weight was updated, the last "
-                    f"checkpoint ({last_path}) is kept. Lower the learning rate or the term's weight.")
-            self.optimizer.step()
-            extra: dict[str, float] = {}
-            for i, mod in enumerate(self.objectives):
-                extra.update(mod.update(step, batch, self._last_taps.get(i, {})))
-            step += 1
-            values = {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}, **extra}
-            if step % spec.log_every == 0 or step == self.total_steps:
-                self._log({"step": step, "epoch": (step - 1) // self.steps_per_epoch, **values,
-                           "lr": self.optimizer.param_groups[0]["lr"], "time": time.perf_counter() - t0})
-            if self.on_step:
-                self.on_step(step, self.total_steps, values)
-            if step % self.eval_every == 0 or step == self.total_steps:
-                last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device, self.collate, self.metric.cls)
-                self._log({"step": step, "eval": last_scores})
-                score = last_scores[self.metric.key]
-                if best["scores"] is None or (score > best["score"] if self.metric.higher_is_better
-                                              else score < best["score"]):
-                    best = {"score": score, "step": step, "scores": last_scores}
-                    self._save_best(step, last_scores)
-                self._save_last(step, best)
-            elif step % spec.checkpoint_every == 0:
-                self._save_last(step, best)
-            if self.stop_after is not None and step >= self.stop_after:
+        while state.step < self.total_steps:
+            state.values = self.train_step(self._batch(state.step), state.step)
+            state.step += 1
+            for hook in self.hooks:
+                hook.after_step(self, state)
+            if self.stop_after is not None and state.step >= self.stop_after:
                 break
-        if last_scores is None:  # resumed at the very end
-            last_scores = evaluate(self.student, self.val_set, spec.batch_size, self.device, self.collate, self.metric.cls)
-        seconds = time.perf_counter() - t0
-        return TrainResult(best=best, last=last_scores, steps=step, seconds=seconds)
+        last_scores = state.last_scores if state.last_scores is not None else self.evaluate(self.val_set)
+        return TrainResult(best=state.best, last=last_scores, steps=state.step, seconds=time.perf_counter() - state.t0)
+
+    def train_step(self, batch: Batch, step: int) -> dict[str, float]:
+        """One optimizer step of the student (then the objectives' own updates); returns the values to log."""
+        last_path = self.ckpt_dir / "last.pt"
+        terms = self.loss_terms(batch)
+        loss = torch.stack(list(terms.values())).sum()
+        bad = [k for k, v in terms.items() if not torch.isfinite(v)]
+        if bad:
+            raise NonFiniteLossError(
+                f"stage {self.stage.name!r}, step {step + 1}: loss term(s) {', '.join(bad)} became "
+                f"{', '.join(str(float(terms[k].detach())) for k in bad)}; training stopped, the last checkpoint "
+                f"({last_path}) is kept. Lower the learning rate or the term's weight.")
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = self._grad_norm(self.stage.spec.train.grad_clip)
+        if not torch.isfinite(grad_norm):
+            raise NonFiniteLossError(
+                f"stage {self.stage.name!r}, step {step + 1}: the gradient became {float(grad_norm)} "
+                f"({self._blame(batch)}) although every loss term was finite; no weight was updated, the last "
+                f"checkpoint ({last_path}) is kept. Lower the learning rate or the term's weight.")
+        self.optimizer.step()
+        extra: dict[str, float] = {}
+        for i, mod in enumerate(self.objectives):
+            extra.update(mod.update(step, batch, self._last_taps.get(i, {})))
+        return {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}, **extra}
+
+    def evaluate(self, dataset: Any, model: Adapter | None = None) -> dict[str, Any]:
+        """Scores of the student (or ``model``) on ``dataset`` with the stage's metric."""
+        return evaluate(model if model is not None else self.student, dataset, self.stage.spec.train.batch_size,
+                        self.device, self.collate, self.metric.cls)
 
     def evaluate_checkpoints(self, dataset: Any) -> dict[str, Any]:
         """Scores on ``dataset`` (the test split) of the best-validation checkpoint and of the last one."""
-        bs = self.stage.spec.train.batch_size
-        out: dict[str, Any] = {"last": evaluate(self.student, dataset, bs, self.device, self.collate, self.metric.cls),
-                               "last_step": self.total_steps}
+        out: dict[str, Any] = {"last": self.evaluate(dataset), "last_step": self.total_steps}
         best_path = self.ckpt_dir / "best.pt"
         if best_path.is_file():
             ckpt = load_checkpoint(best_path)
             model = build_model(self.stage.student, self.info).to(self.device)
             model.load_state_dict(ckpt["student"])
-            out["best"], out["best_step"] = evaluate(model, dataset, bs, self.device, self.collate, self.metric.cls), int(ckpt["step"])
+            out["best"], out["best_step"] = self.evaluate(dataset, model), int(ckpt["step"])
         else:
             out["best"], out["best_step"] = out["last"], self.total_steps
         return out

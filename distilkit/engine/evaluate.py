@@ -1,0 +1,27 @@
+"""Scoring a model on a split: its prediction tap, accumulated by a registered metric."""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import torch
+
+from distilkit.adapter import Adapter
+from distilkit.data.batch import Batch
+from distilkit.metrics.base import Metric
+
+Collate = Callable[[list[Any]], Batch]
+
+
+@torch.no_grad()
+def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device, collate: Collate,
+             metric: type[Metric]) -> dict[str, Any]:
+    """Scores of the model's prediction tap over ``dataset`` with a registered metric."""
+    was_training = model.training
+    model.eval()
+    acc = metric(model.info)
+    for start in range(0, len(dataset), batch_size):
+        batch = collate([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))]).to(device)
+        acc.update(model(batch)[model.PREDICTION_TAP], batch)
+    model.train(was_training)
+    return acc.compute()
