@@ -83,7 +83,8 @@ class LossSpec(_Strict):
     weight: float | None = Field(None, ge=0, description="weight (default: the component's default)")
     params: dict[str, Any] = Field(default_factory=dict, description="the component's parameters")
     taps: dict[str, str] = Field(default_factory=dict,
-                                 description="role -> tap name, e.g. {student: completion, teacher: completion}")
+                                 description="role -> tap name, e.g. {student: completion, teacher: completion}; "
+                                             "for a batch role, the batch field, e.g. {target: voxel_label}")
     connector: Literal["linear", "none"] | None = Field(
         None, description="learnable projection of the student tap to the teacher's channels before the objective "
                           "(default: the objective's own; fitnets: linear)")

@@ -9,6 +9,7 @@ tap of the student and the teacher on the first batch, so a wrong shape is one c
 | voxel_logits      | (B, K, X, Y, Z) class scores on a voxel grid                              |
 | feature_map       | (B, C, H, W) image or (B, C, X, Y, Z) volume features                     |
 | point_logits      | (M, K) per-point class scores (points of the batch, concatenated)         |
+| point_labels      | (M,) int64 labels of the points behind a ``point_logits`` tap             |
 | points            | :class:`PointCloud`: (B, M, D) padded points and (B,) lengths (PyTorch3D's convention) |
 | scalar            | a 0-d tensor                                                              |
 
@@ -107,6 +108,13 @@ def _tensor(dims: tuple[int, ...], what: str) -> Callable[[Any], str | None]:
     return check
 
 
+def _labels(value: Any) -> str | None:
+    if isinstance(value, Tensor) and value.dim() == 1 and not value.dtype.is_floating_point:
+        return None
+    return f"expected (M,) integer labels, got {_shape(value)}" + (
+        f" {value.dtype}" if isinstance(value, Tensor) else "")
+
+
 def _instance(cls: type, what: str) -> Callable[[Any], str | None]:
     def check(value: Any) -> str | None:
         return None if isinstance(value, cls) else f"expected {what}, got {_shape(value)}"
@@ -128,6 +136,7 @@ register_tap_kind("sparse_features", _instance(SparseVoxels, "SparseVoxels(coord
 register_tap_kind("voxel_logits", _tensor((5,), "(B, K, X, Y, Z) class scores"), "class scores per voxel")
 register_tap_kind("feature_map", _tensor((4, 5), "(B, C, H, W) or (B, C, X, Y, Z) features"), "dense features")
 register_tap_kind("point_logits", _tensor((2,), "(M, K) per-point class scores"), "class scores per point")
+register_tap_kind("point_labels", _labels, "labels of the points a model scored")
 register_tap_kind("points", _instance(PointCloud, "PointCloud(points (B, M, D), lengths (B,))"),
                   "padded point clouds with lengths")
 register_tap_kind("scalar", _tensor((0,), "a 0-d tensor"), "one number")

@@ -78,6 +78,12 @@ def test_teacher_sees_more_points_than_student(batch) -> None:
     assert nt > ns
 
 
+def roles(out: dict, batch) -> dict:
+    """The uncertainty loss's roles as the trainer fills them from JS3C-Net's taps and the batch."""
+    return {"student": out["logits"], "points": out["point_logits"], "point_target": out["point_target"],
+            "target": batch.targets["voxel_target"]}
+
+
 def test_js3cnet_taps_and_uncertainty_loss(batch) -> None:
     cls = ADAPTERS.get("js3cnet")
     model = cls(cls.Params(frames=1, seg_channels=4, embed=4, ssc_channels=4, pvi_hidden=4, knn=4), synthetic_info(P))
@@ -87,8 +93,8 @@ def test_js3cnet_taps_and_uncertainty_loss(batch) -> None:
     assert out["logits"].shape == (2, 20, 32, 32, 4)
     assert out["point_logits"].shape[0] == out["point_target"].shape[0]
     assert out["completion"].spatial_shape == (16, 16, 2)
-    loss = UncertaintyMultiTask(UncertaintyMultiTask.Params(init_log_var=0.3), {"student": "logits", "points": "point_logits"})
-    value = loss(out, batch)
+    loss = UncertaintyMultiTask(UncertaintyMultiTask.Params(init_log_var=0.3))
+    value = loss.compute(roles(out, batch), batch)
     # JS3C-Net eq. 2 with s = log sigma^2: 1/(2 sigma^2) L + log sigma
     tgt = out["point_target"].masked_fill(out["point_target"] == 0, 255)
     l_seg = F.cross_entropy(out["point_logits"], tgt, ignore_index=255)
@@ -116,7 +122,7 @@ def test_js3cnet_class_weights_follow_the_paper(batch) -> None:
     from distilkit.losses.task import frequency_weights
 
     ds = build_synthetic(P, "train")
-    loss = UncertaintyMultiTask(UncertaintyMultiTask.Params(), {"student": "logits", "points": "point_logits"})
+    loss = UncertaintyMultiTask(UncertaintyMultiTask.Params())
     loss.prepare(ds)
     counts = np.zeros(NUM_CLASSES)
     for i in range(len(ds)):
@@ -138,7 +144,7 @@ def test_js3cnet_class_weights_follow_the_paper(batch) -> None:
     l_comp = F.cross_entropy(out["logits"], batch.targets["voxel_target"], ignore_index=255, weight=loss.comp_weight)
     tgt = out["point_target"].masked_fill(out["point_target"] == 0, 255)
     l_seg = F.cross_entropy(out["point_logits"], tgt, ignore_index=255, weight=loss.seg_weight)
-    assert loss(out, batch).item() == pytest.approx((0.5 * l_seg + 0.5 * l_comp).item(), rel=1e-5)
+    assert loss.compute(roles(out, batch), batch).item() == pytest.approx((0.5 * l_seg + 0.5 * l_comp).item(), rel=1e-5)
 
 
 def test_sigma_trains_at_ten_times_the_learning_rate_unless_the_recipe_says_otherwise(tmp_path) -> None:

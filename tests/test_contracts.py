@@ -213,10 +213,10 @@ class _NoParams(BaseModel):
 class ChamferLoss(TaskLoss):
     Params = _NoParams
     CONSUMES = {"student": "points"}
+    BATCH = {"complete": "complete", "lengths": "complete_lengths"}
 
-    def forward(self, outputs: dict[str, Any], batch: Batch) -> Tensor:
-        return chamfer(outputs[self.taps["student"]],
-                       PointCloud(batch.targets["complete"], batch.targets["complete_lengths"]))
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        return chamfer(taps["student"], PointCloud(taps["complete"], taps["lengths"]))
 
 
 class ChamferScore(Metric):

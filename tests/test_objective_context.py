@@ -108,7 +108,8 @@ def test_an_objective_trains_its_own_network_and_calls_a_teacher_capability(tmp_
     log = [json.loads(x) for x in (student.run_dir / "metrics.jsonl").read_text().splitlines()]
     assert all("aux_loss" in rec for rec in log if "loss" in rec)
     ckpt = load_checkpoint(student.run_dir / "checkpoints" / "last.pt")
-    (state,) = ckpt["objective_optimizers"]
+    *task_states, state = ckpt["term_optimizers"]  # task losses first: they have no optimizer of their own
+    assert task_states and not any(task_states)
     # its own Adam took inner_steps per student step (2 x 2), from the objective's update only
     assert [int(s["step"]) for s in state["state"].values()] == [4, 4]
     assert any(k.startswith("0.aux.") for k in ckpt["objectives"])

@@ -17,6 +17,7 @@ from distilkit.data.params import SyntheticParams
 from distilkit.metrics.base import Metric
 from distilkit.registry import ADAPTERS, DATASETS, METRICS, OBJECTIVES, TASK_LOSSES
 from distilkit.taps import TAP_KINDS, check_tap
+from distilkit.term import Term
 
 BUILTIN = {"adapters": ["scpnet", "js3cnet"], "metrics": ["ssc"]}
 
@@ -34,6 +35,8 @@ def test_adapter_contract(name: str) -> None:
     for loss in cls.DEFAULT_TASK_LOSSES:
         task = TASK_LOSSES.get(loss["name"])
         assert set(task.CONSUMES.values()) <= set(cls.TAPS.values()), f"default task loss {loss['name']} fits"
+        if cls.INPUTS <= synthetic_info(SyntheticParams(**TINY_DATA)).fields:
+            assert set(task.BATCH.values()) <= synthetic_info(SyntheticParams(**TINY_DATA)).fields
     if not cls.INPUTS <= synthetic_info(SyntheticParams(**TINY_DATA)).fields:
         return  # adapters on other data are run by the tests that define that data (tests/test_contracts.py)
     params = cls.Params()
@@ -52,27 +55,30 @@ def test_adapter_contract(name: str) -> None:
     assert set(ADAPTERS.entry(name).consumes) <= set(cls.TAPS.values())
 
 
-@pytest.mark.parametrize("name", names(OBJECTIVES))
-def test_objective_contract(name: str) -> None:
-    entry = OBJECTIVES.entry(name)
+TERMS = [("objective", n) for n in names(OBJECTIVES)] + [("task loss", n) for n in names(TASK_LOSSES)]
+
+
+@pytest.mark.parametrize(("what", "name"), TERMS)
+def test_term_contract(what: str, name: str) -> None:
+    """Task losses and objectives share one protocol: roles with declared sources, one lifecycle."""
+    entry = (OBJECTIVES if what == "objective" else TASK_LOSSES).entry(name)
     cls = entry.obj
-    params = cls.Params()  # every parameter has a default: `{name: X}` alone is a valid recipe line
-    mod = cls(params)
+    assert issubclass(cls, Term)
+    mod = cls(cls.Params())  # every parameter has a default: `{name: X}` alone is a valid recipe line
     assert isinstance(mod, torch.nn.Module)
     assert "student" in cls.CONSUMES and cls.TEACHER_ROLES <= set(cls.CONSUMES), "roles and their sources"
+    assert not set(cls.CONSUMES) & set(cls.BATCH), "a role has one source"
+    assert set(cls.roles()) == set(cls.CONSUMES) | set(cls.BATCH)
     assert set(cls.CONSUMES.values()) <= set(TAP_KINDS)
     assert cls.OPTIONAL <= set(cls.CONSUMES) and "student" not in cls.OPTIONAL
     assert all(isinstance(c, str) and c.isidentifier() for c in cls.REQUIRES), "teacher capabilities are methods"
     assert cls.DEFAULT_WEIGHT > 0 and isinstance(cls.VERSION, int) and cls.VERSION >= 1
-    assert entry.paper and entry.meta.get("equation") and entry.meta.get("shapes"), "documented in objectives.md"
-
-
-@pytest.mark.parametrize("name", names(TASK_LOSSES))
-def test_task_loss_contract(name: str) -> None:
-    cls = TASK_LOSSES.get(name)
-    assert set(cls.CONSUMES.values()) <= set(TAP_KINDS) and "student" in cls.CONSUMES
-    cls(cls.Params(), {role: role for role in cls.CONSUMES})
-    assert isinstance(cls.VERSION, int) and cls.VERSION >= 1
+    assert set(entry.consumes) == set(cls.CONSUMES.values())
+    if what == "objective":
+        assert "teacher" in cls.TEACHER_ROLES
+        assert entry.paper and entry.meta.get("equation") and entry.meta.get("shapes"), "documented in objectives.md"
+    else:
+        assert not cls.TEACHER_ROLES and not cls.REQUIRES, "a task loss reads no teacher"
 
 
 @pytest.mark.parametrize("name", names(METRICS))

@@ -1,4 +1,5 @@
-"""How distilkit sees JS3C-Net: taps ``logits``, ``point_logits``, ``completion`` (sparse), ``ssc_dense``."""
+"""How distilkit sees JS3C-Net: taps ``logits``, ``point_logits`` (+ their ``point_target``), ``completion``
+(sparse), ``ssc_dense``."""
 
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ class JS3CNetAdapter(MultiFrameLidarAdapter):
 
     Params = JS3CNetParams
     TAPS = {"completion": "sparse_features", "ssc_dense": "feature_map", "logits": "voxel_logits",
-            "point_logits": "point_logits"}
+            "point_logits": "point_logits", "point_target": "point_labels"}
     PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "uncertainty_multitask", "weight": 1.0}]
     VERSION = 2  # 2: channels-last volumes

@@ -21,7 +21,7 @@ import yaml
 
 from distilkit import __version__
 from distilkit.engine.io import atomic_write_text
-from distilkit.engine.resolve import ResolvedRecipe, ResolvedStage, resolve
+from distilkit.engine.resolve import ResolvedRecipe, ResolvedStage, ResolvedTerm, resolve
 from distilkit.errors import RecipeError
 from distilkit.recipe import Recipe, load_recipe
 from distilkit.registry import DATASETS
@@ -69,13 +69,19 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
                   **({"taps": {n: h.model_dump(mode="json") for n, h in stage.student.hooks.items()}}
                      if stage.student.hooks else {})},
         "teacher": teacher,
-        "task_losses": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps}
-                        for t in stage.task_losses],
+        "task_losses": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps,
+                         **_moved_fields(t)} for t in stage.task_losses],
         "distill": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps,
-                     **({"connector": t.connector} if t.connector else {})} for t in stage.distill],
+                     **({"connector": t.connector} if t.connector else {}), **_moved_fields(t)} for t in stage.distill],
         "optimizer": {**spec.optimizer.model_dump(mode="json"), "param_groups": stage.param_groups},
         "train": spec.train.model_dump(mode="json", exclude={"log_every", "checkpoint_every", "device"}),
     }
+
+
+def _moved_fields(term: ResolvedTerm) -> dict[str, Any]:
+    """The batch fields a recipe points a term's roles at, when not the term's defaults (else no entry, so
+    stages keep their identity)."""
+    return {"fields": term.fields} if term.fields != dict(term.cls.BATCH) else {}
 
 
 def code_versions(res: ResolvedRecipe, stage: ResolvedStage) -> dict[str, Any]:

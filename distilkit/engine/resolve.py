@@ -19,8 +19,13 @@ class ResolvedTerm:
     cls: Any
     params: BaseModel
     weight: float
-    taps: dict[str, str]  # role -> tap name
+    taps: dict[str, str]  # role -> tap name (of the student, or of the teacher for a teacher role)
     connector: str | None = None  # projection of the student tap to the teacher's channels
+    fields: dict[str, str] = field(default_factory=dict)  # role -> batch field
+    key: str = ""  # unique within its list: the name, then name_2, name_3 for repeats (logs, parameter names)
+
+    def __post_init__(self) -> None:
+        self.key = self.key or self.name
 
 
 @dataclass
@@ -103,13 +108,27 @@ def _model(spec: ModelSpec, path: str, problems: list[tuple[str, str]]) -> Resol
     return None if params is None else ResolvedModel(spec.adapter, entry.obj, params, dict(spec.taps))
 
 
+def _resolve_fields(term_path: str, cls: Any, given: dict[str, str], info: Any,
+                    problems: list[tuple[str, str]]) -> dict[str, str]:
+    """The batch field of each batch role: the recipe's choice or the term's default, checked against the data."""
+    out = {role: given.get(role, default) for role, default in cls.BATCH.items()}
+    fields = info.fields if info is not None else frozenset()
+    for role, name in out.items():
+        if fields and name not in fields:
+            problems.append((f"{term_path}.taps.{role}" if role in given else term_path,
+                             f"reads batch field {name!r} for its {role!r}, which the data does not provide "
+                             f"(it has: {', '.join(sorted(fields))})"))
+    return out
+
+
 def _resolve_taps(term_path: str, cls: Any, given: dict[str, str], models: dict[str, ResolvedModel | None],
                   problems: list[tuple[str, str]]) -> dict[str, str]:
     """Pick the tap of each role: the recipe's choice (checked) or the model's first tap of that kind."""
     out: dict[str, str] = {}
     for role in given:
-        if role not in cls.CONSUMES:
-            problems.append((f"{term_path}.taps.{role}", f"unknown role (this component takes {sorted(cls.CONSUMES)})"))
+        if role not in cls.CONSUMES and role not in cls.BATCH:
+            problems.append((f"{term_path}.taps.{role}",
+                             f"unknown role (this component takes {sorted([*cls.CONSUMES, *cls.BATCH])})"))
     optional = getattr(cls, "OPTIONAL", frozenset())
     for role, kind in cls.CONSUMES.items():
         model = models.get("teacher" if role in getattr(cls, "TEACHER_ROLES", frozenset()) else "student")
@@ -137,7 +156,7 @@ def _resolve_taps(term_path: str, cls: Any, given: dict[str, str], models: dict[
 
 
 def _terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: dict[str, ResolvedModel | None],
-           problems: list[tuple[str, str]]) -> list[ResolvedTerm]:
+           info: Any, problems: list[tuple[str, str]]) -> list[ResolvedTerm]:
     out = []
     for i, spec in enumerate(specs):
         p = f"{path}[{i}]"
@@ -146,11 +165,16 @@ def _terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: dict[st
             continue
         params = _params(entry.obj.Params, spec.params, f"{p}.params", problems)
         taps = _resolve_taps(p, entry.obj, spec.taps, models, problems)
+        fields = _resolve_fields(p, entry.obj, spec.taps, info, problems)
         weight = spec.weight if spec.weight is not None else float(getattr(entry.obj, "DEFAULT_WEIGHT", 1.0))
         connector = getattr(spec, "connector", None) or getattr(entry.obj, "DEFAULT_CONNECTOR", None)
         if params is not None:
+            if connector not in (None, "none") and not entry.obj.TEACHER_ROLES:
+                problems.append((f"{p}.connector", f"{spec.name} reads no teacher tap: there is nothing to project to"))
+            seen = sum(t.name == spec.name for t in out)
             out.append(ResolvedTerm(spec.name, entry.obj, params, weight, taps,
-                                    None if connector == "none" else connector))
+                                    None if connector == "none" else connector, fields,
+                                    spec.name if not seen else f"{spec.name}_{seen + 1}"))
     return out
 
 
@@ -191,7 +215,7 @@ def param_groups(given: list[Any] | None, task: list[ResolvedTerm], distill: lis
     for prefix, terms in (("task", task), ("distill", distill)):
         for t in terms:
             for g in getattr(t.cls, "DEFAULT_PARAM_GROUPS", []):
-                out.append(ParamGroupSpec.model_validate({**g, "match": f"{prefix}.{t.name}.{g['match']}"}).model_dump())
+                out.append(ParamGroupSpec.model_validate({**g, "match": f"{prefix}.{t.key}.{g['match']}"}).model_dump())
     return out
 
 
@@ -260,8 +284,8 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         task_specs = spec.task_losses
         if task_specs is None and student is not None:
             task_specs = [LossSpec.model_validate(d) for d in student.cls.DEFAULT_TASK_LOSSES]
-        task = _terms(task_specs or [], TASK_LOSSES, f"{path}.task_losses", models, problems)
-        distill = _terms(spec.distill, OBJECTIVES, f"{path}.distill", models, problems)
+        task = _terms(task_specs or [], TASK_LOSSES, f"{path}.task_losses", models, info, problems)
+        distill = _terms(spec.distill, OBJECTIVES, f"{path}.distill", models, info, problems)
         if spec.init is not None and spec.init.from_ is not None and student is not None and spec.init.strict:
             up = stages.get(spec.init.from_)
             if up is not None and (up.student.adapter, up.student.params) != (student.adapter, student.params):

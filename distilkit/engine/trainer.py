@@ -29,11 +29,23 @@ from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop
 from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint,
                                  load_weights, rng_state, set_rng_state)
 from distilkit.engine.models import build_model, pick_device
-from distilkit.engine.resolve import ResolvedStage
+from distilkit.engine.resolve import ResolvedStage, ResolvedTerm
 from distilkit.errors import DistilkitError, NonFiniteLossError
-from distilkit.objectives.base import TermContext
 from distilkit.objectives.connectors import Connector
 from distilkit.taps import check_tap
+from distilkit.term import Term, TermContext
+
+
+@dataclass
+class StageTerm:
+    """One term of the stage loss as the trainer runs it: the name it is logged under (``kd_`` for
+    objectives), the resolved spec, its module and the connector of its student tap (objectives)."""
+
+    key: str
+    what: str  # "task loss" or "objective"
+    spec: ResolvedTerm
+    module: Term
+    connector: nn.Module | None
 
 
 @dataclass
@@ -53,7 +65,7 @@ class Trainer:
         self.collate = collate  # the dataset's registered collate
         self._checked: set[str] = set()  # roles whose outputs passed the tap checks
         self._init_log: dict[str, Any] | None = None
-        self._last_taps: dict[int, dict[str, Any]] = {}  # per objective, detached, for its update()
+        self._last_taps: dict[int, dict[str, Any]] = {}  # per term, detached, for its update()
         self.own_optimizers: list[torch.optim.Optimizer | None] = []
         assert stage.metric is not None, "a resolved stage always has its metric"
         self.metric = stage.metric
@@ -67,17 +79,17 @@ class Trainer:
             left = load_weights(self.student, stage.student.cls.read_weights(str(path)), strict, f"init {path}")
             self._init_log = {"event": "init", "from": str(path), "left_out": left}
         self.student = self.student.to(self.device)
-        self.task = nn.ModuleList(t.cls(t.params, t.taps) for t in stage.task_losses).to(self.device)
+        self.task = nn.ModuleList(t.cls(t.params) for t in stage.task_losses).to(self.device)
         self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
         self.teacher = teacher
         # per objective: the projection of its student tap (nn.Identity where it has none)
         self.connectors = nn.ModuleList(nn.Identity() for _ in stage.distill)
         self.steps_per_epoch = math.ceil(len(train_set) / spec.batch_size)
-        self._setup_objectives()
-        for term in self.task:
-            term.prepare(train_set)
-        own = [m for m, o in zip(self.objectives, self.own_optimizers) if o is not None]  # they train themselves
-        self.trainable = [p for m in (self.student, self.task, *[o for o in self.objectives if o not in own],
+        for term in self.terms:
+            term.module.prepare(train_set)
+        self._setup_terms()
+        own = {id(t.module) for t, o in zip(self.terms, self.own_optimizers) if o is not None}  # train themselves
+        self.trainable = [p for m in (self.student, *[t.module for t in self.terms if id(t.module) not in own],
                                       self.connectors) for p in m.parameters() if p.requires_grad]
         self.optimizer = self._optimizer(self._param_groups())
         self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
@@ -93,7 +105,7 @@ class Trainer:
                                     ("distill", self.stage.distill, self.objectives),
                                     ("connector", self.stage.distill, self.connectors)):
             for spec, mod in zip(specs, mods):
-                named += [(f"{prefix}.{spec.name}.{n}", p) for n, p in mod.named_parameters()]
+                named += [(f"{prefix}.{spec.key}.{n}", p) for n, p in mod.named_parameters()]
         mine = {id(p) for p in self.trainable}
         return [(n, p) for n, p in named if p.requires_grad and id(p) in mine]
 
@@ -134,7 +146,7 @@ class Trainer:
             "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
             "objectives": self.objectives.state_dict(), "connectors": self.connectors.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            "objective_optimizers": [o.state_dict() if o is not None else {} for o in self.own_optimizers],
+            "term_optimizers": [o.state_dict() if o is not None else {} for o in self.own_optimizers],
             "step": step, "best": best, "rng": rng_state(), "adapter": self.stage.student.adapter,
             "adapter_params": self.stage.student.params.model_dump(mode="json"),
         })
@@ -204,14 +216,27 @@ class Trainer:
         bs = self.stage.spec.train.batch_size
         return self.collate([self.train_set[int(j)] for j in perm[i * bs:(i + 1) * bs]]).to(self.device)
 
+    @property
+    def terms(self) -> list[StageTerm]:
+        """Every term of the stage loss, task losses first, with its logged name and connector."""
+        out = [StageTerm(spec.key, "task loss", spec, mod, None) for spec, mod in zip(self.stage.task_losses, self.task)]
+        return out + [StageTerm(f"kd_{spec.key}", "objective", spec, mod, con)
+                      for spec, mod, con in zip(self.stage.distill, self.objectives, self.connectors)]
+
     @staticmethod
-    def _taps(spec: Any, s_out: dict[str, Any], t_out: dict[str, Any]) -> dict[str, Any]:
-        return {role: (t_out if role in spec.cls.TEACHER_ROLES else s_out)[tap] for role, tap in spec.taps.items()}
+    def _roles(term: StageTerm, s_out: dict[str, Any], t_out: dict[str, Any], batch: Batch) -> dict[str, Any]:
+        """The value of each of a term's roles: a student or teacher tap, or a batch field."""
+        cls = term.spec.cls
+        taps = {role: (t_out if role in cls.TEACHER_ROLES else s_out)[tap] for role, tap in term.spec.taps.items()}
+        taps.update({role: batch.field(name) for role, name in term.spec.fields.items()})
+        if term.connector is not None and term.spec.connector is not None:
+            taps["student"] = term.connector(taps["student"])
+        return taps
 
     @property
     def _teacher_outputs_needed(self) -> bool:
-        """Whether some objective reads a teacher tap (else the teacher runs only when an objective calls it)."""
-        return any(role in spec.cls.TEACHER_ROLES for spec in self.stage.distill for role in spec.taps)
+        """Whether some term reads a teacher tap (else the teacher runs only when a term calls it)."""
+        return any(role in t.spec.cls.TEACHER_ROLES for t in self.terms for role in t.spec.taps)
 
     def _teacher_outputs(self, batch: Batch) -> dict[str, Any]:
         if not self._teacher_outputs_needed:
@@ -222,29 +247,29 @@ class Trainer:
         self._check_outputs(self.teacher, t_out, "teacher")
         return t_out
 
-    def _setup_objectives(self) -> None:
-        """Size the objectives' own layers from one real batch (before the optimizer exists)."""
-        if not len(self.objectives):
-            return
-        assert self.teacher is not None
-        batch = self._batch(0)
-        was = self.student.training
-        self.student.eval()
-        with torch.no_grad():
-            s_out, t_out = self.student(batch), self._teacher_outputs(batch)
-            self._check_outputs(self.student, s_out, "student")
-            for i, (spec, mod) in enumerate(zip(self.stage.distill, self.objectives)):
-                taps = self._taps(spec, s_out, t_out)
-                if spec.connector is not None:
-                    self.connectors[i] = Connector(spec.connector, taps["student"], taps["teacher"])
-                    taps["student"] = self.connectors[i](taps["student"])
-                mod.setup(taps, batch)
-        self.student.train(was)
+    def _setup_terms(self) -> None:
+        """Size the terms' own layers and connectors from one real batch (before the optimizer exists)."""
+        needs_batch = len(self.objectives) > 0 or any(type(t.module).setup is not Term.setup for t in self.terms)
+        if needs_batch:
+            batch = self._batch(0)
+            was = self.student.training
+            self.student.eval()
+            with torch.no_grad():
+                s_out, t_out = self.student(batch), self._teacher_outputs(batch)
+                self._check_outputs(self.student, s_out, "student")
+                for j, spec in enumerate(self.stage.distill):  # a connector maps the student tap to the teacher's
+                    if spec.connector is not None:
+                        self.connectors[j] = Connector(spec.connector, s_out[spec.taps["student"]],
+                                                       t_out[spec.taps["teacher"]])
+                for term in self.terms:
+                    term.module.setup(self._roles(term, s_out, t_out, batch), batch)
+            self.student.train(was)
+        self.task.to(self.device)
         self.objectives.to(self.device)
         self.connectors.to(self.device)
-        for mod in self.objectives:
-            mod.bind(TermContext(self.student, self.teacher, self.device))
-        self.own_optimizers = [mod.own_optimizer() for mod in self.objectives]
+        for term in self.terms:
+            term.module.bind(TermContext(self.student, self.teacher, self.device))
+        self.own_optimizers = [term.module.own_optimizer() for term in self.terms]
 
     def _check_outputs(self, model: Adapter, outputs: dict[str, Any], role: str) -> None:
         """Every tap the adapter declares, present and of its kind (checked once, on the first batch)."""
@@ -261,27 +286,23 @@ class Trainer:
         self._checked.add(role)
 
     def loss_terms(self, batch: Batch) -> dict[str, Tensor]:
+        """The weighted value of every term on ``batch`` (the teacher runs when a term reads its taps)."""
         s_out = self.student(batch)
         self._check_outputs(self.student, s_out, "student")
+        t_out = self._teacher_outputs(batch) if len(self.objectives) else {}
         terms: dict[str, Tensor] = {}
-        for spec, mod in zip(self.stage.task_losses, self.task):
-            terms[spec.name] = spec.weight * mod(s_out, batch)
-        if len(self.objectives):
-            t_out = self._teacher_outputs(batch)
-            for i, (spec, mod) in enumerate(zip(self.stage.distill, self.objectives)):
-                taps = self._taps(spec, s_out, t_out)
-                if spec.connector is not None:
-                    taps["student"] = self.connectors[i](taps["student"])
-                self._last_taps[i] = {role: v.detach() if hasattr(v, "detach") else v for role, v in taps.items()}
+        for i, term in enumerate(self.terms):
+            taps = self._roles(term, s_out, t_out, batch)
+            self._last_taps[i] = {role: v.detach() if hasattr(v, "detach") else v for role, v in taps.items()}
+            try:
+                terms[term.key] = term.spec.weight * term.module.compute(taps, batch)
+            except DistilkitError as exc:  # one line naming where: stage and term
+                where = f"stage {self.stage.name!r}, {term.what} {term.spec.key!r}: {exc}"
                 try:
-                    terms[f"kd_{spec.name}"] = spec.weight * mod.compute(taps, batch)
-                except DistilkitError as exc:  # one line naming where: stage and objective
-                    where = f"stage {self.stage.name!r}, objective {spec.name!r}: {exc}"
-                    try:
-                        err = type(exc)(where)
-                    except TypeError:
-                        err = DistilkitError(where)
-                    raise err from None
+                    err = type(exc)(where)
+                except TypeError:
+                    err = DistilkitError(where)
+                raise err from None
         return terms
 
     def fit(self) -> TrainResult:
@@ -293,7 +314,7 @@ class Trainer:
             self.task.load_state_dict(ckpt["task_losses"])
             self.objectives.load_state_dict(ckpt["objectives"])
             self.connectors.load_state_dict(ckpt.get("connectors", {}))
-            for opt, state in zip(self.own_optimizers, ckpt.get("objective_optimizers", [])):
+            for opt, state in zip(self.own_optimizers, ckpt.get("term_optimizers", [])):
                 if opt is not None and state:
                     opt.load_state_dict(state)
             self.optimizer.load_state_dict(ckpt["optimizer"])
@@ -336,8 +357,8 @@ class Trainer:
                 f"checkpoint ({last_path}) is kept. Lower the learning rate or the term's weight.")
         self.optimizer.step()
         extra: dict[str, float] = {}
-        for i, mod in enumerate(self.objectives):
-            extra.update(mod.update(step, batch, self._last_taps.get(i, {})))
+        for i, term in enumerate(self.terms):
+            extra.update(term.module.update(step, batch, self._last_taps.get(i, {})))
         return {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}, **extra}
 
     def evaluate(self, dataset: Any, model: Adapter | None = None) -> dict[str, Any]:

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import Any
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
@@ -13,29 +12,11 @@ from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
 from distilkit.registry import TASK_LOSSES
+from distilkit.term import Term
 
 
-class TaskLoss(nn.Module, ABC):
-    """A supervised term: ``forward(outputs, batch) -> scalar``. ``CONSUMES`` lists tap kinds it reads."""
-
-    Params: ClassVar[type[BaseModel]]
-    CONSUMES: ClassVar[dict[str, str]] = {"student": "voxel_logits"}
-    VERSION: ClassVar[int] = 1  # bump when the loss's numbers change: stages using it retrain
-
-    # optimizer groups this term asks for by default (``optimizer.param_groups`` in a recipe overrides)
-    DEFAULT_PARAM_GROUPS: ClassVar[list[dict[str, Any]]] = []
-
-    def __init__(self, params: BaseModel, taps: dict[str, str]) -> None:
-        super().__init__()
-        self.params = params
-        self.taps = taps  # role -> tap name on the model
-
-    def prepare(self, train_set: Any) -> None:
-        """Statistics of the training split the term needs (e.g. class weights); default: none."""
-
-    @abstractmethod
-    def forward(self, outputs: dict[str, Any], batch: Batch) -> Tensor:
-        """The scalar loss of the model's ``outputs`` on ``batch``."""
+class TaskLoss(Term):
+    """A supervised term (:class:`~distilkit.term.Term` with no teacher role): its targets are batch roles."""
 
 
 class _CEParams(BaseModel):
@@ -47,9 +28,11 @@ class VoxelCE(TaskLoss):
     """Cross entropy on voxel logits against ``voxel_target`` (invalid voxels ignored)."""
 
     Params = _CEParams
+    CONSUMES = {"student": "voxel_logits"}
+    BATCH = {"target": "voxel_target"}
 
-    def forward(self, outputs: dict[str, Any], batch: Batch) -> Tensor:
-        return cross_entropy(outputs[self.taps["student"]], batch.targets["voxel_target"], self.params.ignore_index)
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        return cross_entropy(taps["student"], taps["target"], self.params.ignore_index)
 
 
 class _LovaszParams(BaseModel):
@@ -62,10 +45,11 @@ class VoxelLovasz(TaskLoss):
     """Lovász-softmax on voxel logits (SCPNet eq. 4, alpha term)."""
 
     Params = _LovaszParams
+    CONSUMES = {"student": "voxel_logits"}
+    BATCH = {"target": "voxel_target"}
 
-    def forward(self, outputs: dict[str, Any], batch: Batch) -> Tensor:
-        return lovasz_softmax(outputs[self.taps["student"]], batch.targets["voxel_target"], self.params.ignore_index,
-                              self.params.classes)
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        return lovasz_softmax(taps["student"], taps["target"], self.params.ignore_index, self.params.classes)
 
 
 class _UncParams(BaseModel):
@@ -98,12 +82,13 @@ class UncertaintyMultiTask(TaskLoss):
     """
 
     Params = _UncParams
-    CONSUMES = {"student": "voxel_logits", "points": "point_logits"}
+    CONSUMES = {"student": "voxel_logits", "points": "point_logits", "point_target": "point_labels"}
+    BATCH = {"target": "voxel_target"}
     DEFAULT_PARAM_GROUPS = [{"match": "log_var", "lr_scale": 10.0}]
     VERSION = 2  # 2: class weights, sigma at 10x the learning rate
 
-    def __init__(self, params: _UncParams, taps: dict[str, str]) -> None:
-        super().__init__(params, taps)
+    def __init__(self, params: _UncParams) -> None:
+        super().__init__(params)
         self.log_var = nn.Parameter(torch.full((2,), float(params.init_log_var)))
         self.register_buffer("seg_weight", torch.ones(NUM_CLASSES))
         self.register_buffer("comp_weight", torch.ones(NUM_CLASSES))
@@ -118,12 +103,12 @@ class UncertaintyMultiTask(TaskLoss):
         seg = frequency_weights(point[1:])  # point class 0 = unlabelled (ignored)
         self.seg_weight.copy_(torch.cat([seg.new_zeros(1), seg]))
 
-    def forward(self, outputs: dict[str, Any], batch: Batch) -> Tensor:
-        # adapters whose point logits cover a subset of the batch's points return their targets
-        labels = outputs.get("point_target", batch.targets["point_label"])
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        # the labels of the points behind the point logits: a tap, as the model may keep a subset of points
+        labels = taps["point_target"]
         seg_target = labels.masked_fill(labels == 0, IGNORE_INDEX)
-        l_seg = cross_entropy(outputs[self.taps["points"]], seg_target, weight=self.seg_weight)
-        l_comp = cross_entropy(outputs[self.taps["student"]], batch.targets["voxel_target"], weight=self.comp_weight)
+        l_seg = cross_entropy(taps["points"], seg_target, weight=self.seg_weight)
+        l_comp = cross_entropy(taps["student"], taps["target"], weight=self.comp_weight)
         s = self.log_var
         return 0.5 * torch.exp(-s[0]) * l_seg + 0.5 * s[0] + 0.5 * torch.exp(-s[1]) * l_comp + 0.5 * s[1]
 
@@ -134,4 +119,4 @@ TASK_LOSSES.add("lovasz", VoxelLovasz, description="Lovász-softmax over classes
                 paper="Berman et al. CVPR 2018; SCPNet eq. 4 (alpha = 1)", consumes=("voxel_logits",))
 TASK_LOSSES.add("uncertainty_multitask", UncertaintyMultiTask,
                 description="uncertainty-weighted point segmentation + completion CE (log-variance form)",
-                paper="JS3C-Net eq. 2 (Kendall et al. CVPR 2018)", consumes=("voxel_logits", "point_logits"))
+                paper="JS3C-Net eq. 2 (Kendall et al. CVPR 2018)", consumes=("voxel_logits", "point_logits", "point_labels"))

@@ -1,0 +1,91 @@
+"""The term contract shared by task losses and distillation objectives: one protocol for one idea.
+
+A term declares its **roles** and where each comes from:
+
+* a student tap — a role in ``CONSUMES`` (role -> tap kind) that is not a teacher role;
+* a teacher tap — a role in ``CONSUMES`` that is also in ``TEACHER_ROLES``;
+* a batch field — a role in ``BATCH`` (role -> field of :class:`~distilkit.data.batch.Batch`, e.g.
+  ``voxel_target``; ``validate`` checks the data provides it, a recipe may name another field);
+* a teacher capability — a method of the teacher's adapter named in ``REQUIRES`` (e.g. ``denoise``),
+  reached through :attr:`Term.context`.
+
+The trainer resolves every role before calling :meth:`Term.compute` with a dict role -> value, so a term
+never reads model outputs or the batch by name. The lifecycle, for every term: :meth:`prepare` (training
+split statistics), :meth:`setup` (first batch, to size own layers), :meth:`bind`, then per step
+:meth:`compute` and, after the student's optimizer step, :meth:`update`. A term's parameters train with
+the student unless :meth:`own_optimizer` returns an optimizer (own learning rate and clipping, stepped in
+:meth:`update`, checkpointed with the stage).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import torch
+from pydantic import BaseModel
+from torch import Tensor, nn
+
+from distilkit.data.batch import Batch
+
+
+@dataclass
+class TermContext:
+    """What a term may reach beyond its roles: the frozen teacher (and its capabilities, e.g. ``denoise``),
+    the student, and the device. Bound once, before training."""
+
+    student: nn.Module
+    teacher: nn.Module | None
+    device: torch.device
+
+
+class Term(nn.Module, ABC):
+    """A weighted scalar term of a stage's loss (see the module docstring for the roles and lifecycle)."""
+
+    Params: ClassVar[type[BaseModel]]
+    CONSUMES: ClassVar[dict[str, str]] = {}  # role -> tap kind (student's, or the teacher's for TEACHER_ROLES)
+    TEACHER_ROLES: ClassVar[frozenset[str]] = frozenset()
+    OPTIONAL: ClassVar[frozenset[str]] = frozenset()  # tap roles used only when the recipe names a tap
+    BATCH: ClassVar[dict[str, str]] = {}  # role -> batch field read for it
+    REQUIRES: ClassVar[frozenset[str]] = frozenset()  # teacher capabilities called through the context
+    DEFAULT_WEIGHT: ClassVar[float] = 1.0
+    DEFAULT_CONNECTOR: ClassVar[str | None] = None  # e.g. "linear": the student tap is projected first
+    DEFAULT_PARAM_GROUPS: ClassVar[list[dict[str, Any]]] = []  # optimizer groups asked for by default
+    VERSION: ClassVar[int] = 1  # bump when the term's numbers change: stages using it retrain
+
+    def __init__(self, params: BaseModel) -> None:
+        super().__init__()
+        self.params = params
+        self.context: TermContext | None = None
+
+    @classmethod
+    def roles(cls) -> dict[str, str]:
+        """Every role and its source: ``student``, ``teacher`` or ``batch``."""
+        out = {role: "teacher" if role in cls.TEACHER_ROLES else "student" for role in cls.CONSUMES}
+        return {**out, **{role: "batch" for role in cls.BATCH}}
+
+    def prepare(self, train_set: Any) -> None:
+        """Statistics of the training split the term needs (e.g. class weights); default: none."""
+
+    def setup(self, taps: dict[str, Any], batch: Batch) -> None:
+        """Build shape-dependent layers from one batch's role values (default: nothing to build)."""
+
+    def bind(self, context: TermContext) -> None:
+        self.context = context
+
+    def own_optimizer(self) -> torch.optim.Optimizer | None:
+        """An optimizer for this term's own modules, stepped in :meth:`update` (default: none)."""
+        return None
+
+    @abstractmethod
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        """The scalar loss from the value of every role (taps and batch fields)."""
+
+    def update(self, step: int, batch: Batch, taps: dict[str, Any]) -> dict[str, float]:
+        """Own optimisation after the student's step (e.g. a score network; may take several steps), with
+        the batch and this term's role values, detached. Returns values to log."""
+        return {}
+
+
+__all__ = ["Term", "TermContext"]
