@@ -12,7 +12,8 @@ An adapter is an ``nn.Module`` registered in :data:`distilkit.registry.ADAPTERS`
 ``forward(batch)`` takes the collated :class:`~distilkit.data.batch.Batch` (built by the dataset's
 registered collate) and returns a dict with (at least) every declared tap. ``check_data`` lets an
 adapter reject parameters the data cannot serve (e.g. more frames than it has); ``describe`` gives the
-short input description the results table shows; ``read_weights`` reads a published checkpoint
+short input description the results table shows; ``tap_grid`` and ``tap_camera`` declare the voxel grid
+or camera of a tap (so ``validate`` checks alignments); ``read_weights`` reads a published checkpoint
 format (recipes: ``init: {checkpoint: ...}`` and ``teacher: {checkpoint: ...}``).
 """
 
@@ -25,7 +26,8 @@ from pydantic import BaseModel, ConfigDict
 from torch import nn
 
 from distilkit.data.batch import Batch
-from distilkit.data.info import DataInfo
+from distilkit.data.info import Camera, DataInfo
+from distilkit.geometry.voxel import VoxelGrid
 
 
 class NoParams(BaseModel):
@@ -51,11 +53,20 @@ class Adapter(nn.Module, ABC):
         """Run the model on a collated batch; return every declared tap."""
 
     @classmethod
-    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> tuple[int, ...] | None:
-        """The voxel grid (X, Y, Z) a voxel tap lives on, known before training (default: the data's
-        SSC grid); None for taps that are not on a voxel grid. ``validate`` checks alignments with it."""
+    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> VoxelGrid | None:
+        """The voxel grid (geometry: origin, voxel size, shape) a voxel tap lives on, known before training
+        (default: the data's SSC grid); None for taps that are not on a voxel grid. ``validate`` checks
+        alignments with it."""
         if info.grid is not None and cls.TAPS.get(tap) in ("sparse_features", "voxel_logits"):
-            return tuple(info.grid.shape)
+            return info.grid
+        return None
+
+    @classmethod
+    def tap_camera(cls, tap: str, params: BaseModel, info: DataInfo) -> Camera | None:
+        """The camera an ``image_features`` tap sees through (default: the data's camera when it has one);
+        ``validate`` refuses to pair image features of different cameras."""
+        if cls.TAPS.get(tap) == "image_features" and len(info.cameras) == 1:
+            return info.cameras[0]
         return None
 
     @classmethod
@@ -79,4 +90,6 @@ class Adapter(nn.Module, ABC):
 
     @classmethod
     def taps_of_kind(cls, kind: str) -> list[str]:
-        return [name for name, k in cls.TAPS.items() if k == kind]
+        from distilkit.taps import kind_fits
+
+        return [name for name, k in cls.TAPS.items() if kind_fits(k, kind)]

@@ -26,7 +26,7 @@ class HookTapSpec(_Strict):
     """A tap recorded from any submodule by its dotted path (no adapter code needed)."""
 
     module: str = Field(..., description="dotted path of the submodule, as in `model.named_modules()`")
-    kind: str = Field(..., description="tap kind of the recorded value (e.g. feature_map)")
+    kind: str = Field(..., description="tap kind of the recorded value (e.g. volume_features)")
     at: Literal["output", "input"] = Field("output", description="record the submodule's output or its first input")
 
 

@@ -5,36 +5,47 @@ tap of the student and the teacher on the first batch, so a wrong shape is one c
 
 | kind              | value                                                                     |
 | ----------------- | ------------------------------------------------------------------------- |
-| sparse_features   | :class:`SparseVoxels`: coords (N,4) int64 = batch,x,y,z; feats (N,C); grid shape |
+| sparse_features   | :class:`SparseVoxels`: coords (N,4) int64 = batch,x,y,z; feats (N,C); grid  |
 | voxel_logits      | (B, K, X, Y, Z) class scores on a voxel grid                              |
-| feature_map       | (B, C, H, W) image or (B, C, X, Y, Z) volume features                     |
+| feature_map       | dense features, either of the two below (what feature objectives read)    |
+| image_features    | (B, C, H, W) features of a camera's image (a ``feature_map``)             |
+| volume_features   | (B, C, X, Y, Z) features on a voxel grid (a ``feature_map``)              |
 | point_logits      | (M, K) per-point class scores (points of the batch, concatenated)         |
 | point_labels      | (M,) int64 labels of the points behind a ``point_logits`` tap             |
 | points            | :class:`PointCloud`: (B, M, D) padded points and (B,) lengths (PyTorch3D's convention) |
 | scalar            | a 0-d tensor                                                              |
 
-A plugin adds a kind with :func:`register_tap_kind`.
+A kind may refine a parent kind (``image_features`` is a ``feature_map``): a term that reads the parent
+accepts taps of every refinement (:func:`kind_fits`). Voxel taps live on a grid and image taps come from a
+camera; adapters declare which (``Adapter.tap_grid``, ``Adapter.tap_camera``), so ``validate`` checks
+alignments before training, and a :class:`SparseVoxels` value carries its grid's geometry. A plugin adds
+a kind with :func:`register_tap_kind`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import torch
 from torch import Tensor
+
+if TYPE_CHECKING:
+    from distilkit.geometry.voxel import VoxelGrid
 
 
 @dataclass
 class SparseVoxels:
     """Sparse voxel features: ``coords`` (N,4) int64 rows (batch, x, y, z), ``feats`` (N,C).
 
-    ``spatial_shape`` is the (X, Y, Z) grid the coordinates index into.
+    ``spatial_shape`` is the (X, Y, Z) grid the coordinates index into; ``grid``, where the model knows
+    it, is that grid's geometry (origin, voxel size), which cross-grid alignment then checks.
     """
 
     coords: Tensor
     feats: Tensor
     spatial_shape: tuple[int, int, int]
+    grid: "VoxelGrid | None" = None
 
     def __post_init__(self) -> None:
         if self.coords.dim() != 2 or self.coords.shape[1] != 4:
@@ -43,13 +54,20 @@ class SparseVoxels:
             raise ValueError(
                 f"SparseVoxels.feats must be (N, C) with N = {self.coords.shape[0]}, got {tuple(self.feats.shape)}"
             )
+        if self.grid is not None and tuple(self.grid.shape) != tuple(self.spatial_shape):
+            raise ValueError(f"SparseVoxels.grid has shape {tuple(self.grid.shape)} but spatial_shape is "
+                             f"{tuple(self.spatial_shape)}")
 
     def select_batch(self, b: int) -> "SparseVoxels":
         keep = self.coords[:, 0] == b
-        return SparseVoxels(self.coords[keep], self.feats[keep], self.spatial_shape)
+        return SparseVoxels(self.coords[keep], self.feats[keep], self.spatial_shape, self.grid)
+
+    def with_feats(self, feats: Tensor) -> "SparseVoxels":
+        """The same voxels with other features (N, C')."""
+        return SparseVoxels(self.coords, feats, self.spatial_shape, self.grid)
 
     def detach(self) -> "SparseVoxels":
-        return SparseVoxels(self.coords, self.feats.detach(), self.spatial_shape)
+        return self.with_feats(self.feats.detach())
 
 
 @dataclass
@@ -89,11 +107,13 @@ class PointCloud:
 
 @dataclass(frozen=True)
 class TapKind:
-    """A registered kind: ``check(value)`` returns None when the value fits, else what is wrong."""
+    """A registered kind: ``check(value)`` returns None when the value fits, else what is wrong;
+    ``parent`` is the kind it refines (a term reading the parent accepts it)."""
 
     name: str
     check: Callable[[Any], str | None]
     description: str
+    parent: str | None = None
 
 
 def _shape(value: Any) -> str:
@@ -124,17 +144,34 @@ def _instance(cls: type, what: str) -> Callable[[Any], str | None]:
 TAP_KINDS: dict[str, TapKind] = {}
 
 
-def register_tap_kind(name: str, check: Callable[[Any], str | None], description: str) -> TapKind:
+def register_tap_kind(name: str, check: Callable[[Any], str | None], description: str,
+                      parent: str | None = None) -> TapKind:
     if name in TAP_KINDS:
         raise ValueError(f"tap kind {name!r} is already registered")
-    TAP_KINDS[name] = kind = TapKind(name, check, description)
+    if parent is not None and parent not in TAP_KINDS:
+        raise ValueError(f"tap kind {name!r} refines {parent!r}, which is not registered")
+    TAP_KINDS[name] = kind = TapKind(name, check, description, parent)
     return kind
+
+
+def kind_fits(kind: str, wanted: str) -> bool:
+    """Whether a tap of ``kind`` serves a role that reads ``wanted`` (the kind itself or a refinement)."""
+    while kind is not None:
+        if kind == wanted:
+            return True
+        entry = TAP_KINDS.get(kind)
+        kind = entry.parent if entry is not None else None  # type: ignore[assignment]
+    return False
 
 
 register_tap_kind("sparse_features", _instance(SparseVoxels, "SparseVoxels(coords, feats, spatial_shape)"),
                   "sparse voxel features on a grid")
 register_tap_kind("voxel_logits", _tensor((5,), "(B, K, X, Y, Z) class scores"), "class scores per voxel")
 register_tap_kind("feature_map", _tensor((4, 5), "(B, C, H, W) or (B, C, X, Y, Z) features"), "dense features")
+register_tap_kind("image_features", _tensor((4,), "(B, C, H, W) image features"), "features of a camera image",
+                  parent="feature_map")
+register_tap_kind("volume_features", _tensor((5,), "(B, C, X, Y, Z) volume features"), "features on a voxel grid",
+                  parent="feature_map")
 register_tap_kind("point_logits", _tensor((2,), "(M, K) per-point class scores"), "class scores per point")
 register_tap_kind("point_labels", _labels, "labels of the points a model scored")
 register_tap_kind("points", _instance(PointCloud, "PointCloud(points (B, M, D), lengths (B,))"),
@@ -153,4 +190,4 @@ def check_tap(value: Any, kind: str, where: str) -> None:
         raise TapError(f"{where}: {problem} for a {kind} tap")
 
 
-__all__ = ["PointCloud", "SparseVoxels", "TAP_KINDS", "TapKind", "check_tap", "register_tap_kind"]
+__all__ = ["PointCloud", "SparseVoxels", "TAP_KINDS", "TapKind", "check_tap", "kind_fits", "register_tap_kind"]

@@ -81,7 +81,7 @@ class TinyCamera(Adapter):
 
     Params = TinyCameraParams
     INPUTS = frozenset({"image"})
-    TAPS = {"image_features": "feature_map", "logits": "voxel_logits"}
+    TAPS = {"image_features": "image_features", "logits": "voxel_logits"}
     PREDICTION_TAP = "logits"
 
     def __init__(self, params: TinyCameraParams, info: DataInfo) -> None:
@@ -133,6 +133,33 @@ def test_camera_style_adapter_trains_distils_and_is_scored(tmp_path) -> None:
     assert "kd_kd" in (results[1].run_dir / "metrics.jsonl").read_text()
     report = (tmp_path / "runs" / "camera" / "report.md").read_text()
     assert "| car |" in report and "| road |" in report and "sidewalk" not in report  # the dataset's class table
+
+
+def test_image_features_serve_feature_objectives_and_must_come_from_one_camera(tmp_path, capsys,
+                                                                              monkeypatch) -> None:
+    from distilkit.engine.resolve import resolve
+    from distilkit.taps import kind_fits
+
+    assert kind_fits("image_features", "feature_map") and kind_fits("volume_features", "feature_map")
+    assert not kind_fits("feature_map", "image_features") and not kind_fits("volume_features", "image_features")
+    r = camera_recipe()
+    r["stages"]["student"]["distill"].append({"name": "fitnets"})  # reads feature_map roles
+    term = resolve(recipe_from_dict(r)).stages["student"].distill[1]
+    assert term.taps == {"student": "image_features", "teacher": "image_features"}
+    results = Pipeline(recipe_from_dict(r), tmp_path / "runs", quiet=True).run()
+    assert "kd_fitnets" in (results[1].run_dir / "metrics.jsonl").read_text()  # 4 -> 6 channels via its connector
+    right = Camera("cam_right", CAMERA.intrinsics, CAMERA.lidar_to_camera, CAMERA.size)
+    monkeypatch.setattr(TinyCamera, "tap_camera",
+                        classmethod(lambda c, tap, params, info: right if params.channels == 6 else CAMERA))
+    out = validate_fails(r, tmp_path, capsys)
+    assert "stages.student.distill[1]" in out and "'cam_right'" in out and "different cameras" in out
+
+
+def test_a_recorded_tap_of_the_wrong_refinement_is_named_on_the_first_batch(tmp_path) -> None:
+    r = camera_recipe()
+    r["stages"]["teacher"]["model"]["taps"] = {"enc": {"module": "encoder", "kind": "volume_features"}}
+    with pytest.raises(TapError, match=r"teacher.*tap 'enc'.*\(B, C, X, Y, Z\) volume features, got \(2, 6, 12, 16\)"):
+        Pipeline(recipe_from_dict(r), tmp_path / "runs", quiet=True).run()
 
 
 def test_lidar_adapter_on_camera_data_is_rejected_naming_the_inputs(tmp_path, capsys) -> None:

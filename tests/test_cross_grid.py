@@ -117,3 +117,49 @@ def test_a_mismatch_found_at_run_time_names_stage_objective_and_grids(tmp_path, 
     msg = str(err.value)
     assert "\n" not in msg and "stage 'student'" in msg and "objective 'dskd'" in msg
     assert "(32, 32, 4)" in msg and "(20, 20, 3)" in msg
+
+
+def test_grids_with_geometry_align_only_when_they_cover_one_volume() -> None:
+    from distilkit.geometry.voxel import VoxelGrid
+
+    fine = VoxelGrid.semantickitti(4)  # 64 x 64 x 8 of 0.8 m
+    assert grid_factors(fine, fine.coarsen(2)) == ("coarser", (2, 2, 2))
+    assert grid_factors(fine.coarsen(2), fine) == ("finer", (2, 2, 2))
+    shifted = VoxelGrid((0.8, -25.6, -2.0), (32, 32, 4), 1.6)  # same shape, moved by one fine voxel
+    assert grid_factors((64, 64, 8), (32, 32, 4)) == ("coarser", (2, 2, 2))  # shapes alone cannot tell
+    why = grid_factors(fine, shifted)
+    assert isinstance(why, str) and "origins" in why and "(0.8, -25.6, -2.0)" in why
+    smaller = VoxelGrid(fine.origin, (32, 32, 4), 0.8)  # half the extent, same voxels
+    why = grid_factors(fine, smaller)
+    assert isinstance(why, str) and "extents" in why
+
+
+def test_sparse_taps_carry_their_grid_and_a_shifted_teacher_is_refused_at_run_time() -> None:
+    from distilkit.geometry.voxel import VoxelGrid
+
+    fine = VoxelGrid.semantickitti(4)
+    s = _random_sparse((64, 64, 8), 40, 3)
+    t = _random_sparse((32, 32, 4), 30, 3, seed=1)
+    student = SparseVoxels(s.coords, s.feats, s.spatial_shape, fine)
+    good = SparseVoxels(t.coords, t.feats, t.spatial_shape, fine.coarsen(2))
+    bad = SparseVoxels(t.coords, t.feats, t.spatial_shape, VoxelGrid((0.8, -25.6, -2.0), (32, 32, 4), 1.6))
+    _, want, found = aligned_pairs(s, t)  # bare shapes: the same result as matching geometry
+    _, got, got_found = aligned_pairs(student, good)
+    assert torch.equal(got, want) and torch.equal(got_found, found)
+    assert student.detach().grid == fine and student.select_batch(0).grid == fine
+    with pytest.raises(GridMismatchError, match="origins"):
+        aligned_pairs(student, bad)
+    with pytest.raises(ValueError, match=r"grid has shape \(32, 32, 4\) but spatial_shape is \(64, 64, 8\)"):
+        SparseVoxels(s.coords, s.feats, s.spatial_shape, fine.coarsen(2))
+
+
+def test_validate_refuses_a_declared_grid_off_the_others_volume(tmp_path, monkeypatch) -> None:
+    from distilkit.geometry.voxel import VoxelGrid
+    from distilkit.registry import ADAPTERS
+
+    cls = ADAPTERS.get("js3cnet")
+    monkeypatch.setattr(cls, "tap_grid", classmethod(
+        lambda c, tap, params, info: VoxelGrid((1.0, -25.6, -2.0), (32, 32, 4), 1.6) if tap == "completion" else None))
+    recipe = _cross("js3cnet", "scpnet", [{"name": "dskd", "taps": {"student": "completion", "teacher": "completion"}}])
+    with pytest.raises(RecipeError, match=r"stages\.student\.distill\[0\].*not one volume: origins"):
+        Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)

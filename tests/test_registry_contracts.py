@@ -52,6 +52,9 @@ def test_adapter_contract(name: str) -> None:
         out = model(collate_lidar([ds[0], ds[1]]))
     for tap, kind in cls.TAPS.items():
         check_tap(out[tap], kind, f"{name}.{tap}")
+        if kind == "sparse_features" and cls.tap_grid(tap, params, info) is not None:
+            # the value carries the geometry the adapter declares (validate's alignments use the declaration)
+            assert out[tap].grid == cls.tap_grid(tap, params, info), f"{name}.{tap} carries its declared grid"
     assert set(ADAPTERS.entry(name).consumes) <= set(cls.TAPS.values())
 
 

@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.data.lidar import select_frames
+from distilkit.geometry.voxel import VoxelGrid
 from distilkit.registry import ADAPTERS
 from distilkit.taps import SparseVoxels
 from distilkit_adapters._blocks import MultiFrameLidarAdapter, channels_last
@@ -30,7 +31,7 @@ class JS3CNetAdapter(MultiFrameLidarAdapter):
     """JS3C-Net with the uncertainty-weighted multi-task loss (eq. 2) as its task loss."""
 
     Params = JS3CNetParams
-    TAPS = {"completion": "sparse_features", "ssc_dense": "feature_map", "logits": "voxel_logits",
+    TAPS = {"completion": "sparse_features", "ssc_dense": "volume_features", "logits": "voxel_logits",
             "point_logits": "point_logits", "point_target": "point_labels"}
     PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "uncertainty_multitask", "weight": 1.0}]
@@ -43,9 +44,9 @@ class JS3CNetAdapter(MultiFrameLidarAdapter):
         channels_last(self)
 
     @classmethod
-    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> tuple[int, ...] | None:
-        if tap == "completion":  # the SSC decoder works at half resolution
-            return tuple(s // 2 for s in info.grid.shape)
+    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> VoxelGrid | None:
+        if tap == "completion" and info.grid is not None:  # the SSC decoder works at half resolution
+            return info.grid.coarsen(2)
         return super().tap_grid(tap, params, info)
 
     def forward(self, batch: Batch) -> dict[str, Any]:
@@ -56,7 +57,8 @@ class JS3CNetAdapter(MultiFrameLidarAdapter):
             "logits": out["logits"],
             # point logits of the *current* scan's points, aligned with batch["point_label"] of frame 0
             "point_logits": out["point_logits"],
-            "completion": SparseVoxels(out["ssc_coords"], out["ssc_feats"], shape),  # type: ignore[arg-type]
+            "completion": SparseVoxels(out["ssc_coords"], out["ssc_feats"], shape,  # type: ignore[arg-type]
+                                       self.tap_grid("completion", self.params, self.info)),
             "ssc_dense": out["ssc_dense"],
             # segmentation targets of the points behind point_logits (input points inside the grid)
             "point_target": b.targets["point_label"][out["point_keep"]],

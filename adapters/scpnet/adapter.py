@@ -32,7 +32,7 @@ class SCPNetAdapter(MultiFrameLidarAdapter):
     """SCPNet: MPB completion sub-network then segmentation; CE + Lovász task loss (eq. 4, alpha = 1)."""
 
     Params = SCPNetParams
-    TAPS = {"completion": "sparse_features", "completion_dense": "feature_map", "logits": "voxel_logits"}
+    TAPS = {"completion": "sparse_features", "completion_dense": "volume_features", "logits": "voxel_logits"}
     PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "ce", "weight": 1.0}, {"name": "lovasz", "weight": 1.0}]
 
@@ -49,7 +49,7 @@ class SCPNetAdapter(MultiFrameLidarAdapter):
         b = select_frames(batch, self.params.frames)
         vox = self.net.voxelizer(b.inputs, self.info.grid, batch.size)
         completed = self.net.completion(vox)
-        sparse = dense_to_sparse(completed)
+        sparse = dense_to_sparse(completed, self.info.grid)
         active = torch.zeros(completed.shape[:1] + completed.shape[2:], dtype=torch.bool, device=completed.device)
         active[tuple(sparse.coords.T)] = True
         logits = mask_inactive(self.net.segmentation(completed), active)

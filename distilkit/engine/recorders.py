@@ -1,6 +1,6 @@
 """Taps without adapter code: record any submodule's output (or input) by its dotted path.
 
-A recipe declares ``model: {..., taps: {mid: {module: net.completion.blocks.1, kind: feature_map}}}``;
+A recipe declares ``model: {..., taps: {mid: {module: net.completion.blocks.1, kind: volume_features}}}``;
 a forward hook on that submodule records its value on every forward pass, and the adapter's output
 dict gains the tap ``mid`` (as OpenMMLab MMRazor's recorders do). The recorded tap is checked against its
 declared kind on the first batch like every other tap.

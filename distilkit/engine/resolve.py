@@ -11,6 +11,7 @@ from pydantic import BaseModel, ValidationError
 from distilkit.errors import RecipeError, UnknownNameError
 from distilkit.recipe import LossSpec, ModelSpec, ParamGroupSpec, Recipe, pydantic_problems, stage_order
 from distilkit.registry import ADAPTERS, DATASETS, METRICS, OBJECTIVES, TASK_LOSSES, Registry
+from distilkit.taps import TAP_KINDS, kind_fits
 
 
 @dataclass
@@ -97,8 +98,6 @@ def _model(spec: ModelSpec, path: str, problems: list[tuple[str, str]]) -> Resol
     if entry is None:
         return None
     params = _params(entry.obj.Params, spec.params, f"{path}.params", problems)
-    from distilkit.taps import TAP_KINDS
-
     for name, hook in spec.taps.items():
         if name in entry.obj.TAPS:
             problems.append((f"{path}.taps.{name}", f"adapter {spec.adapter!r} already has a tap {name!r}"))
@@ -140,13 +139,13 @@ def _resolve_taps(term_path: str, cls: Any, given: dict[str, str], models: dict[
             if tap not in taps:
                 problems.append((f"{term_path}.taps.{role}",
                                  f"adapter {model.adapter!r} has no tap {tap!r} (it has: {', '.join(taps) or 'none'})"))
-            elif taps[tap] != kind:
+            elif not kind_fits(taps[tap], kind):
                 problems.append((f"{term_path}.taps.{role}",
                                  f"tap {tap!r} of adapter {model.adapter!r} is {taps[tap]}, but this needs {kind}"))
             else:
                 out[role] = tap
         else:
-            candidates = [n for n, k in taps.items() if k == kind]
+            candidates = [n for n, k in taps.items() if kind_fits(k, kind)]
             if not candidates:
                 problems.append((f"{term_path}", f"needs a {kind} tap for the {role}, but adapter {model.adapter!r} "
                                                  f"provides only {', '.join(f'{n} ({k})' for n, k in taps.items()) or 'none'}"))
@@ -178,22 +177,37 @@ def _terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: dict[st
     return out
 
 
-def grid_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedModel | None], info: Any,
-                  path: str) -> list[tuple[str, str]]:
-    """Student/teacher tap pairs on voxel grids that cannot be aligned, known from the adapters' declarations:
-    sparse features must differ by integer factors per axis, voxel logits must share the grid."""
+def _grid_text(grid: Any) -> str:
+    shape = tuple(getattr(grid, "shape", grid))
+    size = getattr(grid, "voxel_size", None)
+    return f"{shape}" + (f" of {size:g} m voxels" if size is not None else "")
+
+
+def alignment_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedModel | None], info: Any,
+                       path: str) -> list[tuple[str, str]]:
+    """Student/teacher tap pairs that cannot be aligned, known from the adapters' declarations: sparse
+    features must lie on grids of one volume that differ by integer factors per axis, voxel logits must
+    share the grid, image features must come from the same camera."""
     from distilkit.geometry.voxel import grid_factors
 
     out = []
+    s_model, t_model = models.get("student"), models.get("teacher")
+    if s_model is None or t_model is None:
+        return out
     for i, term in enumerate(terms):
         for role, tap in term.taps.items():
             # a teacher role pairs with the student role of the same suffix (teacher_logits: student_logits)
             partner = "student" + role[len("teacher"):] if role in term.cls.TEACHER_ROLES else None
-            if partner not in term.taps or models.get("student") is None or models.get("teacher") is None:
+            if partner not in term.taps:
                 continue
-            s_model, t_model = models["student"], models["teacher"]
-            assert s_model is not None and t_model is not None
-            s_grid = s_model.cls.tap_grid(term.taps[partner], s_model.params, info)
+            s_tap = term.taps[partner]
+            where = f"{term.name}: student tap {s_tap!r} ({s_model.adapter}) and teacher tap {tap!r} ({t_model.adapter})"
+            s_cam = s_model.cls.tap_camera(s_tap, s_model.params, info)
+            t_cam = t_model.cls.tap_camera(tap, t_model.params, info)
+            if s_cam is not None and t_cam is not None and s_cam.name != t_cam.name:
+                out.append((f"{path}[{i}]", f"{where} see through cameras {s_cam.name!r} and {t_cam.name!r}: image "
+                                            "features of different cameras cannot be compared pixel by pixel"))
+            s_grid = s_model.cls.tap_grid(s_tap, s_model.params, info)
             t_grid = t_model.cls.tap_grid(tap, t_model.params, info)
             if s_grid is None or t_grid is None:
                 continue
@@ -201,9 +215,8 @@ def grid_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedModel | N
             how = grid_factors(s_grid, t_grid)
             if isinstance(how, str) or (kind == "voxel_logits" and how[0] != "same"):
                 why = how if isinstance(how, str) else f"{kind} must share one grid"
-                out.append((f"{path}[{i}]", f"{term.name}: student tap {term.taps[partner]!r} ({s_model.adapter}) on grid "
-                                             f"{s_grid} and teacher tap {tap!r} ({t_model.adapter}) on grid {t_grid} "
-                                             f"cannot be aligned: {why}"))
+                out.append((f"{path}[{i}]", f"{where} on grids {_grid_text(s_grid)} and {_grid_text(t_grid)} cannot "
+                                            f"be aligned: {why}"))
     return out
 
 
@@ -231,7 +244,7 @@ def resolve_metric(wanted: str, model: ResolvedModel, info: Any, path: str,
         return None
     name, _, key = wanted.rpartition(".")
     fields = info.fields if info is not None else None
-    usable = [e for e in METRICS if e.obj.SCORES == kind and (fields is None or not fields or e.obj.TARGETS <= fields)]
+    usable = [e for e in METRICS if kind_fits(kind, e.obj.SCORES) and (fields is None or not fields or e.obj.TARGETS <= fields)]
     for entry in usable:
         if (not name or entry.name == name) and key in entry.obj.KEYS:
             return ResolvedMetric(entry.name, entry.obj, key)
@@ -300,7 +313,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
                 if model is not None:
                     problems.extend(data_problems(model, info, where))
         if info is not None:
-            problems.extend(grid_problems(distill, models, info, f"{path}.distill"))
+            problems.extend(alignment_problems(distill, models, info, f"{path}.distill"))
         for i, term in enumerate(distill):  # teacher capabilities the objective calls
             for cap in sorted(term.cls.REQUIRES):
                 if teacher is not None and not callable(getattr(teacher.cls, cap, None)):

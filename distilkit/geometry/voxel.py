@@ -76,13 +76,36 @@ def align_sparse(target_coords: Tensor, source: SparseVoxels) -> tuple[Tensor, T
     return feats, found
 
 
-def grid_factors(target: tuple[int, ...], source: tuple[int, ...]) -> tuple[str, tuple[int, ...]] | str:
+def _grid_shape(grid: "VoxelGrid | tuple[int, ...]") -> tuple[int, ...]:
+    return tuple(int(v) for v in (grid.shape if isinstance(grid, VoxelGrid) else grid))
+
+
+def _geometry_problem(target: VoxelGrid, source: VoxelGrid) -> str | None:
+    """Why two grids do not cover one volume with voxels that tile each other, or None when they do."""
+    tol = 1e-6 * max(1.0, *(abs(v) for v in (*target.origin, *source.origin)))
+    if any(abs(a - b) > tol for a, b in zip(target.origin, source.origin)):
+        return f"origins {target.origin} and {source.origin} differ (the grids must share their min corner)"
+    for t, s in zip(target.shape, source.shape):
+        if abs(t * target.voxel_size - s * source.voxel_size) > 1e-6 * max(t * target.voxel_size, 1.0):
+            return (f"extents {tuple(round(n * target.voxel_size, 6) for n in target.shape)} m and "
+                    f"{tuple(round(n * source.voxel_size, 6) for n in source.shape)} m differ")
+    return None
+
+
+def grid_factors(target: "VoxelGrid | tuple[int, ...]",
+                 source: "VoxelGrid | tuple[int, ...]") -> tuple[str, tuple[int, ...]] | str:
     """How ``source`` voxels map onto ``target`` voxels of the same volume.
 
-    Returns ``("same", 1s)``, ``("coarser", f)`` (source voxels are f_d target voxels wide),
-    ``("finer", f)`` (f_d source voxels per target voxel), or a string saying why they cannot be aligned.
+    Grids given with their geometry (:class:`VoxelGrid`) must share origin and extent; bare shapes are
+    taken to cover the same volume. Returns ``("same", 1s)``, ``("coarser", f)`` (source voxels are f_d
+    target voxels wide), ``("finer", f)`` (f_d source voxels per target voxel), or a string saying why
+    they cannot be aligned.
     """
-    target, source = tuple(int(v) for v in target), tuple(int(v) for v in source)
+    if isinstance(target, VoxelGrid) and isinstance(source, VoxelGrid):
+        problem = _geometry_problem(target, source)
+        if problem is not None:
+            return f"grids {target.shape} and {source.shape} are not one volume: {problem}"
+    target, source = _grid_shape(target), _grid_shape(source)
     if len(target) != len(source):
         return f"grids {target} and {source} have different dimensions"
     if target == source:
@@ -95,7 +118,7 @@ def grid_factors(target: tuple[int, ...], source: tuple[int, ...]) -> tuple[str,
             f"the other's)")
 
 
-def align_across_grids(target_coords: Tensor, target_shape: tuple[int, int, int],
+def align_across_grids(target_coords: Tensor, target_grid: "VoxelGrid | tuple[int, int, int]",
                        source: SparseVoxels) -> tuple[Tensor, Tensor]:
     """Source features at each target voxel, for grids of the same volume differing by integer factors.
 
@@ -108,7 +131,8 @@ def align_across_grids(target_coords: Tensor, target_shape: tuple[int, int, int]
     """
     from distilkit.errors import GridMismatchError
 
-    how = grid_factors(target_shape, source.spatial_shape)
+    how = grid_factors(target_grid, source.grid if source.grid is not None and isinstance(target_grid, VoxelGrid)
+                       else source.spatial_shape)
     if isinstance(how, str):
         raise GridMismatchError(f"cannot align sparse voxels: {how}")
     mode, f = how
@@ -127,11 +151,12 @@ def align_across_grids(target_coords: Tensor, target_shape: tuple[int, int, int]
     return align_sparse(target_coords, SparseVoxels(coords, pooled / counts[:, None], shape))  # type: ignore[arg-type]
 
 
-def dense_to_sparse(dense: Tensor) -> SparseVoxels:
-    """Extract non-zero voxels of a dense (B, C, X, Y, Z) volume (``sum |feat| > 0``), SCPNet §3.2."""
+def dense_to_sparse(dense: Tensor, grid: VoxelGrid | None = None) -> SparseVoxels:
+    """Extract non-zero voxels of a dense (B, C, X, Y, Z) volume (``sum |feat| > 0``), SCPNet §3.2;
+    ``grid`` is the volume's geometry, where known."""
     if dense.dim() != 5:
         raise ValueError(f"dense_to_sparse expects (B, C, X, Y, Z), got {tuple(dense.shape)}")
     active = dense.detach().abs().sum(dim=1) > 0  # (B, X, Y, Z)
     coords = active.nonzero()  # sorted lexicographically: batch, x, y, z
     feats = dense.permute(0, 2, 3, 4, 1)[active]
-    return SparseVoxels(coords, feats, tuple(dense.shape[2:]))  # type: ignore[arg-type]
+    return SparseVoxels(coords, feats, tuple(dense.shape[2:]), grid)  # type: ignore[arg-type]

@@ -33,17 +33,19 @@ def aligned_pairs(student: SparseVoxels, teacher: SparseVoxels) -> tuple[Tensor,
     none), and the mask of voxels the teacher has.
 
     The student's voxels are the reference set. Across grids of the same volume that differ by
-    integer factors the alignment is geometric: a coarser teacher is gathered at the student's
+    integer factors the alignment is geometric (when both taps carry their grid, origin and extent are
+    checked too): a coarser teacher is gathered at the student's
     scaled coordinates (its parent voxel); a finer teacher is first pooled into the student's
     voxels (mean over the active child voxels). See :func:`distilkit.geometry.voxel.align_across_grids`.
     """
     from distilkit.errors import GridMismatchError
 
+    target = student.grid if student.grid is not None and teacher.grid is not None else student.spatial_shape
     try:
-        t, found = align_across_grids(student.coords, student.spatial_shape, teacher.detach())
-    except GridMismatchError:
+        t, found = align_across_grids(student.coords, target, teacher.detach())
+    except GridMismatchError as exc:
         raise GridMismatchError(f"student grid {tuple(student.spatial_shape)} and teacher grid "
-                                f"{tuple(teacher.spatial_shape)} cannot be aligned (no integer factor per axis)") from None
+                                f"{tuple(teacher.spatial_shape)} cannot be aligned: {exc}") from None
     return student.feats, t, found
 
 

@@ -40,5 +40,5 @@ class Connector(nn.Module):
 
     def forward(self, value: Any) -> Any:
         if isinstance(value, SparseVoxels):
-            return SparseVoxels(value.coords, self.proj(value.feats), value.spatial_shape)
+            return value.with_feats(self.proj(value.feats))
         return self.proj(value)
