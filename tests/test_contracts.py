@@ -299,6 +299,15 @@ def test_point_cloud_adapter_trains_and_is_scored_by_its_metric(tmp_path) -> Non
     best = min(range(3), key=lambda i: evals[i]["chamfer"])
     assert result.summary["best"]["step"] == 2 * (best + 1)
     assert result.summary["test"]["best"]["chamfer"] > 0
+    # the report shows the metric's own score, at both checkpoints, and no SSC columns
+    report = (tmp_path / "runs" / "points" / "report.md").read_text()
+    assert "best validation chamfer (lowest)" in report and "IoU" not in report and "nan" not in report
+    header, _, row = [line for line in report.splitlines() if line.startswith("|")][:3]
+    cells = dict(zip(header.strip("|").split(" | "), row.strip("|").split(" | ")))
+    assert float(cells["chamfer best"]) == pytest.approx(result.summary["test"]["best"]["chamfer"], rel=1e-3)
+    assert float(cells["chamfer last"]) == pytest.approx(result.summary["test"]["last"]["chamfer"], rel=1e-3)
+    assert float(cells["val chamfer"]) == pytest.approx(evals[best]["chamfer"], rel=1e-3)
+    assert (tmp_path / "runs" / "points" / "report.png").stat().st_size > 0
 
 
 def test_a_metric_that_does_not_fit_the_prediction_is_rejected(tmp_path, capsys) -> None:

@@ -32,10 +32,10 @@ def test_mean_std_and_paired_differences_match_numpy() -> None:
     for stage, v in values.items():
         row = rows[stage]
         assert row["seeds"] == [0, 4, 7]
-        assert row["miou_mean"] == pytest.approx(v[:, 0].mean())
-        assert row["miou_std"] == pytest.approx(v[:, 0].std(ddof=1))
-        assert row["iou_std"] == pytest.approx(v[:, 1].std(ddof=1))
-        assert row["last_miou_mean"] == pytest.approx(v[:, 2].mean())
+        assert row["main_mean"] == pytest.approx(v[:, 0].mean())
+        assert row["main_std"] == pytest.approx(v[:, 0].std(ddof=1))
+        assert row["second_std"] == pytest.approx(v[:, 1].std(ddof=1))
+        assert row["last_main_mean"] == pytest.approx(v[:, 2].mean())
     paired = values["dskd"][:, 0] - values["plain"][:, 0]
     assert rows["dskd"]["delta"] == pytest.approx(list(paired))
     assert rows["dskd"]["delta_std"] == pytest.approx(paired.std(ddof=1))
@@ -46,7 +46,7 @@ def test_a_stage_missing_in_one_seed_is_paired_only_where_both_ran() -> None:
     results = {0: [fake("plain", 0.2, 0.5, 0.2), fake("kd", 0.25, 0.5, 0.25)], 1: [fake("plain", 0.1, 0.5, 0.1)]}
     rows = {r["stage"]: r for r in seed_rows(results, "plain")}
     assert rows["kd"]["seeds"] == [0] and rows["kd"]["delta"] == pytest.approx([0.05])
-    assert np.isnan(rows["kd"]["miou_std"])  # one seed: no spread, shown without ±
+    assert np.isnan(rows["kd"]["main_std"])  # one seed: no spread, shown without ±
 
 
 def test_default_baseline_is_the_plain_student() -> None:
@@ -78,3 +78,24 @@ def test_cli_runs_each_seed_and_writes_the_table(tmp_path: Path, capsys) -> None
     assert "each seed once" in capsys.readouterr().err
     assert main(["run", str(recipe), "-o", str(out), "-q", "--baseline", "plain"]) == 2
     assert "several seeds" in capsys.readouterr().err
+
+
+def test_seed_tables_follow_the_stage_metric_not_ssc(tmp_path: Path) -> None:
+    """A stage scored by a metric that is not installed now (a plugin's): its own keys, unscaled."""
+    from rich.console import Console
+
+    from distilkit.engine.seeds import write_seeds_report
+
+    def point(stage: str, chamfer: float) -> SimpleNamespace:
+        summary = {"stage": stage, "label": stage, "adapter": "points", "objectives": [],
+                   "metric": {"name": "gone-plugin", "key": "chamfer"},
+                   "test": {"best": {"chamfer": chamfer}, "last": {"chamfer": chamfer}, "best_step": 2},
+                   "report_split": "test"}
+        return SimpleNamespace(name=stage, summary=summary, reused=False)
+
+    results = {0: [point("plain", 0.30), point("kd", 0.20)], 1: [point("plain", 0.40), point("kd", 0.35)]}
+    rows = {r["stage"]: r for r in seed_rows(results, "plain")}
+    assert rows["kd"]["main"] == [0.20, 0.35] and rows["kd"]["delta"] == pytest.approx([-0.10, -0.05])
+    path = write_seeds_report(tmp_path, list(rows.values()), "plain", Console(file=open(tmp_path / "out.txt", "w")))
+    text = path.read_text()
+    assert "| chamfer best |" in text and "Δ chamfer" in text and "-0.075 ± 0.035" in text and "mIoU" not in text

@@ -262,6 +262,7 @@ class Pipeline:
                 "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
                 "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill],
                 "steps": result.steps, "train_seconds": round(result.seconds, 2),
+                "metric": {"name": stage.metric.name, "key": stage.metric.key} if stage.metric else None,
                 "best": result.best, "last": result.last, "report_split": split, "test": test,
                 "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
             }

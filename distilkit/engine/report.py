@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from distilkit.engine.io import atomic_write_text
+from distilkit.engine.scores import ScoreView, header, stage_row
 
 
 @contextlib.contextmanager
@@ -37,45 +38,47 @@ def stage_progress(console: Any, name: str) -> Iterator[Callable[[int, int, dict
         yield on_step
 
 
-def _row(summary: dict[str, Any]) -> dict[str, Any]:
-    """One stage's figures: test-split scores at the best-validation and the last checkpoint."""
-    test = summary.get("test") or {}
-    best = test.get("best") or summary.get("best", {}).get("scores") or summary.get("last") or {}
-    last = test.get("last") or summary.get("last") or {}
-    val = summary.get("best", {}).get("scores") or {}
-    nan = float("nan")
-    return {"stage": summary["stage"], "label": summary.get("label", summary["stage"]), "adapter": summary["adapter"],
-            "input": summary.get("input", f"{summary['frames']} frames" if summary.get("frames") else ""),
-            "teacher": summary.get("teacher") or "—",
-            "objectives": ", ".join(summary.get("objectives", [])) or "—", "miou": best.get("miou", nan),
-            "iou": best.get("iou", nan), "precision": best.get("precision", nan), "recall": best.get("recall", nan),
-            "best_step": test.get("best_step", summary.get("best", {}).get("step")),
-            "last_miou": last.get("miou", nan), "last_iou": last.get("iou", nan), "val_miou": val.get("miou", nan),
-            "steps": summary.get("steps"), "class_iou": best.get("class_iou", []),
-            "split": summary.get("report_split", "val")}
+def _groups(rows: list[dict[str, Any]]) -> list[tuple[ScoreView, list[int]]]:
+    """Rows by the view of their scores (one group unless stages are scored by different metrics or keys)."""
+    out: dict[ScoreView, list[int]] = {}
+    for i, row in enumerate(rows):
+        out.setdefault(row["view"], []).append(i)
+    return list(out.items())
 
 
-def _header(rows: list[dict[str, Any]]) -> str:
-    split = rows[0]["split"] if rows else "test"
-    return (f"{split} split, SSC metrics in %: 'best' = the checkpoint with the best validation mIoU (its step "
-            f"shown), 'last' = the final step")
+def _score_columns(view: ScoreView) -> list[str]:
+    head = [c[1] for c in view.headline]
+    return ([f"{h} best" for h in head] + [c[1] for c in view.others] + ["best step"] + [f"{h} last" for h in head]
+            + [f"val {view.main[1]}"])
+
+
+def _score_cells(row: dict[str, Any], view: ScoreView, rich: bool = False) -> list[str]:
+    head = view.headline
+    cells = [view.fmt(c, row["best"][c[0]]) for c in head]
+    cells += [] if rich else [view.fmt(c, row["best"][c[0]]) for c in view.others]
+    return cells + [str(row["best_step"])] + [view.fmt(c, row["last"][c[0]]) for c in head] + [
+        view.fmt(view.main, row["val"])]
 
 
 def results_table(results: list[Any]) -> Any:
     from rich.table import Table
 
-    rows = [_row(r.summary) for r in results]
-    table = Table(title=f"distilkit results — {_header(rows)}")
-    cols = ("stage", "model", "input", "teacher", "distillation", "mIoU best", "IoU best", "best step",
-            "mIoU last", "IoU last", "val mIoU", "")
-    for col in cols:
-        table.add_column(col, justify="left" if col in ("stage", "model", "input", "teacher", "distillation", "") else "right")
-    for r, row in zip(results, rows):
-        table.add_row(row["label"], row["adapter"], row["input"], row["teacher"], row["objectives"],
-                      f"{100 * row['miou']:.2f}", f"{100 * row['iou']:.2f}", str(row["best_step"]),
-                      f"{100 * row['last_miou']:.2f}", f"{100 * row['last_iou']:.2f}", f"{100 * row['val_miou']:.2f}",
-                      "reused" if r.reused else "trained")
-    return table
+    rows = [stage_row(r.summary) for r in results]
+    tables = []
+    for view, members in _groups(rows):
+        table = Table(title=f"distilkit results — {header(view, rows[members[0]]['split'])}")
+        scores = [c for c in _score_columns(view) if c not in [o[1] for o in view.others]]
+        for col in ("stage", "model", "input", "teacher", "distillation", *scores, ""):
+            table.add_column(col, justify="left" if col in ("stage", "model", "input", "teacher", "distillation", "")
+                             else "right")
+        for i in members:
+            row = rows[i]
+            table.add_row(row["label"], row["adapter"], row["input"], row["teacher"], row["objectives"],
+                          *_score_cells(row, view, rich=True), "reused" if results[i].reused else "trained")
+        tables.append(table)
+    from rich.console import Group
+
+    return tables[0] if len(tables) == 1 else Group(*tables)
 
 
 def _losses(run_dir: Path) -> tuple[list[int], list[float]]:
@@ -97,22 +100,29 @@ def write_report(pipeline: Any, results: list[Any]) -> Path:
     """Print the comparison table and write ``report.md`` and ``report.png`` beside the stage folders."""
     pipeline.console.print(results_table(results))
     root: Path = pipeline.root
-    rows = [_row(r.summary) for r in results]
-    lines = [f"# {pipeline.recipe.name}", "", f"Seed {pipeline.recipe.seed}; {_header(rows)}.", "",
-             "| stage | model | input | teacher | distillation | mIoU best | IoU best | precision | recall | best step "
-             "| mIoU last | IoU last | val mIoU | run |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r, row in zip(results, rows):
-        lines.append(f"| {row['label']} | {row['adapter']} | {row['input']} | {row['teacher']} | {row['objectives']} | "
-                     f"{100 * row['miou']:.2f} | {100 * row['iou']:.2f} | {100 * row['precision']:.2f} | "
-                     f"{100 * row['recall']:.2f} | {row['best_step']} | {100 * row['last_miou']:.2f} | "
-                     f"{100 * row['last_iou']:.2f} | {100 * row['val_miou']:.2f} | {'reused' if r.reused else 'trained'} |")
-    lines += ["", "## Per-class IoU (%, best checkpoint)", "", "| class | " + " | ".join(r["label"] for r in rows) + " |",
-              "|---|" + "---|" * len(rows)]
-    for c, cname in enumerate(pipeline.resolved.data_info.class_names[1:]):
-        vals = [f"{100 * r['class_iou'][c]:.1f}" if len(r["class_iou"]) > c else "—" for r in rows]
-        lines.append(f"| {cname} | " + " | ".join(vals) + " |")
-    lines += ["", "![training loss and validation mIoU](report.png)", ""]
+    rows = [stage_row(r.summary) for r in results]
+    groups = _groups(rows)
+    lines = [f"# {pipeline.recipe.name}", ""]
+    for view, members in groups:
+        cols = ["stage", "model", "input", "teacher", "distillation", *_score_columns(view), "run"]
+        lines += [f"Seed {pipeline.recipe.seed}; {header(view, rows[members[0]]['split'])}.", "",
+                  "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        for i in members:
+            row = rows[i]
+            cells = [row["label"], row["adapter"], row["input"], row["teacher"], row["objectives"],
+                     *_score_cells(row, view), "reused" if results[i].reused else "trained"]
+            lines.append("| " + " | ".join(cells) + " |")
+        lines.append("")
+        if view.per_class is not None:
+            key, name, scale = view.per_class
+            lines += [f"## Per-class {name} ({'%, ' if scale == 100 else ''}best checkpoint)", "",
+                      "| class | " + " | ".join(rows[i]["label"] for i in members) + " |", "|---|" + "---|" * len(members)]
+            for c, cname in enumerate(pipeline.resolved.data_info.class_names[view.first_class:]):
+                vals = [f"{scale * rows[i]['class_scores'][c]:.1f}" if len(rows[i]["class_scores"]) > c else "—"
+                        for i in members]
+                lines.append(f"| {cname} | " + " | ".join(vals) + " |")
+            lines.append("")
+    lines += [f"![training loss and validation {groups[0][0].main[1] if groups else 'score'}](report.png)", ""]
     atomic_write_text(root / "report.md", "\n".join(lines))
     try:
         _plot(root / "report.png", results, rows)
@@ -138,10 +148,15 @@ def _plot(path: Path, results: list[Any], rows: list[dict[str, Any]]) -> None:
     ax1.set_yscale("log")
     ax1.legend(fontsize=8)
     ax1.set_title("training loss")
-    labels = [r["label"] for r in rows]
-    ax2.bar(labels, [100 * r["miou"] for r in rows], color="tab:blue", label="mIoU")
-    ax2.plot(labels, [100 * r["iou"] for r in rows], "o", color="tab:orange", label="completion IoU")
-    ax2.set_ylabel("%")
+    view, members = _groups(rows)[0] if rows else (None, [])
+    if view is not None:  # the first metric's stages (all of them, unless stages use different metrics)
+        labels = [rows[i]["label"] for i in members]
+        (key, name, scale), second = view.main, view.second
+        ax2.bar(labels, [scale * rows[i]["best"][key] for i in members], color="tab:blue", label=name)
+        if second is not None:
+            ax2.plot(labels, [second[2] * rows[i]["best"][second[0]] for i in members], "o", color="tab:orange",
+                     label=second[1])
+        ax2.set_ylabel("%" if scale == 100 else name)
     ax2.set_title(f"{rows[0]['split'] if rows else 'test'} split, best-validation checkpoint")
     ax2.legend(fontsize=8)
     ax2.tick_params(axis="x", rotation=20)

@@ -15,7 +15,7 @@ from typing import Any
 
 from distilkit.engine.io import atomic_write_text
 from distilkit.errors import DistilkitError
-from distilkit.engine.report import _row
+from distilkit.engine.scores import ScoreView, stage_row
 
 
 def default_baseline(resolved: Any) -> str | None:
@@ -28,43 +28,75 @@ def default_baseline(resolved: Any) -> str | None:
 
 
 def _mean_std(xs: list[float]) -> tuple[float, float]:
+    if any(math.isnan(x) for x in xs):  # a score a stage does not have
+        return math.nan, math.nan
     return statistics.fmean(xs), statistics.stdev(xs) if len(xs) > 1 else math.nan
 
 
 def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None) -> list[dict[str, Any]]:
-    """Per stage (recipe order): seeds, per-seed test mIoU / IoU (best-val and last checkpoints), their
-    mean and sample std, and the per-seed differences in mIoU to ``baseline`` with their mean and std."""
+    """Per stage (recipe order): seeds, per-seed test scores — the selection score (``main``, SSC: mIoU) and
+    the metric's next column (``second``, SSC: IoU) at the best-validation checkpoint, ``main`` at the last
+    step (``last_main``) — their mean and sample std, and the per-seed differences in ``main`` to
+    ``baseline`` with their mean and std."""
     seeds = sorted(results_by_seed)
     per_stage: dict[str, dict[int, dict[str, Any]]] = {}
     for seed in seeds:
         for result in results_by_seed[seed]:
-            per_stage.setdefault(result.name, {})[seed] = _row(result.summary)
+            per_stage.setdefault(result.name, {})[seed] = stage_row(result.summary)
     base = per_stage.get(baseline or "", {})
     rows = []
     for name, by_seed in per_stage.items():
         got = sorted(by_seed)
-        row: dict[str, Any] = {"stage": name, "label": by_seed[got[0]]["label"], "seeds": got,
-                               "objectives": by_seed[got[0]]["objectives"]}
-        for key in ("miou", "iou", "last_miou"):
-            values = [by_seed[s][key] for s in got]
+        first = by_seed[got[0]]
+        view: ScoreView = first["view"]
+        nan = float("nan")
+        pick = {"main": lambda r: r["best"][view.main[0]],
+                "second": lambda r: r["best"][view.second[0]] if view.second else nan,
+                "last_main": lambda r: r["last"][view.main[0]]}
+        row: dict[str, Any] = {"stage": name, "label": first["label"], "seeds": got, "view": view,
+                               "objectives": first["objectives"]}
+        for key, get in pick.items():
+            values = [get(by_seed[s]) for s in got]
             row[key] = values
             row[f"{key}_mean"], row[f"{key}_std"] = _mean_std(values)
-        paired = [by_seed[s]["miou"] - base[s]["miou"] for s in got if s in base] if base and name != baseline else []
+        comparable = base and name != baseline and base[min(base)]["view"] == view
+        paired = [pick["main"](by_seed[s]) - pick["main"](base[s]) for s in got if s in base] if comparable else []
         row["delta"] = paired
         row["delta_mean"], row["delta_std"] = _mean_std(paired) if paired else (math.nan, math.nan)
         rows.append(row)
     return rows
 
 
-def _pm(mean: float, std: float, sign: str = "") -> str:
-    value = f"{100 * mean:{sign}.2f}"
-    return value if math.isnan(std) else f"{value} ± {100 * std:.2f}"
+def _pm(mean: float, std: float, scale: float = 100.0, sign: str = "") -> str:
+    value = f"{scale * mean:{sign}.2f}" if scale != 1.0 else f"{mean:{sign}.4g}"
+    if math.isnan(std):
+        return value
+    return f"{value} ± {scale * std:.2f}" if scale != 1.0 else f"{value} ± {std:.2g}"
 
 
 def _deltas(row: dict[str, Any]) -> tuple[str, str]:
     if not row["delta"]:
         return "—", "—"
-    return " / ".join(f"{100 * d:+.2f}" for d in row["delta"]), _pm(row["delta_mean"], row["delta_std"], "+")
+    scale = row["view"].main[2]
+    per_seed = " / ".join(f"{scale * d:+.2f}" if scale != 1.0 else f"{d:+.4g}" for d in row["delta"])
+    return per_seed, _pm(row["delta_mean"], row["delta_std"], scale, "+")
+
+
+def _view(rows: list[dict[str, Any]]) -> ScoreView | None:
+    return rows[0]["view"] if rows else None
+
+
+def _headers(view: ScoreView | None) -> list[str]:
+    main = view.main[1] if view else "score"
+    second = view.second[1] if view and view.second else "—"
+    return [f"{main} best", f"{second} best", f"{main} last", f"Δ {main} per seed", f"Δ {main}"]
+
+
+def _cells(row: dict[str, Any]) -> list[str]:
+    view: ScoreView = row["view"]
+    second = view.second[2] if view.second else 1.0
+    return [_pm(row["main_mean"], row["main_std"], view.main[2]), _pm(row["second_mean"], row["second_std"], second),
+            _pm(row["last_main_mean"], row["last_main_std"], view.main[2]), *_deltas(row)]
 
 
 def seeds_table(rows: list[dict[str, Any]], baseline: str | None) -> Any:
@@ -73,13 +105,10 @@ def seeds_table(rows: list[dict[str, Any]], baseline: str | None) -> Any:
     seeds = sorted({s for r in rows for s in r["seeds"]})
     table = Table(title=f"distilkit seeds {', '.join(map(str, seeds))} — test split, mean ± std over seeds, "
                         f"'best' = best-validation checkpoint; Δ = paired difference to '{baseline or '—'}'")
-    for col in ("stage", "distillation", "mIoU best", "IoU best", "mIoU last", "Δ mIoU per seed", "Δ mIoU"):
+    for col in ("stage", "distillation", *_headers(_view(rows))):
         table.add_column(col, justify="left" if col in ("stage", "distillation") else "right")
     for row in rows:
-        per_seed, mean = _deltas(row)
-        table.add_row(row["label"], row["objectives"], _pm(row["miou_mean"], row["miou_std"]),
-                      _pm(row["iou_mean"], row["iou_std"]), _pm(row["last_miou_mean"], row["last_miou_std"]),
-                      per_seed, mean)
+        table.add_row(row["label"], row["objectives"], *_cells(row))
     return table
 
 
@@ -87,18 +116,20 @@ def write_seeds_report(root: Path, rows: list[dict[str, Any]], baseline: str | N
     """Print the table and write ``seeds.md`` (and ``seeds.png``: each seed as a dot, the mean as a bar)."""
     console.print(seeds_table(rows, baseline))
     seeds = sorted({s for r in rows for s in r["seeds"]})
+    view = _view(rows)
+    main = view.main[1] if view else "score"
+    title = view.title if view else "scores"
+    lower = " (lower is better)" if view is not None and view.lower_is_better else ""
+    cols = ["stage", "distillation", "seeds", *_headers(view)]
     lines = [f"# {root.name}: seeds {', '.join(map(str, seeds))}", "",
-             "Test split, SSC metrics in %, mean ± sample std over the seeds; 'best' = the checkpoint with the best "
-             f"validation mIoU, 'last' = the final step. Δ = the paired difference in test mIoU to "
+             f"Test split, {title}, mean ± sample std over the seeds; 'best' = the checkpoint with the best "
+             f"validation {main}{lower}, 'last' = the final step. Δ = the paired difference in test {main} to "
              f"'{baseline or '—'}', seed by seed.", "",
-             "| stage | distillation | seeds | mIoU best | IoU best | mIoU last | Δ mIoU per seed | Δ mIoU |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for row in rows:
-        per_seed, mean = _deltas(row)
         lines.append(f"| {row['label']} | {row['objectives']} | {','.join(map(str, row['seeds']))} | "
-                     f"{_pm(row['miou_mean'], row['miou_std'])} | {_pm(row['iou_mean'], row['iou_std'])} | "
-                     f"{_pm(row['last_miou_mean'], row['last_miou_std'])} | {per_seed} | {mean} |")
-    lines += ["", "![test mIoU per seed](seeds.png)", ""]
+                     + " | ".join(_cells(row)) + " |")
+    lines += ["", f"![test {main} per seed](seeds.png)", ""]
     path = root / "seeds.md"
     atomic_write_text(path, "\n".join(lines))
     try:
@@ -115,13 +146,15 @@ def _plot(path: Path, rows: list[dict[str, Any]]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    view = _view(rows)
+    _, name, scale = view.main if view else ("", "score", 1.0)
     fig, ax = plt.subplots(figsize=(max(6.0, 0.6 * len(rows) + 2), 4.0))
     for i, row in enumerate(rows):
-        ax.bar(i, 100 * row["miou_mean"], color="#9ecae1", yerr=None if math.isnan(row["miou_std"]) else
-               100 * row["miou_std"], capsize=3)
-        ax.scatter([i] * len(row["miou"]), [100 * v for v in row["miou"]], color="#08519c", s=12, zorder=3)
+        ax.bar(i, scale * row["main_mean"], color="#9ecae1", yerr=None if math.isnan(row["main_std"]) else
+               scale * row["main_std"], capsize=3)
+        ax.scatter([i] * len(row["main"]), [scale * v for v in row["main"]], color="#08519c", s=12, zorder=3)
     ax.set_xticks(range(len(rows)), [r["label"] for r in rows], rotation=45, ha="right", fontsize=8)
-    ax.set_ylabel("test mIoU (%), best-val checkpoint")
+    ax.set_ylabel(f"test {name}{' (%)' if scale == 100 else ''}, best-val checkpoint")
     ax.set_title("mean ± std over seeds; dots: single seeds")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -2,7 +2,8 @@
 
 A metric declares the tap kind of the prediction it scores (``SCORES``), the batch targets it reads
 (``TARGETS``), and the scalar scores ``compute`` returns (``KEYS``; those in ``LOWER_IS_BETTER`` are
-minimised when they select the best checkpoint). An adapter names its prediction tap
+minimised when they select the best checkpoint); ``TITLE``, ``COLUMNS`` and ``PER_CLASS`` say how reports
+show them. An adapter names its prediction tap
 (``Adapter.PREDICTION_TAP``, of any kind); ``train.metric`` picks a score among the metrics registered
 for that kind, so a point-cloud model is scored by a point-cloud metric with nothing special in the trainer.
 """
@@ -21,6 +22,16 @@ class Metric(ABC):
     TARGETS: ClassVar[frozenset[str]] = frozenset()
     KEYS: ClassVar[tuple[str, ...]] = ()
     LOWER_IS_BETTER: ClassVar[frozenset[str]] = frozenset()
+    # how reports show the scores: a title, (key, header, scale) columns (default: every key as it is),
+    # and a per-class list with the train id of its first entry
+    TITLE: ClassVar[str] = ""
+    COLUMNS: ClassVar[tuple[tuple[str, str, float], ...]] = ()
+    PER_CLASS: ClassVar[tuple[str, str, float] | None] = None  # (key of a per-class list, header, scale)
+    PER_CLASS_FROM: ClassVar[int] = 0
+
+    @classmethod
+    def columns(cls) -> tuple[tuple[str, str, float], ...]:
+        return cls.COLUMNS or tuple((k, k, 1.0) for k in cls.KEYS)
 
     def __init__(self, info: DataInfo) -> None:
         self.info = info

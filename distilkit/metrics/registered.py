@@ -20,6 +20,10 @@ class SSCScore(Metric):
     SCORES = "voxel_logits"
     TARGETS = frozenset({"voxel_label", "invalid"})
     KEYS = ("miou", "iou", "precision", "recall")
+    TITLE = "SSC metrics in %"
+    COLUMNS = (("miou", "mIoU", 100.0), ("iou", "IoU", 100.0), ("precision", "precision", 100.0),
+               ("recall", "recall", 100.0))
+    PER_CLASS, PER_CLASS_FROM = ("class_iou", "IoU", 100.0), 1  # classes 1..K-1 (0 = empty is not semantic)
 
     def __init__(self, info: DataInfo) -> None:
         super().__init__(info)

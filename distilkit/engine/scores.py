@@ -1,0 +1,91 @@
+"""How a finished stage's scores are read and shown: the columns its metric declares, the selection key.
+
+Reports and seed tables are built from these rows, so a stage scored by any registered metric (SSC
+mIoU, a point cloud's Chamfer distance, ...) is shown with its own scores, none special-cased.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from distilkit.registry import METRICS
+
+
+@dataclass(frozen=True)
+class ScoreView:
+    """The metric's table: ``columns`` (key, header, scale), the key that selected ``best``, the title."""
+
+    metric: str
+    select: str
+    title: str
+    columns: tuple[tuple[str, str, float], ...]
+    per_class: tuple[str, str, float] | None = None
+    first_class: int = 0
+    lower_is_better: bool = False
+
+    @property
+    def main(self) -> tuple[str, str, float]:
+        """The selection score's column: the headline of every table."""
+        return next((c for c in self.columns if c[0] == self.select), (self.select, self.select, 1.0))
+
+    @property
+    def second(self) -> tuple[str, str, float] | None:
+        """The first other column (SSC: completion IoU beside mIoU), shown at both checkpoints."""
+        return next((c for c in self.columns if c[0] != self.select), None)
+
+    @property
+    def others(self) -> list[tuple[str, str, float]]:
+        return [c for c in self.columns if c not in (self.main, self.second)]
+
+    @property
+    def headline(self) -> list[tuple[str, str, float]]:
+        return [self.main] + ([self.second] if self.second else [])
+
+    @classmethod
+    def of(cls, summary: dict[str, Any]) -> "ScoreView":
+        """The view of a stage summary (summaries written before metrics were recorded: SSC by mIoU)."""
+        spec = summary.get("metric") or {"name": "ssc", "key": "miou"}
+        metric = METRICS.get(spec["name"]) if spec["name"] in METRICS else None
+        if metric is None:  # a plugin metric that is not installed now: its keys as they are
+            keys = tuple(k for k, v in (summary.get("test", {}).get("best") or {}).items() if isinstance(v, float))
+            return cls(spec["name"], spec["key"], f"{spec['name']} scores", tuple((k, k, 1.0) for k in keys))
+        return cls(spec["name"], spec["key"], metric.TITLE or f"{spec['name']} scores", metric.columns(),
+                   metric.PER_CLASS, metric.PER_CLASS_FROM, spec["key"] in metric.LOWER_IS_BETTER)
+
+    def fmt(self, column: tuple[str, str, float], value: float) -> str:
+        return f"{column[2] * value:.2f}" if column[2] != 1.0 else f"{value:.4g}"
+
+
+def _frames(n: int | None) -> str:
+    """The input column of summaries written before adapters described their input."""
+    return f"{n} frame{'s' if n != 1 else ''}" if n else ""
+
+
+def stage_row(summary: dict[str, Any]) -> dict[str, Any]:
+    """One stage's figures: test-split scores at the best-validation and the last checkpoint."""
+    view = ScoreView.of(summary)
+    test = summary.get("test") or {}
+    best = test.get("best") or summary.get("best", {}).get("scores") or summary.get("last") or {}
+    last = test.get("last") or summary.get("last") or {}
+    val = summary.get("best", {}).get("scores") or {}
+    nan = float("nan")
+    return {"stage": summary["stage"], "label": summary.get("label", summary["stage"]), "adapter": summary["adapter"],
+            "input": summary.get("input", _frames(summary.get("frames"))),
+            "teacher": summary.get("teacher") or "—",
+            "objectives": ", ".join(summary.get("objectives", [])) or "—", "view": view,
+            "best": {k: best.get(k, nan) for k, _, _ in view.columns},
+            "last": {k: last.get(k, nan) for k, _, _ in view.columns},
+            "val": val.get(view.select, nan),
+            "best_step": test.get("best_step", summary.get("best", {}).get("step")),
+            "steps": summary.get("steps"), "class_scores": best.get(view.per_class[0], []) if view.per_class else [],
+            "split": summary.get("report_split", "val")}
+
+
+def header(view: ScoreView, split: str) -> str:
+    main = view.main[1]
+    return (f"{split} split, {view.title}: 'best' = the checkpoint with the best validation {main}"
+            f"{' (lowest)' if view.lower_is_better else ''} (its step shown), 'last' = the final step")
+
+
+__all__ = ["ScoreView", "header", "stage_row"]
