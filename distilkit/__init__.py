@@ -1,9 +1,19 @@
 """distilkit: knowledge distillation for 3D semantic scene completion.
 
-`import distilkit` is cheap (no torch). The pieces live in submodules:
-`distilkit.losses` (pure differentiable functions), `distilkit.objectives`,
-`distilkit.metrics`, `distilkit.data`, `distilkit.engine`, and the command line in
-`distilkit.cli`.
+`import distilkit` is cheap (no torch). The layout follows one run:
+
+* ``recipe.py`` — the recipe schema; ``registry.py`` — every named component (adapters, objectives,
+  task losses, datasets, metrics) and the ``distilkit.plugins`` entry point;
+* ``data/`` — datasets, each describing itself (``info.py``: classes, grid, cameras) and collating its
+  typed ``Batch`` (``batch.py``);
+* ``adapter.py`` — how a model is seen: inputs, taps, prediction tap; ``taps.py`` — the registered tap
+  kinds and their checks;
+* ``term.py`` — the contract of every loss term: ``losses/`` (pure functions and the task losses) and
+  ``objectives/`` (distillation objectives, connectors) implement it;
+* ``engine/`` — ``resolve`` checks a recipe, ``pipeline`` runs its stages, ``models`` builds them,
+  ``trainer`` (+ ``hooks``, ``recorders``) trains one, ``evaluate`` scores it with ``metrics/``, and
+  ``report``/``seeds`` (via ``scores``) show the results;
+* ``geometry/`` — shared numerics (voxel grids and alignment, kNN); ``cli.py`` — the command line.
 """
 
 __version__ = "0.1.0"
