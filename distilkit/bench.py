@@ -69,7 +69,8 @@ def time_fb(fn: Callable[[], Tensor], inputs: list[Tensor], device: torch.device
         for t in inputs:
             t.grad = None
         out = fn()
-        out.backward()
+        if out.requires_grad:  # a case without trainable input (key-point selection) times its forward
+            out.backward()
         return float(out.detach())
 
     value = once()  # warm-up
@@ -213,8 +214,80 @@ def nst_cases(device: torch.device, quick: bool) -> list[Case]:
     return cases
 
 
+def _street(m: int, seed: int, device: torch.device) -> Tensor:
+    """A LiDAR-like scene of ``m`` points: a ground plane, walls and poles within 50 m (metres)."""
+    g = torch.Generator().manual_seed(seed)
+    part = m // 3
+    ground = torch.cat([torch.rand(part, 2, generator=g) * 100 - 50, torch.randn(part, 1, generator=g) * 0.02 - 1.7], 1)
+    wall = torch.cat([torch.rand(part, 1, generator=g) * 100 - 50, 8 + torch.randn(part, 1, generator=g) * 0.05,
+                      torch.rand(part, 1, generator=g) * 4 - 1.7], 1)
+    rest = m - 2 * part
+    centres = (torch.rand(rest // 50 + 1, 2, generator=g) * 80 - 40).repeat_interleave(50, 0)[:rest]
+    poles = torch.cat([centres + torch.randn(rest, 2, generator=g) * 0.1, torch.rand(rest, 1, generator=g) * 5 - 1.7], 1)
+    return torch.cat([ground, wall, poles]).to(device)
+
+
+def released_keypoints(points: Tensor, sample: Tensor, k: int, keep: int) -> Tensor:
+    """ScoreLiDAR's released key points: a full distance matrix of the sample, argsort, a Python loop of
+    eigen-decompositions (seed_code.md §3.5)."""
+    p = points[sample]
+    nbr = torch.argsort(torch.cdist(p, p), dim=1)[:, 1:k + 1]
+    curv = []
+    for i in range(p.shape[0]):
+        c = p[nbr[i]] - p[nbr[i]].mean(0)
+        lam = torch.linalg.eigvalsh(c.T @ c / k)
+        curv.append(lam[0] / lam.sum())
+    return sample[torch.topk(torch.stack(curv), keep).indices]
+
+
+def naive_structural(gen: Tensor, gt: Tensor, key: Tensor) -> Tensor:
+    """Eq. 12 and 16 literally: a full generated x ground-truth distance matrix for the nearest points, and
+    the key points' distance matrices from (n, n, 3) differences."""
+    nn_sq = torch.cdist(gen, gt).min(dim=1).values ** 2
+    k = gt[key]
+    matched = gen[torch.cdist(k, gen).argmin(dim=1)]
+    d_t = (k[:, None] - k[None]).norm(dim=-1)
+    d_g = (matched[:, None] - matched[None]).norm(dim=-1)
+    return 0.5 * nn_sq.mean() + 0.01 * ((d_t - d_g) ** 2).mean()
+
+
+def structural_cases(device: torch.device, quick: bool) -> list[Case]:
+    from distilkit.losses.structural import curvature, select_keypoints, structural
+
+    big, small = (18_000, 6_000) if quick else (180_000, 30_000)
+    cases = []
+    for m, with_naive in ((big, False), (small, True)):
+        pts = _street(m, 0, device)
+        n = round(m * 0.1)
+        keep = round(n / 3)
+
+        def fast(pts: Tensor = pts) -> Tensor:
+            key = select_keypoints(pts, generator=torch.Generator().manual_seed(0))
+            return curvature(pts[key.sort().values], k=min(180, len(key) - 1)).double().sum()
+
+        def naive(pts: Tensor = pts, n: int = n, keep: int = keep) -> Tensor:
+            sample = torch.randperm(pts.shape[0], generator=torch.Generator().manual_seed(0))[:n].to(pts.device)
+            key = released_keypoints(pts, sample, 180, keep)
+            return curvature(pts[key.sort().values], k=min(180, len(key) - 1)).double().sum()
+
+        cases.append(Case("structural key points", f"{m:,} pts → {n:,} sampled → {keep:,} (k = 180)", fast,
+                          naive if with_naive else None, []))
+    for m, with_naive in ((big, False), ((6_000 if quick else 18_000), True)):
+        gt = _street(m, 1, device)
+        gen = (gt[torch.randperm(m, generator=torch.Generator().manual_seed(2))] +
+               0.05 * torch.randn(m, 3, generator=torch.Generator().manual_seed(3)).to(device)).requires_grad_(True)
+        key = select_keypoints(gt, generator=torch.Generator().manual_seed(0))
+        cases.append(Case("structural step", f"{m:,} generated vs {m:,} GT, {len(key):,} key pts",
+                          lambda gen=gen, gt=gt, key=key: structural(gen, gt, key),
+                          (lambda gen=gen, gt=gt, key=key: naive_structural(gen, gt, key)) if with_naive else None,
+                          [gen], None if with_naive else
+                          (lambda gen=gen, gt=gt, key=key: structural(gen.detach().double(), gt.double(), key))))
+    return cases
+
+
 BENCHES: dict[str, Callable[[torch.device, bool], list[Case]]] = {
-    "dskd": dskd_cases, "pkt": pkt_cases, "rgo2d": rgo2d_cases, "kd": kd_cases, "nst": nst_cases}
+    "dskd": dskd_cases, "pkt": pkt_cases, "rgo2d": rgo2d_cases, "kd": kd_cases, "nst": nst_cases,
+    "structural": structural_cases}
 
 
 def _fmt_mem(b: int | None) -> str:

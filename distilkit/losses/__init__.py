@@ -2,6 +2,7 @@
 
 >>> import torch, distilkit.losses as L
 >>> L.dskd(torch.randn(100, 32), torch.randn(100, 32))   # SCPNet eq. 1-2
+>>> L.scene_wise(torch.randn(500, 3), torch.randn(5000, 3))   # ScoreLiDAR eq. 12
 
 Class/channel dimension is 1 for dense maps; ``mask`` arguments are bool tensors shaped like the
 map without its class dimension.
@@ -12,5 +13,8 @@ from distilkit.losses.feature import fitnet, nst, pkt
 from distilkit.losses.logit import dist, kd
 from distilkit.losses.rgo2d import rgo2d, rgo2d_region
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
+from distilkit.losses.structural import curvature, point_wise, scene_wise, select_keypoints, structural
+from distilkit.losses.vsd import vsd
 
-__all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "rgo2d_region", "rgo2d", "cross_entropy", "lovasz_softmax"]
+__all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "rgo2d_region", "rgo2d", "cross_entropy", "lovasz_softmax",
+           "vsd", "scene_wise", "point_wise", "curvature", "select_keypoints", "structural"]

@@ -1,0 +1,114 @@
+"""ScoreLiDAR's VSD surrogate and structural loss (eq. 9-17) against naive float64 loops."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import distilkit.losses as L
+from distilkit.geometry.nearest import knn_excluding_self, nearest
+from distilkit.taps import PointCloud
+
+
+def val(x: torch.Tensor) -> float:
+    return float(x.detach())
+
+
+def cloud(m: int, seed: int, scale: float = 5.0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(m, 3, generator=g, dtype=torch.float64) * scale
+
+
+def naive_nn(q: np.ndarray, s: np.ndarray) -> np.ndarray:
+    d = ((q[:, None, :] - s[None, :, :]) ** 2).sum(-1)
+    return d.argmin(1)
+
+
+def naive_curvature(p: np.ndarray, k: int) -> np.ndarray:
+    out = []
+    for i in range(len(p)):
+        d = np.sqrt(((p - p[i]) ** 2).sum(1))
+        d[i] = np.inf
+        nbr = p[np.argsort(d, kind="stable")[:k]]
+        c = nbr - nbr.mean(0)
+        lam = np.linalg.eigvalsh(c.T @ c / k)
+        out.append(lam[0] / lam.sum())
+    return np.array(out)
+
+
+def test_nearest_and_self_excluded_neighbours_match_brute_force() -> None:
+    q, s = cloud(50, 0), cloud(80, 1)
+    assert torch.equal(nearest(q, s), torch.from_numpy(naive_nn(q.numpy(), s.numpy())))
+    p = torch.cat([cloud(30, 2), cloud(30, 2)[:3]])  # three points present twice
+    nbr = knn_excluding_self(p, 5)
+    assert not (nbr == torch.arange(len(p))[:, None]).any()
+    for i in range(len(p)):
+        d = ((p - p[i]) ** 2).sum(1)
+        d[i] = float("inf")
+        assert torch.allclose(d[nbr[i]].sort().values, d.sort().values[:5])
+
+
+def test_scene_wise_is_the_mean_squared_distance_to_the_nearest_target_point() -> None:
+    g, t = cloud(40, 3).requires_grad_(), cloud(70, 4)
+    idx = naive_nn(g.detach().numpy(), t.numpy())
+    want = ((g.detach().numpy() - t.numpy()[idx]) ** 2).sum(1).mean()
+    assert val(L.scene_wise(g, t)) == pytest.approx(want, rel=1e-12)
+    assert torch.autograd.gradcheck(lambda x: L.scene_wise(x, t), (g,))
+    # the released code: index-aligned MSE per coordinate (seed_code.md §3.5)
+    t40 = t[:40]
+    assert val(L.scene_wise(g, t40, legacy_index_aligned=True)) == pytest.approx(
+        float(((g.detach() - t40) ** 2).mean()), rel=1e-12)
+    # a batch is the mean over its scenes
+    batch_g = PointCloud.from_list([g.detach(), g.detach()[:25]])
+    batch_t = PointCloud.from_list([t, t[:50]])
+    want = (L.scene_wise(g.detach(), t) + L.scene_wise(g.detach()[:25], t[:50])) / 2
+    assert val(L.scene_wise(batch_g, batch_t)) == pytest.approx(float(want), rel=1e-12)
+
+
+def test_curvature_follows_eq_13_to_15() -> None:
+    p = cloud(60, 5)
+    assert np.allclose(L.curvature(p, k=8).numpy(), naive_curvature(p.numpy(), 8), rtol=1e-9, atol=1e-12)
+    plane = torch.cat([cloud(50, 6)[:, :2], torch.zeros(50, 1, dtype=torch.float64)], 1)
+    assert L.curvature(plane, k=6).abs().max() < 1e-12  # a plane has no variation out of it
+
+
+def test_key_points_are_the_most_curved_of_a_random_sample() -> None:
+    p = cloud(300, 7)
+    got = L.select_keypoints(p, k=10, sample_ratio=0.2, keep_ratio=0.25, generator=torch.Generator().manual_seed(3))
+    sample = torch.randperm(300, generator=torch.Generator().manual_seed(3))[:60]
+    kappa = naive_curvature(p[sample].numpy(), 10)
+    want = sample[torch.from_numpy(np.argsort(-kappa, kind="stable")[:15])]
+    assert got.tolist() == want.tolist()
+
+
+def test_point_wise_compares_distance_matrices_of_key_points_and_their_nearest_generated_points() -> None:
+    g, t = cloud(45, 8).requires_grad_(), cloud(90, 9)
+    key = torch.tensor([3, 17, 40, 41, 88])
+    kp = t[key].numpy()
+    matched = g.detach().numpy()[naive_nn(kp, g.detach().numpy())]
+    d_t = np.sqrt(((kp[:, None] - kp[None]) ** 2).sum(-1))
+    d_g = np.sqrt(((matched[:, None] - matched[None]) ** 2).sum(-1))
+    assert val(L.point_wise(g, t, key)) == pytest.approx(((d_t - d_g) ** 2).mean(), rel=1e-10)
+    assert torch.autograd.gradcheck(lambda x: L.point_wise(x, t, key), (g,))
+    total = L.structural(g, t, key)
+    assert val(total) == pytest.approx(val(0.5 * L.scene_wise(g, t) + 0.01 * L.point_wise(g, t, key)), rel=1e-12)
+    batch = L.point_wise(PointCloud.from_list([g.detach()] * 2), PointCloud.from_list([t, t]), [key, key[:3]])
+    want = (L.point_wise(g.detach(), t, key) + L.point_wise(g.detach(), t, key[:3])) / 2
+    assert val(batch) == pytest.approx(float(want), rel=1e-12)
+
+
+def test_vsd_gradient_is_the_formula_and_not_zero_unlike_the_released_form() -> None:
+    x0 = cloud(30, 10).requires_grad_()
+    e_t, e_a = cloud(30, 11), cloud(30, 12)
+    w = torch.tensor(0.7, dtype=torch.float64)
+    L.vsd(x0, e_t, e_a, w).backward()
+    assert torch.allclose(x0.grad, w * (e_t - e_a) / x0.numel(), rtol=0, atol=1e-15)
+    assert x0.grad.abs().max() > 0
+    # ScoreLiDAR's released loss: ((eps_teacher - eps_aux) * (x_t - x_0)).mean() with x_t = x_0 + sigma eps
+    x0.grad = None
+    x_t = x0 + 0.3 * cloud(30, 13)
+    ((e_t - e_a) * (x_t - x0)).mean().backward()
+    assert x0.grad.abs().max() == 0  # exactly zero: the term the paper describes does nothing there
+    with pytest.raises(ValueError, match="one shape"):
+        L.vsd(x0, e_t[:10], e_a)
