@@ -15,7 +15,7 @@ import torch
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES, remap, seg_lut, ssc_lut
 from distilkit.data.info import DataInfo
 from distilkit.data.lidar import LIDAR_INPUTS, LIDAR_TARGETS, collate_lidar
-from distilkit.data.params import SemanticKittiParams, SyntheticParams
+from distilkit.data.params import SceneParams, SemanticKittiParams, SyntheticParams
 from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.data import semantickitti as skio
 from distilkit.errors import DataError
@@ -157,4 +157,32 @@ DATASETS.add(
     params=SemanticKittiParams,
     info=kitti_info, collate=collate_lidar, version=1,
     has_split=lambda p, split: split != "test" or bool(p.test_sequences),
+)
+
+
+def _scenes_factory(params: Any, split: str, progress: Any = None) -> Any:
+    from distilkit.data.scenes import build_scenes
+
+    return build_scenes(params, split, progress)
+
+
+def _scenes_info(params: Any) -> DataInfo:
+    from distilkit.data.scenes import scenes_info
+
+    return scenes_info(params)
+
+
+def _collate_scenes(samples: list[dict[str, Any]]) -> Any:
+    from distilkit.data.scenes import collate_scenes
+
+    return collate_scenes(samples)
+
+
+DATASETS.add(
+    "synthetic-scenes", _scenes_factory,
+    description="partial scan / dense static scene pairs from the synthetic streets, as LiDiff trains on them "
+                "(padded point clouds; cached on disk)",
+    paper="Nunes et al., LiDiff, CVPR 2024 (data pipeline); distilkit synthetic streets",
+    params=SceneParams, info=_scenes_info, collate=_collate_scenes, version=1,
+    has_split=lambda p, split: True,
 )

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 SCALES = (1, 2, 4, 8)
 
@@ -15,7 +15,17 @@ def _check_scale(v: int) -> int:
     return v
 
 
-class SyntheticParams(BaseModel):
+class _SensorParams(BaseModel):
+    """The simulated LiDAR and drive shared by the synthetic data sets (a Velodyne HDL-64-like sensor, 32 beams)."""
+
+    beams: int = Field(32, ge=2)
+    fov_up: float = 2.0
+    fov_down: float = -24.8
+    range_noise: float = Field(0.02, ge=0, description="std of Gaussian range noise, metres")
+    ego_speed: float = Field(1.0, ge=0, description="metres per frame (KITTI: about 1 m at 10 Hz)")
+
+
+class SyntheticParams(_SensorParams):
     """``synthetic-lidar``: procedural street scenes cast with a spinning LiDAR."""
 
     model_config = ConfigDict(extra="forbid")
@@ -26,13 +36,8 @@ class SyntheticParams(BaseModel):
     num_test: int = Field(32, ge=1, description="test scenes (scores reported at the best and the last checkpoint)")
     input_frames: int = Field(5, ge=1, description="frames fused into the input (current + next T-1)")
     gt_frames: int = Field(10, ge=0, description="future scans voxelised with the current one for the SSC target")
-    beams: int = Field(32, ge=2)
     azimuth_steps: int = Field(1024, ge=8)
-    fov_up: float = 2.0
-    fov_down: float = -24.8
     max_range: float = Field(60.0, gt=0)
-    range_noise: float = Field(0.02, ge=0, description="std of Gaussian range noise, metres")
-    ego_speed: float = Field(1.0, ge=0, description="metres per frame (KITTI: about 1 m at 10 Hz)")
     scribble: Literal["lines", "random"] = Field(
         "lines", description="scribble labels: BEV line scribbles (ScribbleKITTI) or a random subset of points")
     scribble_spacing: float = Field(7.5, gt=0, description="metres between parallel scribble lines")
@@ -56,3 +61,33 @@ class SemanticKittiParams(BaseModel):
     stride: int = Field(5, ge=1, description="use every n-th scan (voxel files exist for every 5th)")
 
     _scale = field_validator("scale")(_check_scale)
+
+
+class SceneParams(_SensorParams):
+    """``synthetic-scenes``: scan / dense scene pairs from the synthetic streets, as LiDiff trains on them."""
+
+    model_config = ConfigDict(extra="forbid")
+    seed: int = Field(0, description="scene seed (independent of the training seed)")
+    num_train: int = Field(8, ge=1)
+    num_val: int = Field(4, ge=1)
+    num_test: int = Field(8, ge=1)
+    scan_points: int = Field(1024, ge=8, description="points of the partial scan after farthest-point sampling "
+                                                     "(LiDiff: 18,000)")
+    scene_points: int = Field(10240, ge=8, description="points of the dense ground-truth scene (LiDiff: 180,000 = "
+                                                       "10 x the scan)")
+    frames: int = Field(11, ge=1, description="scans accumulated into the scene (the current one in the middle)")
+    gt_voxel: float = Field(0.2, gt=0, description="the scene keeps one point (the mean) per voxel of this size "
+                                                   "(LiDiff's maps: 0.1 m)")
+    viewpoint_voxel: float = Field(10.0, gt=0, description="scene points are kept in cells of this size that hold "
+                                                           "a scan point (LiDiff: 10 m)")
+    min_range: float = Field(3.5, ge=0, description="scan points closer than this are dropped (LiDiff: 3.5 m)")
+    max_range: float = Field(50.0, gt=0, description="scan and scene range (LiDiff: 50 m)")
+    min_z: float = Field(-4.0, description="points below this height are dropped (LiDiff: -4 m)")
+    azimuth_steps: int = Field(768, ge=8)
+
+    @model_validator(mode="after")
+    def _whole_copies(self) -> "SceneParams":
+        if self.scene_points % self.scan_points:
+            raise ValueError(f"scene_points ({self.scene_points}) must be a multiple of scan_points "
+                             f"({self.scan_points}): LiDiff starts from the scan duplicated scene/scan times")
+        return self

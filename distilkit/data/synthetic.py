@@ -412,28 +412,53 @@ _GRIDS = ("voxel_label", "invalid", "scribble")
 def generate_split(p: SyntheticParams, split: str, count: int,
                    progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
     """Generate (or load from the on-disk cache) ``count`` samples of ``split``; arrays stacked with offsets."""
-    key = content_key({"v": GENERATOR_VERSION, "split": split, "count": count, **p.model_dump()})
-    path = cache_root() / "synthetic-lidar" / f"{split}-{key}.npz"
-    if path.is_file():
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                return {k: z[k] for k in z.files}
-        except Exception:
-            path.unlink(missing_ok=True)  # a corrupt cache entry is regenerated
-    split_salt = {"train": 0, "val": 1, "test": 2}.get(split, 3)
+    def stack(samples: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+        out = {k: np.concatenate([s[k] for s in samples]) for k in _ARRAYS}
+        out["offsets"] = np.cumsum([0] + [len(s["points"]) for s in samples]).astype(np.int64)
+        out.update({k: np.stack([s[k] for s in samples]) for k in _GRIDS})
+        return out
+
+    return cached_samples("synthetic-lidar", GENERATOR_VERSION, p, split, count, lambda seed: make_sample(seed, p),
+                          stack, progress)
+
+
+def cached_samples(kind: str, version: int, p: Any, split: str, count: int,
+                   make: Callable[[int], dict[str, np.ndarray]],
+                   stack: Callable[[list[dict[str, np.ndarray]]], dict[str, np.ndarray]],
+                   progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
+    """``count`` samples of ``split`` made by ``make(seed)`` (seeds from the data seed and the split) and
+    stacked, cached on disk under ``kind`` by the content of ``p``, ``version`` and the split."""
+    key = content_key({"v": version, "split": split, "count": count, **p.model_dump()})
+    path = cache_root() / kind / f"{split}-{key}.npz"
+    cached = read_cached(path)
+    if cached is not None:
+        return cached
+    salt = {"train": 0, "val": 1, "test": 2}.get(split, 3)
     samples = []
     for i in range(count):
-        samples.append(make_sample(int(p.seed) * 1_000_003 + split_salt * 100_003 + i, p))
+        samples.append(make(int(p.seed) * 1_000_003 + salt * 100_003 + i))
         if progress:
             progress(i + 1, count)
-    out: dict[str, np.ndarray] = {}
-    for k in _ARRAYS:
-        out[k] = np.concatenate([s[k] for s in samples])
-    out["offsets"] = np.cumsum([0] + [len(s["points"]) for s in samples]).astype(np.int64)
-    for k in _GRIDS:
-        out[k] = np.stack([s[k] for s in samples])
+    out = stack(samples)
+    write_cached(path, out)
+    return out
+
+
+def read_cached(path: Path) -> dict[str, np.ndarray] | None:
+    """The arrays of a cache entry, or None when there is none; a corrupt entry is removed (and regenerated)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except Exception:
+        path.unlink(missing_ok=True)
+        return None
+
+
+def write_cached(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write a cache entry atomically (a temporary file renamed into place)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + f".tmp{os.getpid()}.npz")
-    np.savez(tmp, **out)
+    np.savez(tmp, **arrays)
     os.replace(tmp, path)
-    return out

@@ -1,0 +1,158 @@
+"""Point-cloud scene completion data as LiDiff trains on it (seed_code.md §3.1), from the synthetic streets.
+
+One sample, around the current frame of a drive along the street (SemanticKITTI sensor frame):
+
+* ``scan`` (N, 3): the current scan's static points with 3.5 m < range < ``max_range`` and z > -4 m,
+  tiled and farthest-point-sampled to ``scan_points`` (LiDiff: 18,000);
+* ``scene`` (M, 3): the static points of every scan of the drive (``frames`` of them, the current one in
+  the middle) within ``max_range`` of the current pose and z > -4 m, downsampled to one point (the mean)
+  per ``gt_voxel`` voxel, kept where a ``viewpoint_voxel`` voxel holds a point of the scan (LiDiff's 10 m
+  "viewpoint" crop), randomly permuted and tiled to ``scene_points`` (LiDiff: 180,000 = 10 x 18,000).
+
+Moving objects (raw ids >= 252) and unlabelled points are left out of both, as LiDiff's maps do.
+The batch holds padded clouds with lengths (PyTorch3D's convention): inputs ``scan``/``scan_lengths``,
+targets ``scene``/``scene_lengths``, meta ``scene_id`` (stable per split and index, for per-scene caches).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from distilkit.data.batch import Batch
+from distilkit.data.info import ClassTable, DataInfo
+from distilkit.data.params import SceneParams
+from distilkit.data.raycast import ray_directions
+from distilkit.data.synthetic import EGO_LANE_Y, SENSOR_HEIGHT, cached_samples, cast_scan, make_scene
+
+SCENES_VERSION = 1
+SCENE_FIELDS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths"})
+
+
+def farthest_point_sample(points: np.ndarray, count: int, start: int = 0) -> np.ndarray:
+    """Indices of ``count`` points chosen by farthest-point sampling from ``points[start]`` (O(count * n),
+    numpy: single-threaded, which beats a thread pool at these sizes)."""
+    pts = np.ascontiguousarray(points[:, :3], dtype=np.float32)
+    n = len(pts)
+    if count > n:
+        raise ValueError(f"farthest-point sampling of {count} points from {n}")
+    chosen = np.empty(count, dtype=np.int64)
+    dist = np.full(n, np.inf, dtype=np.float32)
+    i = start
+    for j in range(count):
+        chosen[j] = i
+        d = pts - pts[i]
+        np.minimum(dist, np.einsum("ij,ij->i", d, d), out=dist)
+        i = int(np.argmax(dist))
+    return chosen
+
+
+def tile_to(points: np.ndarray, count: int) -> np.ndarray:
+    """Repeat ``points`` until there are at least ``count`` of them (LiDiff tiles before sampling)."""
+    if len(points) == 0:
+        raise ValueError("cannot tile an empty point set")
+    reps = -(-count // len(points))
+    return np.tile(points, (reps, 1)) if reps > 1 else points
+
+
+def scan_crop(xyz: np.ndarray, min_range: float, max_range: float, min_z: float) -> np.ndarray:
+    r = np.linalg.norm(xyz[:, :2], axis=1)
+    return xyz[(r > min_range) & (r < max_range) & (xyz[:, 2] > min_z)]
+
+
+def voxel_mean(xyz: np.ndarray, voxel: float) -> np.ndarray:
+    """One point per occupied voxel: the mean of its points."""
+    keys, inv = np.unique(np.floor(xyz / voxel).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    sums = np.zeros((len(keys), 3), np.float64)
+    np.add.at(sums, inv, xyz)
+    return (sums / np.bincount(inv, minlength=len(keys))[:, None]).astype(np.float32)
+
+
+def viewpoint_crop(scene: np.ndarray, scan: np.ndarray, voxel: float) -> np.ndarray:
+    """The scene points inside the ``voxel``-sized cells that hold a scan point."""
+    def key(xyz: np.ndarray) -> np.ndarray:
+        k = np.floor(xyz / voxel).astype(np.int64) + 1_000_000
+        return (k[:, 0] * 2_000_001 + k[:, 1]) * 2_000_001 + k[:, 2]
+
+    return scene[np.isin(key(scene), key(scan))]
+
+
+def make_scene_sample(seed: int, p: SceneParams) -> dict[str, np.ndarray]:
+    """Generate one (scan, scene) pair; see the module docstring."""
+    rng = np.random.default_rng(seed)
+    cur = p.frames // 2
+    x0 = rng.uniform(0, 20)
+    scene = make_scene(rng, x0 - p.max_range - 10, x0 + p.ego_speed * p.frames + p.max_range + 10, p.ego_speed, x0,
+                       p.frames)
+    dirs = ray_directions(p.beams, p.azimuth_steps, p.fov_up, p.fov_down)
+    ego = np.array([x0 + p.ego_speed * cur, EGO_LANE_Y, SENSOR_HEIGHT], np.float32)
+    statics = []
+    scan = np.zeros((0, 3), np.float32)
+    for j in range(p.frames):
+        origin = np.array([x0 + p.ego_speed * j, EGO_LANE_Y, SENSOR_HEIGHT], np.float32)
+        s = cast_scan(scene, origin, j, dirs, rng, p.max_range, p.range_noise)
+        static = (s.label >= 1) & (s.label < 252)
+        xyz = s.xyz[static] - ego[None, :]  # the current sensor frame (the ego drives along +x, heading 0)
+        statics.append(xyz)
+        if j == cur:
+            scan = xyz
+    partial = scan_crop(scan, p.min_range, p.max_range, p.min_z)
+    if len(partial) == 0:
+        raise ValueError(f"scene seed {seed}: the scan has no static point in range")
+    partial = tile_to(partial, p.scan_points)
+    partial = partial[farthest_point_sample(partial, p.scan_points, int(rng.integers(len(partial))))]
+    full = scan_crop(np.concatenate(statics), 0.0, p.max_range, p.min_z)
+    full = viewpoint_crop(voxel_mean(full, p.gt_voxel), partial, p.viewpoint_voxel)
+    full = tile_to(full[rng.permutation(len(full))], p.scene_points)[: p.scene_points]
+    return {"scan": partial.astype(np.float32), "scene": full.astype(np.float32)}
+
+
+def generate_scenes(p: SceneParams, split: str, count: int,
+                    progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
+    """``count`` samples of ``split`` stacked, from the on-disk cache when generated before (a corrupt cache
+    entry is regenerated)."""
+    return cached_samples("synthetic-scenes", SCENES_VERSION, p, split, count, lambda seed: make_scene_sample(seed, p),
+                          lambda samples: {k: np.stack([s[k] for s in samples]) for k in ("scan", "scene")}, progress)
+
+
+class SceneDataset(torch.utils.data.Dataset):
+    def __init__(self, arrays: dict[str, np.ndarray], split: str) -> None:
+        self.a, self.split = arrays, split
+
+    def __len__(self) -> int:
+        return len(self.a["scan"])
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        return {"scan": self.a["scan"][i], "scene": self.a["scene"][i], "scene_id": f"{self.split}/{i}"}
+
+
+def collate_scenes(samples: list[dict[str, Any]]) -> Batch:
+    """Padded clouds with lengths: inputs ``scan``, targets ``scene``; meta ``scene_id``."""
+    def pad(key: str) -> tuple[torch.Tensor, torch.Tensor]:
+        clouds = [torch.from_numpy(np.asarray(s[key], np.float32)) for s in samples]
+        m = max(len(c) for c in clouds)
+        out = torch.zeros(len(clouds), m, 3)
+        for b, c in enumerate(clouds):
+            out[b, : len(c)] = c
+        return out, torch.tensor([len(c) for c in clouds], dtype=torch.int64)
+
+    scan, scan_len = pad("scan")
+    scene, scene_len = pad("scene")
+    return Batch({"scan": scan, "scan_lengths": scan_len}, {"scene": scene, "scene_lengths": scene_len},
+                 {"size": len(samples), "scene_id": [s.get("scene_id", "") for s in samples]})
+
+
+def scenes_info(params: SceneParams) -> DataInfo:
+    return DataInfo(None, ClassTable(("scene",), ((160, 160, 160),)), SCENE_FIELDS)
+
+
+def build_scenes(params: SceneParams, split: str, progress: Any = None) -> SceneDataset:
+    count = {"train": params.num_train, "val": params.num_val, "test": params.num_test}[split]
+    return SceneDataset(generate_scenes(params, split, count, progress), split)
+
+
+__all__ = ["SCENE_FIELDS", "SceneDataset", "build_scenes", "collate_scenes", "farthest_point_sample",
+           "make_scene_sample", "scenes_info"]
