@@ -62,3 +62,28 @@ def test_precision_recall_auc_over_5_to_10_cm() -> None:
     assert auc(precision) == pytest.approx(simpson(precision.numpy(), x=tau) / (tau[-1] - tau[0]), rel=1e-12)
     assert auc(torch.ones(100, dtype=torch.float64)) == pytest.approx(1.0)
     assert 0 < auc(precision) < 1
+
+
+def test_the_registered_completion_metric_accumulates_like_lidiffs_evaluation() -> None:
+    from distilkit.data.batch import Batch
+    from distilkit.registry import METRICS
+    from distilkit.taps import PointCloud
+
+    cls = METRICS.get("completion")
+    gts = [scene(400, 10, 5.0), scene(300, 11, 5.0)]
+    preds = [g[:250] + 0.03 for g in gts]
+    preds[1] = torch.cat([preds[1], torch.tensor([[80.0, 0.0, 0.0]], dtype=torch.float64)])  # beyond 50 m: dropped
+    gt = PointCloud.from_list([g.float() for g in gts])
+    batch = Batch({}, {"scene": gt.points, "scene_lengths": gt.lengths}, {"size": 2})
+    metric = cls(None)
+    metric.update(PointCloud.from_list([p.float() for p in preds]), batch)
+    got = metric.compute()
+    kept = [preds[0], preds[1][:-1]]
+    assert got["cd"] == pytest.approx(np.mean([chamfer_distance(p.float().double(), g.float().double())
+                                               for p, g in zip(kept, gts)]), rel=1e-6)
+    conf = [voxel_confusion(p.float().double(), g.float().double(), 0.2) for p, g in zip(kept, gts)]
+    tp, fp, fn = (sum(c[i] for c in conf) for i in range(3))
+    assert got["iou_20cm"] == pytest.approx(tp / (tp + fp + fn))
+    curves = [precision_recall_curves(p.float().double(), g.float().double()) for p, g in zip(kept, gts)]
+    assert got["precision"] == pytest.approx(auc(torch.stack([c[0] for c in curves]).mean(0)))
+    assert set(got) == set(cls.KEYS) and cls.LOWER_IS_BETTER == {"cd", "jsd"}

@@ -9,6 +9,7 @@ from torch import Tensor
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.metrics.base import Metric
+from distilkit.metrics.points import auc, chamfer_distance, jsd_bev, precision_recall_curves, voxel_confusion
 from distilkit.metrics.ssc import SSCMetric
 from distilkit.registry import METRICS
 
@@ -37,10 +38,80 @@ class SSCScore(Metric):
         return self.acc.compute()
 
 
+class SceneCompletionScore(Metric):
+    """Point-cloud completions scored as LiDiff and ScoreLiDAR report them (seed_code.md §3.4): Chamfer
+    distance (m) and BEV Jensen-Shannon distance averaged over scenes; occupied-voxel IoU at 0.5 / 0.2 /
+    0.1 m over the whole split; precision, recall and F-score as the normalised area over 5-10 cm of the
+    per-threshold values averaged over scenes. Predicted points beyond 50 m are dropped first, as LiDiff's
+    evaluation does."""
+
+    SCORES = "points"
+    TARGETS = frozenset({"scene", "scene_lengths"})
+    KEYS = ("cd", "jsd", "iou_50cm", "iou_20cm", "iou_10cm", "precision", "recall", "fscore")
+    LOWER_IS_BETTER = frozenset({"cd", "jsd"})
+    TITLE = "scene completion (LiDiff's conventions: CD in m, IoU, precision, recall and F in %)"
+    COLUMNS = (("cd", "CD", 1.0), ("jsd", "JSD", 1.0), ("iou_50cm", "IoU 0.5 m", 100.0),
+               ("iou_20cm", "IoU 0.2 m", 100.0), ("iou_10cm", "IoU 0.1 m", 100.0), ("precision", "precision", 100.0),
+               ("recall", "recall", 100.0), ("fscore", "F", 100.0))
+    VOXELS = {"iou_50cm": 0.5, "iou_20cm": 0.2, "iou_10cm": 0.1}
+    MAX_RANGE = 50.0
+
+    def __init__(self, info: DataInfo) -> None:
+        super().__init__(info)
+        self.cd: list[float] = []
+        self.jsd: list[float] = []
+        self.confusion = {k: [0, 0, 0] for k in self.VOXELS}
+        self.precision: list[Tensor] = []
+        self.recall: list[Tensor] = []
+
+    def update(self, prediction: Any, batch: Batch) -> None:
+        target = batch.targets["scene"].cpu()
+        lengths = batch.targets["scene_lengths"].cpu()
+        for b in range(batch.size):
+            pred = prediction.cloud(b).detach().cpu().double()
+            pred = pred[pred[:, :2].norm(dim=1) < self.MAX_RANGE]
+            gt = target[b, : int(lengths[b])].double()
+            if len(pred) == 0:
+                raise ValueError(f"scene {b} of the batch: no predicted point within {self.MAX_RANGE:g} m")
+            self.cd.append(chamfer_distance(pred, gt))
+            self.jsd.append(jsd_bev(pred, gt))
+            for key, size in self.VOXELS.items():
+                for i, v in enumerate(voxel_confusion(pred, gt, size)):
+                    self.confusion[key][i] += v
+            p, r = precision_recall_curves(pred, gt)
+            self.precision.append(p)
+            self.recall.append(r)
+
+    def compute(self) -> dict[str, Any]:
+        import torch
+
+        n = max(len(self.cd), 1)
+        out: dict[str, Any] = {"cd": sum(self.cd) / n, "jsd": sum(self.jsd) / n}
+        for key, (tp, fp, fn) in self.confusion.items():
+            out[key] = tp / (tp + fp + fn + 1e-15)
+        if self.precision:
+            p, r = torch.stack(self.precision).mean(0), torch.stack(self.recall).mean(0)
+            f = 2 * p * r / (p + r).clamp_min(1e-15)
+            out.update(precision=auc(p), recall=auc(r), fscore=auc(f))
+        else:
+            out.update(precision=0.0, recall=0.0, fscore=0.0)
+        return out
+
+
 METRICS.add(
     "ssc",
     SSCScore,
     description="SemanticKITTI SSC: completion IoU/precision/recall and semantic mIoU over classes 1..K-1",
     paper="Behley et al., SemanticKITTI, ICCV 2019 (evaluate_completion.py)",
     consumes=(SSCScore.SCORES,),
+)
+
+
+METRICS.add(
+    "completion",
+    SceneCompletionScore,
+    description="point-cloud scene completion: Chamfer and BEV Jensen-Shannon distances, voxel IoU at 0.5/0.2/0.1 m, "
+                "precision/recall/F over 5-10 cm",
+    paper="Nunes et al., LiDiff, CVPR 2024 (eval_path.py, metrics as fixed in LiDiff#45)",
+    consumes=(SceneCompletionScore.SCORES,),
 )
