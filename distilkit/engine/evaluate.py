@@ -22,6 +22,12 @@ def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device
     acc = metric(model.info)
     for start in range(0, len(dataset), batch_size):
         batch = collate([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))]).to(device)
-        acc.update(model(batch)[model.PREDICTION_TAP], batch)
+        out = model(batch)
+        if model.PREDICTION_TAP not in out:
+            from distilkit.errors import TapError
+
+            raise TapError(f"{type(model).__name__} in evaluation returned no prediction tap {model.PREDICTION_TAP!r} "
+                           f"(returned: {', '.join(map(str, out))})")
+        acc.update(out[model.PREDICTION_TAP], batch)
     model.train(was_training)
     return acc.compute()

@@ -272,16 +272,23 @@ class Trainer:
         self.own_optimizers = [term.module.own_optimizer() for term in self.terms]
 
     def _check_outputs(self, model: Adapter, outputs: dict[str, Any], role: str) -> None:
-        """Every tap the adapter declares, present and of its kind (checked once, on the first batch)."""
+        """Every declared tap the forward returned is of its kind, and every tap a term reads is there (checked
+        once, on the first batch). An adapter may leave out taps no term reads (LiDiff samples its prediction
+        only in evaluation)."""
         if role in self._checked:
             return
         from distilkit.errors import TapError
 
         adapter = type(model).__name__
+        read = {tap for t in self.terms for r, tap in t.spec.taps.items()
+                if (r in t.spec.cls.TEACHER_ROLES) == (role == "teacher")}
         for tap, kind in model.tap_kinds.items():
             if tap not in outputs:
-                raise TapError(f"stage {self.stage.name!r}: the {role} ({adapter}) declares tap {tap!r} but its "
-                               f"forward did not return it (returned: {', '.join(map(str, outputs))})")
+                if tap in read:
+                    raise TapError(f"stage {self.stage.name!r}: the {role} ({adapter}) declares tap {tap!r}, which a "
+                                   f"term reads, but its forward did not return it (returned: "
+                                   f"{', '.join(map(str, outputs))})")
+                continue
             check_tap(outputs[tap], kind, f"stage {self.stage.name!r}, {role} ({adapter}) tap {tap!r}")
         self._checked.add(role)
 

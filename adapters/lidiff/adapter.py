@@ -1,0 +1,127 @@
+"""How distilkit sees LiDiff: training taps ``eps_pred``/``eps`` (the denoising pair), and in evaluation the sampled
+``completion``; it offers the ``Denoiser`` capability (``alphas_cumprod``, ``predict_noise``, ``sample``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from torch import Tensor
+
+from distilkit.adapter import Adapter
+from distilkit.data.batch import Batch
+from distilkit.data.info import DataInfo
+from distilkit.registry import ADAPTERS
+from distilkit.taps import PointCloud
+from distilkit_adapters.lidiff.model import PointDenoiser, lidiff_alphas_cumprod
+
+
+class LiDiffParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    channels: int = Field(64, ge=4, description="width of the denoiser's point MLPs")
+    blocks: int = Field(3, ge=1, description="modulated residual blocks")
+    k_scan: int = Field(8, ge=1, description="scan neighbours of the scan encoder's local descriptor")
+    k_cond: int = Field(4, ge=1, description="nearest scan points that condition each noisy point")
+    diffusion_steps: int = Field(1000, ge=2, description="T (LiDiff: 1000)")
+    beta_start: float = Field(3.5e-5, gt=0)
+    beta_end: float = Field(0.007, gt=0)
+    duplicate: int = Field(10, ge=1, description="K: the scan is duplicated K times as the start of sampling "
+                                                "(LiDiff: 10 = scene points / scan points)")
+    sample_steps: int = Field(50, ge=1, description="sampler steps at evaluation (LiDiff: 50; ScoreLiDAR's student: 8)")
+    guidance: float = Field(1.0, ge=0, description="classifier-free guidance weight when sampling (LiDiff: 6.0, "
+                                                   "ScoreLiDAR: 3.5; 1 = the conditional prediction alone)")
+    uncond_prob: float = Field(0.1, ge=0, le=1, description="share of training scenes with the condition dropped")
+
+
+class LiDiffAdapter(Adapter):
+    """LiDiff with its denoising loss (``lidiff`` task loss) and a DDIM sampler of any number of steps."""
+
+    Params = LiDiffParams
+    INPUTS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths"})  # training noises the scene
+    TAPS = {"eps_pred": "points", "eps": "points", "completion": "points"}
+    PREDICTION_TAP = "completion"
+    DEFAULT_TASK_LOSSES = [{"name": "lidiff", "taps": {"student": "eps_pred", "noise": "eps"}}]
+    VERSION = 1
+
+    def __init__(self, params: LiDiffParams, info: DataInfo) -> None:
+        super().__init__(params, info)
+        self.net = PointDenoiser(params.channels, params.blocks, params.k_scan, params.k_cond)
+        abar = lidiff_alphas_cumprod(params.diffusion_steps, params.beta_start, params.beta_end)
+        self.register_buffer("alphas_cumprod", abar.float(), persistent=False)
+
+    @classmethod
+    def describe(cls, params: BaseModel) -> str:
+        return f"{getattr(params, 'sample_steps')} steps"
+
+    # -- the Denoiser capability -------------------------------------------------------------------
+    def sigma(self, t: Tensor) -> Tensor:
+        """sqrt(1 - abar_t), the local noise scale at integer timesteps t."""
+        return (1.0 - self.alphas_cumprod[t]).sqrt()
+
+    def predict_noise(self, x_t: Tensor, t: Tensor, condition: Tensor, guidance: float = 1.0) -> Tensor:
+        """eps_hat (B, M, 3) of noisy points (B, M, 3) at timesteps t (B,), given the scan (B, N, 3); with
+        classifier-free guidance eps_u + w (eps_c - eps_u) when ``guidance`` != 1 (the unconditional input
+        is an all-zero scan, as LiDiff's)."""
+        eps = self.net(x_t, t, condition)
+        if guidance != 1.0:
+            eps_u = self.net(x_t, t, torch.zeros_like(condition))
+            eps = eps_u + guidance * (eps - eps_u)
+        return eps
+
+    def timesteps(self, steps: int) -> list[int]:
+        """``steps`` timesteps from T - 1 down to 0, evenly spaced (one step: T - 1 only)."""
+        top = self.params.diffusion_steps - 1
+        if steps == 1:
+            return [top]
+        return sorted({int(round(v)) for v in torch.linspace(top, 0, steps).tolist()}, reverse=True)
+
+    def start(self, condition: Tensor, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+        """(x_init, x_T): the scan duplicated K times, and it plus N(0, I) noise (LiDiff's start point)."""
+        x_init = condition.repeat(1, self.params.duplicate, 1)
+        noise = torch.randn(x_init.shape, generator=generator, device=x_init.device, dtype=x_init.dtype)
+        return x_init, x_init + noise
+
+    def denoise_step(self, x_t: Tensor, t: int, t_prev: int | None, condition: Tensor, guidance: float) -> Tensor:
+        """One deterministic DDIM step of the local-noise process x_t = x_0 + sigma_t eps:
+        x0_hat = x_t - sigma_t eps_hat, x_prev = x0_hat + sigma_prev eps_hat (x0_hat at the last step)."""
+        tt = torch.full((x_t.shape[0],), t, dtype=torch.long, device=x_t.device)
+        eps = self.predict_noise(x_t, tt, condition, guidance)
+        x0 = x_t - self.sigma(tt)[:, None, None] * eps
+        if t_prev is None:
+            return x0
+        return x0 + self.sigma(torch.tensor(t_prev, device=x_t.device)) * eps
+
+    def sample(self, condition: Tensor, steps: int | None = None, guidance: float | None = None,
+               generator: torch.Generator | None = None) -> Tensor:
+        """A completed scene (B, K*N, 3) from the scan (B, N, 3) in ``steps`` sampler steps."""
+        ts = self.timesteps(steps or self.params.sample_steps)
+        w = self.params.guidance if guidance is None else guidance
+        _, x = self.start(condition, generator)
+        for i, t in enumerate(ts):
+            x = self.denoise_step(x, t, ts[i + 1] if i + 1 < len(ts) else None, condition, w)
+        return x
+
+    # -- forward -----------------------------------------------------------------------------------
+    def forward(self, batch: Batch) -> dict[str, Any]:
+        scan = batch.inputs["scan"]
+        if not self.training:
+            x = self.sample(scan)
+            lengths = torch.full((x.shape[0],), x.shape[1], dtype=torch.int64, device=x.device)
+            return {"completion": PointCloud(x, lengths)}
+        x0, lengths = batch.field("scene"), batch.field("scene_lengths")
+        b = x0.shape[0]
+        t = torch.randint(0, self.params.diffusion_steps, (b,), device=x0.device)
+        eps = torch.randn_like(x0)
+        x_t = x0 + self.sigma(t)[:, None, None] * eps
+        if b > 1 and self.params.uncond_prob > 0:  # conditional dropout (LiDiff keeps B = 1 conditional)
+            drop = torch.rand(b, device=x0.device) < self.params.uncond_prob
+            scan = torch.where(drop[:, None, None], torch.zeros_like(scan), scan)
+        eps_pred = self.net(x_t, t, scan)
+        return {"eps_pred": PointCloud(eps_pred, lengths), "eps": PointCloud(eps, lengths)}
+
+
+ADAPTERS.add("lidiff", LiDiffAdapter,
+             description="LiDiff: scan-conditioned point diffusion with local noise (pure-PyTorch point denoiser), "
+                         "DDIM sampling with any number of steps",
+             paper="Nunes et al., LiDiff, CVPR 2024", consumes=tuple(LiDiffAdapter.TAPS.values()))

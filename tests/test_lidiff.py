@@ -1,0 +1,90 @@
+"""The LiDiff adapter: LiDiff's forward process and loss, a DDIM sampler of any number of steps, and a run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from distilkit.data.batch import Batch
+from distilkit.engine.pipeline import Pipeline
+from distilkit.recipe import recipe_from_dict
+from distilkit.registry import ADAPTERS, TASK_LOSSES
+from distilkit.taps import PointCloud
+
+DATA = {"num_train": 2, "num_val": 1, "num_test": 1, "scan_points": 64, "scene_points": 256, "frames": 3, "beams": 8,
+        "azimuth_steps": 128}
+SMALL = {"channels": 8, "blocks": 1, "duplicate": 4, "sample_steps": 3}
+
+
+def model(**kw):
+    cls = ADAPTERS.get("lidiff")
+    from distilkit.data.scenes import scenes_info
+    from distilkit.data.params import SceneParams
+
+    torch.manual_seed(0)
+    return cls(cls.Params(**{**SMALL, **kw}), scenes_info(SceneParams(**DATA)))
+
+
+def test_schedule_is_lidiffs() -> None:
+    m = model()
+    betas = np.linspace(3.5e-5, 0.007, 1000)
+    abar = np.cumprod(1 - betas)
+    assert np.allclose(m.alphas_cumprod.double().numpy(), abar, rtol=1e-6)
+    assert abar[-1] == pytest.approx(0.0294, abs=5e-4)  # x_T is not pure noise (seed_code.md §3.1)
+    assert m.timesteps(1) == [999] and m.timesteps(4) == [999, 666, 333, 0]
+
+
+def test_training_forward_noises_the_scene_with_local_noise() -> None:
+    m = model(uncond_prob=0.0).train()
+    scene = torch.randn(2, 256, 3)
+    batch = Batch({"scan": torch.randn(2, 64, 3), "scan_lengths": torch.tensor([64, 64])},
+                  {"scene": scene, "scene_lengths": torch.tensor([256, 256])}, {"size": 2})
+    seen = {}
+    orig = m.net.forward
+    m.net.forward = lambda x_t, t, scan: seen.update(x_t=x_t, t=t) or orig(x_t, t, scan)  # type: ignore[method-assign]
+    out = m(batch)
+    sigma = (1 - m.alphas_cumprod[seen["t"]]).sqrt()[:, None, None]
+    assert torch.allclose(seen["x_t"], scene + sigma * out["eps"].points, atol=1e-6)  # x_t = x_0 + sqrt(1-abar) eps
+    assert out["eps_pred"].points.shape == (2, 256, 3) and "completion" not in out
+
+
+def test_lidiff_loss_is_mse_plus_the_statistics_regulariser() -> None:
+    cls = TASK_LOSSES.get("lidiff")
+    pred, eps = torch.randn(2, 10, 3, dtype=torch.float64), torch.randn(2, 10, 3, dtype=torch.float64)
+    lengths = torch.tensor([10, 7])
+    got = cls(cls.Params()).compute({"student": PointCloud(pred, lengths), "noise": PointCloud(eps, lengths)}, None)
+    p = np.concatenate([pred[0].numpy(), pred[1, :7].numpy()])
+    e = np.concatenate([eps[0].numpy(), eps[1, :7].numpy()])
+    want = ((p - e) ** 2).mean() + 5.0 * (p.mean() ** 2 + (p.std(ddof=1) - 1) ** 2)
+    assert float(got) == pytest.approx(want, rel=1e-12)
+
+
+@pytest.mark.parametrize("steps", [1, 2, 8])
+def test_ddim_with_an_oracle_denoiser_returns_the_scene_in_any_number_of_steps(steps: int) -> None:
+    m = model(duplicate=2)
+    scan = torch.randn(1, 16, 3)
+    target = scan.repeat(1, 2, 1) + 0.3 * torch.randn(1, 32, 3)
+    m.net.forward = lambda x_t, t, c: (x_t - target) / (1 - m.alphas_cumprod[t]).sqrt()[:, None, None]  # type: ignore
+    out = m.sample(scan, steps=steps, generator=torch.Generator().manual_seed(1))
+    assert torch.allclose(out, target, atol=1e-4)
+
+
+def test_classifier_free_guidance_extrapolates_from_the_unconditional_prediction() -> None:
+    m = model()
+    m.net.forward = lambda x_t, t, c: x_t + c.abs().sum()  # type: ignore[method-assign]
+    x, t, c = torch.zeros(1, 4, 3), torch.tensor([5]), torch.ones(1, 2, 3)
+    eps_c, eps_u = 6.0, 0.0  # sum |c| = 6 with the scan, 0 with the all-zero scan
+    assert torch.allclose(m.predict_noise(x, t, c, guidance=3.5), torch.full((1, 4, 3), eps_u + 3.5 * (eps_c - eps_u)))
+
+
+def test_a_lidiff_teacher_trains_and_is_scored_by_the_completion_metric(tmp_path) -> None:
+    recipe = {"schema_version": 1, "name": "lidiff", "seed": 0,
+              "data": {"dataset": "synthetic-scenes", "params": DATA},
+              "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL},
+                                     "train": {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd"}}}}
+    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    scores = result.summary["test"]["best"]
+    assert scores["cd"] > 0 and 0 < scores["jsd"] <= np.sqrt(np.log(2)) + 1e-9
+    assert result.summary["input"] == "3 steps" and result.summary["metric"] == {"name": "completion", "key": "cd"}
+    assert "| CD best |" in (tmp_path / "runs" / "lidiff" / "report.md").read_text()
