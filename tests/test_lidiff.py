@@ -88,3 +88,34 @@ def test_a_lidiff_teacher_trains_and_is_scored_by_the_completion_metric(tmp_path
     assert scores["cd"] > 0 and 0 < scores["jsd"] <= np.sqrt(np.log(2)) + 1e-9
     assert result.summary["input"] == "3 steps" and result.summary["metric"] == {"name": "completion", "key": "cd"}
     assert "| CD best |" in (tmp_path / "runs" / "lidiff" / "report.md").read_text()
+
+
+def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -> None:
+    """Teacher pre-training, then a 1-step student initialised from it: VSD (LoRA aux, own SGD) + structural."""
+    from distilkit.engine.io import load_checkpoint
+
+    train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd"}
+    recipe = {"schema_version": 1, "name": "scorelidar", "seed": 0,
+              "data": {"dataset": "synthetic-scenes", "params": DATA},
+              "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL}, "train": train},
+                         "student": {"model": {"adapter": "lidiff", "params": {**SMALL, "generate_steps": 1,
+                                                                                   "sample_steps": 1}},
+                                     "init": {"from": "teacher", "strict": False}, "teacher": {"from": "teacher"},
+                                     "task_losses": [],
+                                     "distill": [{"name": "vsd", "params": {"rank": 2, "aux_lr": 0.01},
+                                                  "taps": {"student": "samples"}},
+                                                 {"name": "structural", "params": {"k": 8},
+                                                  "taps": {"student": "samples"}}],
+                                     "optimizer": {"name": "sgd", "lr": 1e-4}, "train": train}}}
+    teacher, student = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    log = [__import__("json").loads(x) for x in (student.run_dir / "metrics.jsonl").read_text().splitlines()]
+    steps = [r for r in log if "loss" in r]
+    assert steps and all({"kd_vsd", "kd_structural", "vsd_aux_loss"} <= set(r) for r in steps)
+    ckpt = load_checkpoint(student.run_dir / "checkpoints" / "last.pt")
+    t_ckpt = load_checkpoint(teacher.run_dir / "checkpoints" / "best.pt")
+    lora_b = [v for k, v in ckpt["objectives"].items() if k.endswith("lora_b")]
+    assert lora_b and any(float(v.abs().max()) > 0 for v in lora_b)  # the aux network trained (B starts at 0)
+    base = {k.split("aux.", 1)[1].replace(".base.", "."): v for k, v in ckpt["objectives"].items()
+            if ".base." in k}
+    assert base and all(torch.equal(v, t_ckpt["student"][k]) for k, v in base.items())  # the LoRA base is frozen
+    assert student.summary["input"] == "1 steps" and student.summary["test"]["best"]["cd"] > 0

@@ -1,5 +1,5 @@
-"""How distilkit sees LiDiff: training taps ``eps_pred``/``eps`` (the denoising pair), and in evaluation the sampled
-``completion``; it offers the ``Denoiser`` capability (``alphas_cumprod``, ``predict_noise``, ``sample``)."""
+"""How distilkit sees LiDiff: training taps ``eps_pred``/``eps`` (the denoising pair) or, for a few-step student,
+``samples`` (generated with their gradient), and in evaluation the sampled ``completion``; it offers the ``Denoiser`` capability (``alphas_cumprod``, ``predict_noise``, ``sample``)."""
 
 from __future__ import annotations
 
@@ -32,6 +32,9 @@ class LiDiffParams(BaseModel):
     guidance: float = Field(1.0, ge=0, description="classifier-free guidance weight when sampling (LiDiff: 6.0, "
                                                    "ScoreLiDAR: 3.5; 1 = the conditional prediction alone)")
     uncond_prob: float = Field(0.1, ge=0, le=1, description="share of training scenes with the condition dropped")
+    generate_steps: int = Field(0, ge=0, description="0: training denoises noised scenes (LiDiff); n > 0: training "
+                                                     "generates ``samples`` in n sampler steps with their gradient "
+                                                     "(a few-step student, ScoreLiDAR: 1)")
 
 
 class LiDiffAdapter(Adapter):
@@ -39,7 +42,7 @@ class LiDiffAdapter(Adapter):
 
     Params = LiDiffParams
     INPUTS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths"})  # training noises the scene
-    TAPS = {"eps_pred": "points", "eps": "points", "completion": "points"}
+    TAPS = {"eps_pred": "points", "eps": "points", "samples": "points", "completion": "points"}
     PREDICTION_TAP = "completion"
     DEFAULT_TASK_LOSSES = [{"name": "lidiff", "taps": {"student": "eps_pred", "noise": "eps"}}]
     VERSION = 1
@@ -109,6 +112,10 @@ class LiDiffAdapter(Adapter):
             x = self.sample(scan)
             lengths = torch.full((x.shape[0],), x.shape[1], dtype=torch.int64, device=x.device)
             return {"completion": PointCloud(x, lengths)}
+        if self.params.generate_steps:  # a few-step generator: its samples, differentiable (ScoreLiDAR's student)
+            x = self.sample(scan, steps=self.params.generate_steps)
+            lengths = torch.full((x.shape[0],), x.shape[1], dtype=torch.int64, device=x.device)
+            return {"samples": PointCloud(x, lengths)}
         x0, lengths = batch.field("scene"), batch.field("scene_lengths")
         b = x0.shape[0]
         t = torch.randint(0, self.params.diffusion_steps, (b,), device=x0.device)

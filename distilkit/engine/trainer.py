@@ -224,12 +224,15 @@ class Trainer:
                       for spec, mod, con in zip(self.stage.distill, self.objectives, self.connectors)]
 
     @staticmethod
-    def _roles(term: StageTerm, s_out: dict[str, Any], t_out: dict[str, Any], batch: Batch) -> dict[str, Any]:
-        """The value of each of a term's roles: a student or teacher tap, or a batch field."""
+    def _roles(term: StageTerm, s_out: dict[str, Any], t_out: dict[str, Any], batch: Batch,
+               partial: bool = False) -> dict[str, Any]:
+        """The value of each of a term's roles: a student or teacher tap, or a batch field (``partial``: only the
+        taps the outputs hold — the setup pass runs the student in eval mode, where some adapters return less)."""
         cls = term.spec.cls
-        taps = {role: (t_out if role in cls.TEACHER_ROLES else s_out)[tap] for role, tap in term.spec.taps.items()}
+        taps = {role: (t_out if role in cls.TEACHER_ROLES else s_out)[tap] for role, tap in term.spec.taps.items()
+                if not partial or tap in (t_out if role in cls.TEACHER_ROLES else s_out)}
         taps.update({role: batch.field(name) for role, name in term.spec.fields.items()})
-        if term.connector is not None and term.spec.connector is not None:
+        if term.connector is not None and term.spec.connector is not None and "student" in taps:
             taps["student"] = term.connector(taps["student"])
         return taps
 
@@ -256,13 +259,14 @@ class Trainer:
             self.student.eval()
             with torch.no_grad():
                 s_out, t_out = self.student(batch), self._teacher_outputs(batch)
-                self._check_outputs(self.student, s_out, "student")
+                self._check_outputs(self.student, s_out, "student", strict=False)
                 for j, spec in enumerate(self.stage.distill):  # a connector maps the student tap to the teacher's
                     if spec.connector is not None:
                         self.connectors[j] = Connector(spec.connector, s_out[spec.taps["student"]],
                                                        t_out[spec.taps["teacher"]])
-                for term in self.terms:
-                    term.module.setup(self._roles(term, s_out, t_out, batch), batch)
+                for term in self.terms:  # bound first: setup may build from the teacher (an auxiliary copy)
+                    term.module.bind(TermContext(self.student, self.teacher, self.device))
+                    term.module.setup(self._roles(term, s_out, t_out, batch, partial=True), batch)
             self.student.train(was)
         self.task.to(self.device)
         self.objectives.to(self.device)
@@ -271,26 +275,28 @@ class Trainer:
             term.module.bind(TermContext(self.student, self.teacher, self.device))
         self.own_optimizers = [term.module.own_optimizer() for term in self.terms]
 
-    def _check_outputs(self, model: Adapter, outputs: dict[str, Any], role: str) -> None:
+    def _check_outputs(self, model: Adapter, outputs: dict[str, Any], role: str, strict: bool = True) -> None:
         """Every declared tap the forward returned is of its kind, and every tap a term reads is there (checked
         once, on the first batch). An adapter may leave out taps no term reads (LiDiff samples its prediction
         only in evaluation)."""
         if role in self._checked:
             return
         from distilkit.errors import TapError
+        # strict=False (the setup pass, in eval mode): kinds of what is there; the first training step checks the rest
 
         adapter = type(model).__name__
         read = {tap for t in self.terms for r, tap in t.spec.taps.items()
                 if (r in t.spec.cls.TEACHER_ROLES) == (role == "teacher")}
         for tap, kind in model.tap_kinds.items():
             if tap not in outputs:
-                if tap in read:
+                if tap in read and strict:
                     raise TapError(f"stage {self.stage.name!r}: the {role} ({adapter}) declares tap {tap!r}, which a "
                                    f"term reads, but its forward did not return it (returned: "
                                    f"{', '.join(map(str, outputs))})")
                 continue
             check_tap(outputs[tap], kind, f"stage {self.stage.name!r}, {role} ({adapter}) tap {tap!r}")
-        self._checked.add(role)
+        if strict:
+            self._checked.add(role)
 
     def loss_terms(self, batch: Batch) -> dict[str, Tensor]:
         """The weighted value of every term on ``batch`` (the teacher runs when a term reads its taps)."""

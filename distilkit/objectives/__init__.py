@@ -6,5 +6,7 @@ from distilkit.objectives import feature as _feature  # noqa: F401
 from distilkit.objectives import logit as _logit  # noqa: F401
 from distilkit.objectives import region as _region  # noqa: F401
 from distilkit.objectives import relational as _relational  # noqa: F401
+from distilkit.objectives import score as _score  # noqa: F401
+from distilkit.objectives import structural as _structural  # noqa: F401
 
 __all__ = ["Objective"]
