@@ -112,7 +112,8 @@ class OptimizerSpec(_Strict):
 
 class TrainSpec(_Strict):
     epochs: int | None = Field(None, ge=1, description="passes over the training split")
-    steps: int | None = Field(None, ge=1, description="optimizer steps (instead of epochs)")
+    steps: int | None = Field(None, ge=0, description="optimizer steps (instead of epochs); 0 = evaluate only (a "
+                                                      "model from `init` scored as it is, e.g. at other sampler steps)")
     batch_size: int = Field(1, ge=1)
     grad_clip: float | None = Field(None, gt=0, description="max gradient norm (SCPNet: 10)")
     eval_every: int | None = Field(None, ge=1, description="evaluate every N steps (default: end of each epoch)")

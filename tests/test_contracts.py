@@ -294,7 +294,7 @@ def test_point_cloud_adapter_trains_and_is_scored_by_its_metric(tmp_path) -> Non
     (result,) = Pipeline(recipe_from_dict(point_recipe()), tmp_path / "runs", quiet=True).run()
     evals = [json.loads(line)["eval"] for line in (result.run_dir / "metrics.jsonl").read_text().splitlines()
              if "eval" in line]
-    assert len(evals) == 3 and all(set(e) == {"chamfer"} for e in evals)
+    assert len(evals) == 3 and all(set(e) == {"chamfer", "seconds_per_sample"} for e in evals)
     # lower is better: best.pt holds the step with the smallest validation Chamfer distance
     best = min(range(3), key=lambda i: evals[i]["chamfer"])
     assert result.summary["best"]["step"] == 2 * (best + 1)

@@ -118,4 +118,18 @@ def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -
     base = {k.split("aux.", 1)[1].replace(".base.", "."): v for k, v in ckpt["objectives"].items()
             if ".base." in k}
     assert base and all(torch.equal(v, t_ckpt["student"][k]) for k, v in base.items())  # the LoRA base is frozen
-    assert student.summary["input"] == "1 steps" and student.summary["test"]["best"]["cd"] > 0
+    assert student.summary["input"] == "1 step" and student.summary["test"]["best"]["cd"] > 0
+
+
+def test_an_evaluate_only_stage_scores_a_trained_model_at_other_sampler_steps(tmp_path) -> None:
+    train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd"}
+    recipe = {"schema_version": 1, "name": "steps", "seed": 0,
+              "data": {"dataset": "synthetic-scenes", "params": DATA},
+              "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL}, "train": train},
+                         "fast": {"model": {"adapter": "lidiff", "params": {**SMALL, "sample_steps": 1}},
+                                  "init": {"from": "teacher", "strict": False}, "train": {**train, "steps": 0}}}}
+    teacher, fast = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    assert fast.summary["steps"] == 0 and fast.summary["input"] == "1 step"
+    assert not (fast.run_dir / "checkpoints" / "best.pt").exists()  # nothing trained: the init weights are scored
+    t, f = teacher.summary["test"]["best"], fast.summary["test"]["best"]
+    assert f["cd"] > 0 and f["seconds_per_sample"] < t["seconds_per_sample"]  # 1 sampler step against 3

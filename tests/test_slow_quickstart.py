@@ -37,3 +37,21 @@ def test_cross_adapter_recipe_runs_both_ways(tmp_path) -> None:
     assert sorted(s["stage"] for s in summaries) == ["js3cnet_from_scpnet", "js3cnet_teacher", "scpnet_from_js3cnet",
                                                     "scpnet_teacher"]
     assert all(s["status"] == "finished" and 0 <= s["test"]["best"]["miou"] <= 1 for s in summaries)
+
+
+@pytest.mark.slow
+def test_scorelidar_recipe_prints_the_table_4_comparison(tmp_path) -> None:
+    """LiDiff teacher, ScoreLiDAR student, evaluated at 50 / 8 / 4 / 2 / 1 steps; the student's 8-step completion is
+    at least 5x faster than the teacher's 50-step one (the same network, 50 against 8 denoiser calls)."""
+    import json
+
+    cmd = [sys.executable, "-m", "distilkit", "run", str(ROOT / "recipes" / "scorelidar.yaml"), "-o", str(tmp_path)]
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "CD best" in done.stdout and "JSD best" in done.stdout
+    summaries = {s["stage"]: s for s in (json.loads(p.read_text()) for p in
+                                         (tmp_path / "scorelidar").glob("*/summary.json"))}
+    assert set(summaries) == {"teacher", "teacher_8", "student", "student_4", "student_2", "student_1"}
+    speed = {k: s["test"]["best"]["seconds_per_sample"] for k, s in summaries.items()}
+    assert speed["teacher"] >= 5 * speed["student"]
+    assert all(s["test"]["best"]["cd"] > 0 and 0 < s["test"]["best"]["jsd"] < 1 for s in summaries.values())

@@ -55,7 +55,8 @@ class LiDiffAdapter(Adapter):
 
     @classmethod
     def describe(cls, params: BaseModel) -> str:
-        return f"{getattr(params, 'sample_steps')} steps"
+        n = int(getattr(params, "sample_steps"))
+        return f"{n} step{'s' if n != 1 else ''}"
 
     # -- the Denoiser capability -------------------------------------------------------------------
     def sigma(self, t: Tensor) -> Tensor:

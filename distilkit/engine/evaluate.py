@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any, Callable
 
 import torch
@@ -16,13 +17,21 @@ Collate = Callable[[list[Any]], Batch]
 @torch.no_grad()
 def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device, collate: Collate,
              metric: type[Metric]) -> dict[str, Any]:
-    """Scores of the model's prediction tap over ``dataset`` with a registered metric."""
+    """Scores of the model's prediction tap over ``dataset`` with a registered metric, and ``seconds_per_sample``
+    of the model's forward passes."""
     was_training = model.training
     model.eval()
     acc = metric(model.info)
+    seconds = 0.0
     for start in range(0, len(dataset), batch_size):
         batch = collate([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))]).to(device)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
         out = model(batch)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        seconds += time.perf_counter() - t0
         if model.PREDICTION_TAP not in out:
             from distilkit.errors import TapError
 
@@ -30,4 +39,5 @@ def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device
                            f"(returned: {', '.join(map(str, out))})")
         acc.update(out[model.PREDICTION_TAP], batch)
     model.train(was_training)
-    return acc.compute()
+    # the model's forward time per sample (not the metric's), e.g. a sampler's seconds per scene
+    return {**acc.compute(), "seconds_per_sample": seconds / max(len(dataset), 1)}

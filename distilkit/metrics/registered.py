@@ -52,7 +52,7 @@ class SceneCompletionScore(Metric):
     TITLE = "scene completion (LiDiff's conventions: CD in m, IoU, precision, recall and F in %)"
     COLUMNS = (("cd", "CD", 1.0), ("jsd", "JSD", 1.0), ("iou_50cm", "IoU 0.5 m", 100.0),
                ("iou_20cm", "IoU 0.2 m", 100.0), ("iou_10cm", "IoU 0.1 m", 100.0), ("precision", "precision", 100.0),
-               ("recall", "recall", 100.0), ("fscore", "F", 100.0))
+               ("recall", "recall", 100.0), ("fscore", "F", 100.0), ("seconds_per_sample", "s / scene", 1.0))
     VOXELS = {"iou_50cm": 0.5, "iou_20cm": 0.2, "iou_10cm": 0.1}
     MAX_RANGE = 50.0
 
