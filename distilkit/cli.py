@@ -1,4 +1,4 @@
-"""The ``distilkit`` command: run | validate | list | schema | bench.
+"""The ``distilkit`` command: run | validate | list | schema | bench | complete.
 
 Importing this module and ``distilkit --help`` do not import torch; each command imports what
 it needs. A user's mistake (bad recipe, missing file, NaN loss) prints one clear message and
@@ -125,7 +125,33 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     b.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
     b.set_defaults(fn=_cmd_bench)
+    c = sub.add_parser("complete", help="complete a scan (.bin, .ply, .npy) into a dense scene with a trained "
+                                        "point-diffusion model")
+    c.add_argument("checkpoint", help="a checkpoint (best.pt / last.pt) or a stage's run folder")
+    c.add_argument("scan", help="the scan: SemanticKITTI .bin, .ply or .npy")
+    c.add_argument("--out", "-o", required=True, help="where to write the scene (.ply, .npy or .bin)")
+    c.add_argument("--steps", type=int, default=None, help="sampler steps (default: the model's sample_steps)")
+    c.add_argument("--guidance", type=float, default=None, help="classifier-free guidance weight (default: the model's)")
+    c.add_argument("--scan-points", type=int, default=None,
+                   help="points the scan is sampled to (default: what the model was trained with)")
+    c.add_argument("--seed", type=int, default=0, help="seed of the sampler's noise")
+    c.add_argument("--device", default="cpu", help="cpu or cuda")
+    c.set_defaults(fn=_cmd_complete)
     return p
+
+
+def _cmd_complete(args: argparse.Namespace) -> int:
+    from distilkit.console import make_console
+    from distilkit.engine.complete import complete
+
+    console = make_console()
+    with console.status("loading the model") as spinner:
+        done = complete(args.checkpoint, args.scan, args.out, steps=args.steps, guidance=args.guidance,
+                        scan_points=args.scan_points, seed=args.seed, device=args.device,
+                        status=lambda text: spinner.update(text))
+    console.print(f"{done.out}: {done.output_points:,} points completed from {done.input_points:,} scan points "
+                  f"(sampled to {done.scan_points:,}) in {done.steps} steps, {done.seconds:.1f} s")
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
