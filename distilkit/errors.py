@@ -38,3 +38,7 @@ class NonFiniteLossError(DistilkitError):
 
 class GridMismatchError(DistilkitError):
     """Two voxel grids that an objective must align cannot be aligned (no integer factor)."""
+
+
+class RunLockedError(DistilkitError):
+    """Another distilkit process is writing to the same output folder."""

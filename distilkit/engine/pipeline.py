@@ -210,6 +210,13 @@ class Pipeline:
         return downstream(self.resolved, set(names))
 
     def run(self, stop_after: int | None = None, rerun: list[str] | None = None) -> list[StageResult]:
+        """Train what is not finished, in dependency order, and write the report (one process per output folder)."""
+        from distilkit.engine.lock import run_lock
+
+        with run_lock(self.root):
+            return self._run(stop_after, rerun)
+
+    def _run(self, stop_after: int | None, rerun: list[str] | None) -> list[StageResult]:
         from distilkit.engine.io import seed_everything
         from distilkit.engine.report import stage_progress, write_report
         from distilkit.engine.models import load_teacher, pick_device

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -142,7 +143,11 @@ class Trainer:
         return self.run_dir / "checkpoints"
 
     def _save_last(self, step: int, best: dict[str, Any]) -> None:
-        atomic_torch_save(self.ckpt_dir / "last.pt", {
+        """``last.pt``; the one it replaces is kept as ``last.prev.pt``, the fallback if ``last.pt`` is ever unreadable."""
+        last = self.ckpt_dir / "last.pt"
+        if last.is_file():
+            os.replace(last, self.ckpt_dir / "last.prev.pt")
+        atomic_torch_save(last, {
             "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
             "objectives": self.objectives.state_dict(), "connectors": self.connectors.state_dict(),
             "optimizer": self.optimizer.state_dict(),
@@ -318,11 +323,30 @@ class Trainer:
                 raise err from None
         return terms
 
+    def _resume_checkpoint(self) -> dict[str, Any] | None:
+        """The newest readable of ``last.pt`` and ``last.prev.pt`` (an unreadable one is named in the log and on
+        the console), or None to start from the beginning."""
+        from distilkit.errors import DataError
+
+        for name in ("last.pt", "last.prev.pt"):
+            path = self.ckpt_dir / name
+            if not path.is_file():
+                continue
+            try:
+                return load_checkpoint(path)
+            except DataError as exc:
+                self._log({"event": "unreadable_checkpoint", "path": str(path), "error": str(exc)})
+                if self.on_step is None:
+                    continue
+                from distilkit.console import make_console
+
+                make_console().print(f"[yellow]{exc}; trying the previous checkpoint[/]")
+        return None
+
     def fit(self) -> TrainResult:
         start_step, best = 0, {"score": -1.0, "step": -1, "scores": None}
-        last_path = self.ckpt_dir / "last.pt"
-        if last_path.is_file():
-            ckpt = load_checkpoint(last_path)
+        ckpt = self._resume_checkpoint()
+        if ckpt is not None:
             self.student.load_state_dict(ckpt["student"])
             self.task.load_state_dict(ckpt["task_losses"])
             self.objectives.load_state_dict(ckpt["objectives"])

@@ -1,0 +1,53 @@
+"""Runs that survive faults: one writer per output folder, and a truncated checkpoint replaced by the previous one."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+
+from conftest import tiny_recipe
+from distilkit.cli import main
+from distilkit.engine.io import load_checkpoint
+from distilkit.engine.lock import run_lock
+from distilkit.engine.pipeline import Pipeline
+from distilkit.errors import RunLockedError
+from distilkit.recipe import recipe_from_dict
+
+
+def test_a_second_run_on_the_same_output_folder_stops_with_a_clear_message(tmp_path, capsys) -> None:
+    recipe = tiny_recipe(steps=1, distill=False)
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    root = tmp_path / "runs" / "tiny"
+    with run_lock(root):  # another process's lock: flock conflicts across open file descriptions
+        with pytest.raises(RunLockedError, match=r"runs/tiny is in use by another distilkit run \(pid \d+"):
+            Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+        assert main(["run", str(path), "-o", str(tmp_path / "runs"), "-q"]) == 2
+        assert "in use by another distilkit run" in capsys.readouterr().err
+        assert not any(root.glob("teacher-*/summary.json"))  # nothing was written under the holder's feet
+    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()  # released: it runs
+    assert result.summary["status"] == "finished"
+
+
+def test_a_truncated_last_checkpoint_falls_back_to_the_previous_one_with_the_same_result(tmp_path) -> None:
+    recipe = tiny_recipe(steps=4, distill=False)
+    recipe["stages"]["teacher"]["train"]["eval_every"] = 4
+    (clean,) = Pipeline(recipe_from_dict(recipe), tmp_path / "clean", quiet=True).run()
+    pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
+    pipe.run(stop_after=3)
+    ckpts = pipe.run_dir("teacher") / "checkpoints"
+    assert load_checkpoint(ckpts / "last.prev.pt")["step"] == 2
+    last = ckpts / "last.pt"
+    last.write_bytes(last.read_bytes()[:100])  # a crash mid-copy, a full disk: unreadable
+    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    log = [json.loads(x) for x in (pipe.run_dir("teacher") / "metrics.jsonl").read_text().splitlines()]
+    bad = [r for r in log if r.get("event") == "unreadable_checkpoint"]
+    assert bad and bad[0]["path"].endswith("last.pt") and "not a readable checkpoint" in bad[0]["error"]
+    assert [r["step"] for r in log if r.get("event") == "resume"] == [2]
+    def scores(summary: dict) -> dict:  # everything but the forward timing
+        return {k: ({m: v for m, v in x.items() if m != "seconds_per_sample"} if isinstance(x, dict) else x)
+                for k, x in summary["test"].items()}
+
+    assert scores(result.summary) == scores(clean.summary)  # the same final metrics as an uninterrupted run
