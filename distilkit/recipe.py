@@ -120,6 +120,9 @@ class TrainSpec(_Strict):
     log_every: int = Field(10, ge=1)
     checkpoint_every: int = Field(20, ge=1, description="write last.pt every N steps (and at each evaluation)")
     device: str = Field("auto", description="'auto' (cuda if available), 'cpu' or 'cuda'")
+    precision: Literal["fp32", "bf16", "fp16"] = Field(
+        "fp32", description="the models' forward passes under autocast in this precision; loss terms run in float32 "
+                            "(Gram-based objectives keep their float64 accumulation); fp16 uses a gradient scaler")
     metric: str = Field("miou", description="validation score that selects best.pt: a score of the metric for the "
                                             "adapter's prediction kind ('miou', 'iou', ...), or 'METRIC.SCORE' "
                                             "('ssc.miou'); see `distilkit list metrics`")

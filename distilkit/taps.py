@@ -179,6 +179,17 @@ register_tap_kind("points", _instance(PointCloud, "PointCloud(points (B, M, D), 
 register_tap_kind("scalar", _tensor((0,), "a 0-d tensor"), "one number")
 
 
+def to_float32(value: Any) -> Any:
+    """A tap value with its floating tensors in float32 (reduced-precision model outputs, before the loss terms)."""
+    if isinstance(value, Tensor):
+        return value.float() if value.is_floating_point() and value.dtype != torch.float64 else value
+    if isinstance(value, SparseVoxels):
+        return value.with_feats(to_float32(value.feats))
+    if isinstance(value, PointCloud):
+        return PointCloud(to_float32(value.points), value.lengths)
+    return value
+
+
 def check_tap(value: Any, kind: str, where: str) -> None:
     """Raise a clear error when a tap's value does not have the declared kind."""
     from distilkit.errors import TapError
@@ -190,4 +201,5 @@ def check_tap(value: Any, kind: str, where: str) -> None:
         raise TapError(f"{where}: {problem} for a {kind} tap")
 
 
-__all__ = ["PointCloud", "SparseVoxels", "TAP_KINDS", "TapKind", "check_tap", "kind_fits", "register_tap_kind"]
+__all__ = ["PointCloud", "SparseVoxels", "TAP_KINDS", "TapKind", "check_tap", "kind_fits", "register_tap_kind",
+           "to_float32"]

@@ -74,7 +74,9 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
         "distill": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps,
                      **({"connector": t.connector} if t.connector else {}), **_moved_fields(t)} for t in stage.distill],
         "optimizer": {**spec.optimizer.model_dump(mode="json"), "param_groups": stage.param_groups},
-        "train": spec.train.model_dump(mode="json", exclude={"log_every", "checkpoint_every", "device"}),
+        # fp32 adds no entry: stages from before `precision` existed keep their identity
+        "train": spec.train.model_dump(mode="json", exclude={"log_every", "checkpoint_every", "device"}
+                                       | ({"precision"} if spec.train.precision == "fp32" else set())),
     }
 
 

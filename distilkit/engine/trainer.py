@@ -11,6 +11,7 @@ optimizers, RNG and data order). Models are built in :mod:`~distilkit.engine.mod
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -33,7 +34,7 @@ from distilkit.engine.models import build_model, pick_device
 from distilkit.engine.resolve import ResolvedStage, ResolvedTerm
 from distilkit.errors import DistilkitError, NonFiniteLossError
 from distilkit.objectives.connectors import Connector
-from distilkit.taps import check_tap
+from distilkit.taps import check_tap, to_float32
 from distilkit.term import Term, TermContext
 
 
@@ -93,11 +94,19 @@ class Trainer:
         self.trainable = [p for m in (self.student, *[t.module for t in self.terms if id(t.module) not in own],
                                       self.connectors) for p in m.parameters() if p.requires_grad]
         self.optimizer = self._optimizer(self._param_groups())
+        self.scaler = torch.amp.GradScaler(self.device.type, enabled=spec.precision == "fp16")
         self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
         self.eval_every = spec.eval_every or self.steps_per_epoch
         # the loop's lifecycle, in order: log, progress, evaluate (best.pt), checkpoint (last.pt)
         self.hooks: list[Hook] = [LogHook(), *([ProgressHook(on_step)] if on_step else []), EvalHook(),
                                   CheckpointHook()]
+
+    def _autocast(self) -> Any:
+        """The models' forward precision (``train.precision``); a no-op context for fp32."""
+        precision = self.stage.spec.train.precision
+        if precision == "fp32":
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=torch.bfloat16 if precision == "bf16" else torch.float16)
 
     def named_trainables(self) -> list[tuple[str, nn.Parameter]]:
         """Trainable parameters by qualified name: ``student.*``, ``task.<term>.*``, ``distill.<objective>.*``."""
@@ -152,6 +161,7 @@ class Trainer:
             "objectives": self.objectives.state_dict(), "connectors": self.connectors.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "term_optimizers": [o.state_dict() if o is not None else {} for o in self.own_optimizers],
+            **({"scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else {}),
             "step": step, "best": best, "rng": rng_state(), "adapter": self.stage.student.adapter,
             "adapter_params": self.stage.student.params.model_dump(mode="json"),
         })
@@ -250,7 +260,7 @@ class Trainer:
         if not self._teacher_outputs_needed:
             return {}
         assert self.teacher is not None
-        with torch.no_grad():
+        with torch.no_grad(), self._autocast():
             t_out = self.teacher(batch)
         self._check_outputs(self.teacher, t_out, "teacher")
         return t_out
@@ -305,12 +315,15 @@ class Trainer:
 
     def loss_terms(self, batch: Batch) -> dict[str, Tensor]:
         """The weighted value of every term on ``batch`` (the teacher runs when a term reads its taps)."""
-        s_out = self.student(batch)
+        with self._autocast():
+            s_out = self.student(batch)
         self._check_outputs(self.student, s_out, "student")
         t_out = self._teacher_outputs(batch) if len(self.objectives) else {}
         terms: dict[str, Tensor] = {}
         for i, term in enumerate(self.terms):
             taps = self._roles(term, s_out, t_out, batch)
+            if self.stage.spec.train.precision != "fp32":  # terms in float32, outside autocast
+                taps = {role: to_float32(v) for role, v in taps.items()}
             self._last_taps[i] = {role: v.detach() if hasattr(v, "detach") else v for role, v in taps.items()}
             try:
                 terms[term.key] = term.spec.weight * term.module.compute(taps, batch)
@@ -355,6 +368,8 @@ class Trainer:
                 if opt is not None and state:
                     opt.load_state_dict(state)
             self.optimizer.load_state_dict(ckpt["optimizer"])
+            if self.scaler.is_enabled() and ckpt.get("scaler"):
+                self.scaler.load_state_dict(ckpt["scaler"])
             set_rng_state(ckpt["rng"])
             start_step, best = int(ckpt["step"]), ckpt["best"]
             self._truncate_log(start_step)
@@ -385,14 +400,16 @@ class Trainer:
                 f"{', '.join(str(float(terms[k].detach())) for k in bad)}; training stopped, the last checkpoint "
                 f"({last_path}) is kept. Lower the learning rate or the term's weight.")
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        self.scaler.scale(loss).backward()
+        self.scaler.unscale_(self.optimizer)
         grad_norm = self._grad_norm(self.stage.spec.train.grad_clip)
-        if not torch.isfinite(grad_norm):
+        if not torch.isfinite(grad_norm) and not self.scaler.is_enabled():  # fp16: the scaler skips the step
             raise NonFiniteLossError(
                 f"stage {self.stage.name!r}, step {step + 1}: the gradient became {float(grad_norm)} "
                 f"({self._blame(batch)}) although every loss term was finite; no weight was updated, the last "
                 f"checkpoint ({last_path}) is kept. Lower the learning rate or the term's weight.")
-        self.optimizer.step()
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
         extra: dict[str, float] = {}
         for i, term in enumerate(self.terms):
             extra.update(term.module.update(step, batch, self._last_taps.get(i, {})))
