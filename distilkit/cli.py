@@ -1,4 +1,4 @@
-"""The ``distilkit`` command: run | validate | list | schema | bench | complete.
+"""The ``distilkit`` command: run | sweep | report | compare | validate | list | schema | bench | complete.
 
 Importing this module and ``distilkit --help`` do not import torch; each command imports what
 it needs. A user's mistake (bad recipe, missing file, NaN loss) prints one clear message and
@@ -16,7 +16,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.seed is not None and len(args.seed) > 1:
         from distilkit.engine.seeds import run_seeds
 
-        run_seeds(args.recipe, args.output, args.seed, baseline=args.baseline, quiet=args.quiet, rerun=args.rerun)
+        run_seeds(args.recipe, args.output, args.seed, baseline=args.baseline, quiet=args.quiet, rerun=args.rerun,
+                  only=args.stage, wait=not args.no_wait)
         return 0
     if args.baseline is not None:
         from distilkit.errors import DistilkitError
@@ -25,7 +26,31 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from distilkit.engine.pipeline import Pipeline
 
     pipe = Pipeline(args.recipe, args.output, quiet=args.quiet, seed=args.seed[0] if args.seed else None)
-    pipe.run(stop_after=args.stop_after, rerun=args.rerun)
+    pipe.run(stop_after=args.stop_after, rerun=args.rerun, only=args.stage, wait=not args.no_wait)
+    return 0
+
+
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from distilkit.sweep.runner import run_sweep
+
+    run_sweep(args.sweep, args.output, seeds=args.seeds, jobs=args.jobs, plan=args.plan, collect=args.collect,
+              quiet=args.quiet)
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from distilkit.report.run import report_targets, write_run_report
+
+    for run_dir in report_targets(args.run):
+        print(write_run_report(run_dir))
+    return 0
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from distilkit.console import make_console
+    from distilkit.report.compare import compare_runs
+
+    print(compare_runs(args.run_a, args.run_b, args.out, console=make_console()))
     return 0
 
 
@@ -108,8 +133,33 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--baseline", metavar="STAGE", default=None,
                    help="with several seeds: the stage the paired differences are taken to (default: the first "
                         "stage without distillation that is nobody's teacher)")
+    r.add_argument("--stage", nargs="+", metavar="STAGE", default=None,
+                   help="run only these stages and the stages they need (their teacher, their initial weights)")
+    r.add_argument("--no-wait", action="store_true",
+                   help="stop with an error instead of waiting when another distilkit run is training a stage")
     r.add_argument("--stop-after", type=int, default=None, metavar="STEPS", help=argparse.SUPPRESS)
     r.set_defaults(fn=_cmd_run)
+    w = sub.add_parser("sweep", help="compare variants of a stage (distillation methods, weights, any override) "
+                                     "over seeds: mean ± std, paired differences with 95 %% intervals")
+    w.add_argument("sweep", help="sweep YAML file (see recipes/sweeps/)")
+    w.add_argument("--output", "-o", default="runs", help="output folder (default: runs/)")
+    w.add_argument("--seeds", type=int, nargs="+", default=None, metavar="N", help="override the sweep's seeds")
+    w.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
+                   help="runs in N parallel processes, the CPU's threads split between them (default: 1)")
+    w.add_argument("--plan", action="store_true", help="print one `distilkit run` command per run (upstream "
+                   "stages first) for a cluster scheduler, run nothing; `distilkit sweep` afterwards collects")
+    w.add_argument("--collect", action="store_true", help="train nothing: the table of the runs finished so far")
+    w.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    w.set_defaults(fn=_cmd_sweep)
+    rp = sub.add_parser("report", help="re-render a stage run's report.md and plots (or every run under a folder)")
+    rp.add_argument("run", help="a stage run folder (runs/<recipe>/<stage>-<hash>) or a recipe's output folder")
+    rp.set_defaults(fn=_cmd_report)
+    cp = sub.add_parser("compare", help="two stage runs side by side: configuration, scores, per-class, plots")
+    cp.add_argument("run_a")
+    cp.add_argument("run_b")
+    cp.add_argument("--out", "-o", default=None, help="folder for compare.md / compare.png "
+                                                      "(default: compare-<A>-vs-<B> beside run A)")
+    cp.set_defaults(fn=_cmd_compare)
     v = sub.add_parser("validate", help="check recipes without training (exit status 2 on a problem)")
     v.add_argument("recipes", nargs="+")
     v.set_defaults(fn=_cmd_validate)

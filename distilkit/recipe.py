@@ -147,6 +147,8 @@ class StageSpec(_Strict):
     optimizer: OptimizerSpec = Field(default_factory=OptimizerSpec)
     train: TrainSpec = Field(default_factory=TrainSpec)
     label: str | None = Field(None, description="display name in reports")
+    seed: int | None = Field(None, description="this stage's training seed (default: the recipe's `seed`, or "
+                                               "`--seed`); a sweep fixes a shared teacher's seed this way")
 
     @model_validator(mode="after")
     def _teacher_needed(self) -> "StageSpec":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 
 import pytest
 import yaml
@@ -10,25 +11,36 @@ import yaml
 from conftest import tiny_recipe
 from distilkit.cli import main
 from distilkit.engine.io import load_checkpoint
-from distilkit.engine.lock import run_lock
+from distilkit.engine.lock import lock_path, stage_lock
 from distilkit.engine.pipeline import Pipeline
 from distilkit.errors import RunLockedError
 from distilkit.recipe import recipe_from_dict
 
 
-def test_a_second_run_on_the_same_output_folder_stops_with_a_clear_message(tmp_path, capsys) -> None:
+def test_a_second_run_on_a_stage_in_training_waits_for_it_or_stops_with_a_clear_message(tmp_path, capsys) -> None:
     recipe = tiny_recipe(steps=1, distill=False)
     path = tmp_path / "r.yaml"
     path.write_text(yaml.safe_dump(recipe))
-    root = tmp_path / "runs" / "tiny"
-    with run_lock(root):  # another process's lock: flock conflicts across open file descriptions
-        with pytest.raises(RunLockedError, match=r"runs/tiny is in use by another distilkit run \(pid \d+"):
-            Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
-        assert main(["run", str(path), "-o", str(tmp_path / "runs"), "-q"]) == 2
-        assert "in use by another distilkit run" in capsys.readouterr().err
-        assert not any(root.glob("teacher-*/summary.json"))  # nothing was written under the holder's feet
-    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()  # released: it runs
-    assert result.summary["status"] == "finished"
+    pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
+    lock = lock_path(pipe.root, pipe.run_dir("teacher").name)
+    with stage_lock(lock):  # another process's lock: flock conflicts across open file descriptions
+        with pytest.raises(RunLockedError, match=r"teacher-\w+ is being trained by another distilkit run \(pid \d+"):
+            pipe.run(wait=False)
+        assert main(["run", str(path), "-o", str(tmp_path / "runs"), "-q", "--no-wait"]) == 2
+        assert "is being trained by another distilkit run" in capsys.readouterr().err
+        assert not any(pipe.root.glob("teacher-*/summary.json"))  # nothing was written under the holder's feet
+        waited: list[str] = []
+
+        def run_waiting() -> None:
+            waited.extend(r.summary["status"] for r in Pipeline(recipe_from_dict(recipe), tmp_path / "runs",
+                                                                quiet=True).run())
+
+        waiter = threading.Thread(target=run_waiting)
+        waiter.start()
+        waiter.join(timeout=2.0)
+        assert waiter.is_alive() and not waited  # the default waits for the holder
+    waiter.join(timeout=120)
+    assert waited == ["finished"]  # released: it trained the stage
 
 
 def test_a_truncated_last_checkpoint_falls_back_to_the_previous_one_with_the_same_result(tmp_path) -> None:

@@ -40,6 +40,19 @@ def test_mean_std_and_paired_differences_match_numpy() -> None:
     assert rows["dskd"]["delta"] == pytest.approx(list(paired))
     assert rows["dskd"]["delta_std"] == pytest.approx(paired.std(ddof=1))
     assert rows["plain"]["delta"] == []  # no difference of the baseline to itself
+    # 95 % interval: mean ± t(0.975, 2) s / sqrt(3), with t(0.975, 2) = 4.302653 from a printed t table
+    half = 4.302653 * paired.std(ddof=1) / np.sqrt(3)
+    assert rows["dskd"]["delta_ci"] == pytest.approx((paired.mean() - half, paired.mean() + half), rel=1e-6)
+
+
+def test_t_interval_against_tabulated_quantiles() -> None:
+    from distilkit.engine.seeds import t_interval
+
+    for n, t in ((2, 12.706205), (5, 2.776445), (30, 2.045230)):  # t(0.975, n - 1) from a printed table
+        xs = list(np.linspace(-1.0, 2.0, n) ** 2)
+        half = t * np.std(xs, ddof=1) / np.sqrt(n)
+        assert t_interval(xs) == pytest.approx((np.mean(xs) - half, np.mean(xs) + half), rel=1e-6)
+    assert all(np.isnan(t_interval([0.3])))  # one value: no interval
 
 
 def test_a_stage_missing_in_one_seed_is_paired_only_where_both_ran() -> None:

@@ -41,3 +41,17 @@ def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device
     model.train(was_training)
     # the model's forward time per sample (not the metric's), e.g. a sampler's seconds per scene
     return {**acc.compute(), "seconds_per_sample": seconds / max(len(dataset), 1)}
+
+
+@torch.no_grad()
+def preview(model: Adapter, dataset: Any, device: torch.device, collate: Collate,
+            metric: type[Metric]) -> dict[str, Any] | None:
+    """The metric's bird's-eye preview of the model on the first sample of ``dataset`` (None: none to show)."""
+    if len(dataset) == 0:
+        return None
+    was_training = model.training
+    model.eval()
+    batch = collate([dataset[0]]).to(device)
+    out = model(batch)
+    model.train(was_training)
+    return metric.preview(out[model.PREDICTION_TAP], batch, model.info)

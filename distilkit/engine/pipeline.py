@@ -63,7 +63,7 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
         **init,
         "versions": code_versions(res, stage),
         "schema_version": res.recipe.schema_version,
-        "seed": res.recipe.seed,
+        "seed": stage_seed(res, stage),
         "data": {"dataset": res.recipe.data.dataset, "params": res.data_params.model_dump(mode="json")},
         "model": {"adapter": stage.student.adapter, "params": stage.student.params.model_dump(mode="json"),
                   **({"taps": {n: h.model_dump(mode="json") for n, h in stage.student.hooks.items()}}
@@ -78,6 +78,11 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
         "train": spec.train.model_dump(mode="json", exclude={"log_every", "checkpoint_every", "device"}
                                        | ({"precision"} if spec.train.precision == "fp32" else set())),
     }
+
+
+def stage_seed(res: ResolvedRecipe, stage: ResolvedStage) -> int:
+    """The seed a stage trains with: its own, else the recipe's."""
+    return stage.spec.seed if stage.spec.seed is not None else res.recipe.seed
 
 
 def _moved_fields(term: ResolvedTerm) -> dict[str, Any]:
@@ -109,6 +114,16 @@ def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
         init_from = stage.spec.init.from_ if stage.spec.init is not None else None
         if stage.teacher_from in out or init_from in out:
             out.add(name)
+    return out
+
+
+def upstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
+    """``names`` and every stage they use as teacher or initial weights, transitively."""
+    out = set(names)
+    for name in reversed(res.order):  # dependency order reversed: a user comes before what it needs
+        if name in out:
+            stage = res.stages[name]
+            out |= {src.from_ for src in (stage.spec.teacher, stage.spec.init) if src is not None and src.from_}
     return out
 
 
@@ -151,7 +166,14 @@ class Pipeline:
 
             console = make_console(quiet=quiet)
         self.console = console
-        self._data: dict[str, Any] = {}
+        self._data: dict[str, Any] = {}  # split -> dataset
+
+    def share_data(self, store: dict[str, dict[str, Any]]) -> None:
+        """Share datasets with the other pipelines in ``store`` that have the same data configuration (a sweep's
+        runs read their scenes once)."""
+        key = json.dumps({"dataset": self.recipe.data.dataset,
+                          "params": self.resolved.data_params.model_dump(mode="json")}, sort_keys=True)
+        self._data = store.setdefault(key, self._data)
 
     def run_dir(self, name: str) -> Path:
         return self.root / f"{name}-{self.hashes[name]}"
@@ -211,71 +233,107 @@ class Pipeline:
         self.check_stages("--rerun", names)
         return downstream(self.resolved, set(names))
 
-    def run(self, stop_after: int | None = None, rerun: list[str] | None = None) -> list[StageResult]:
-        """Train what is not finished, in dependency order, and write the report (one process per output folder)."""
-        from distilkit.engine.lock import run_lock
+    def run(self, stop_after: int | None = None, rerun: list[str] | None = None, only: list[str] | None = None,
+            report: bool = True, wait: bool = True) -> list[StageResult]:
+        """Train what is not finished, in dependency order, and write the report.
 
-        with run_lock(self.root):
-            return self._run(stop_after, rerun)
+        ``only``: just these stages and the stages they need (then no recipe report is written: it would
+        describe part of the recipe). A stage another process is training is waited for and then reused
+        (``wait=False``: :class:`~distilkit.errors.RunLockedError` instead)."""
+        if only:
+            self.check_stages("--stage", only)
+        names = upstream(self.resolved, set(only)) if only else set(self.resolved.order)
+        results = self._run(stop_after, rerun, names, wait)
+        if report and not only and len(results) == len(self.resolved.order):
+            from distilkit.report.recipe import write_report
 
-    def _run(self, stop_after: int | None, rerun: list[str] | None) -> list[StageResult]:
-        from distilkit.engine.io import seed_everything
-        from distilkit.engine.report import stage_progress, write_report
-        from distilkit.engine.models import load_teacher, pick_device
-        from distilkit.engine.trainer import Trainer, write_summary
+            write_report(self, results)
+        return results
+
+    def _replace(self, name: str, run_dir: Path) -> None:
+        """Move a stage's finished run aside (``--rerun``): kept beside the new one."""
+        stamp, n = time.strftime("%Y%m%d-%H%M%S"), 1
+        kept = run_dir.with_name(f"{run_dir.name}.replaced-{stamp}")
+        while kept.exists():
+            n += 1
+            kept = run_dir.with_name(f"{run_dir.name}.replaced-{stamp}-{n}")
+        run_dir.rename(kept)
+        self.console.print(f"stage [bold]{name}[/] retrained on request; the previous run is kept in {kept}")
+
+    def _run(self, stop_after: int | None, rerun: list[str] | None, names: set[str],
+             wait: bool) -> list[StageResult]:
+        from distilkit.engine.lock import lock_path, stage_lock
 
         results: list[StageResult] = []
         again = self.rerun_set(rerun)
         self.root.mkdir(parents=True, exist_ok=True)
         for name in self.resolved.order:
-            stage = self.resolved.stages[name]
-            run_dir = self.run_dir(name)
-            if name in again and run_dir.exists():  # keep the old results beside the new ones
-                stamp, n = time.strftime("%Y%m%d-%H%M%S"), 1
-                kept = run_dir.with_name(f"{run_dir.name}.replaced-{stamp}")
-                while kept.exists():
-                    n += 1
-                    kept = run_dir.with_name(f"{run_dir.name}.replaced-{stamp}-{n}")
-                run_dir.rename(kept)
-                self.console.print(f"stage [bold]{name}[/] retrained on request; the previous run is kept in {kept}")
-            done = read_summary(run_dir)
-            if done is not None:
-                self.console.print(f"[green]✓[/] stage [bold]{name}[/] reused from {run_dir}")
-                # the label is cosmetic (not part of the identity): show the recipe's current one
-                done = {**done, "label": stage.spec.label or name}
-                results.append(StageResult(name, run_dir, done, reused=True))
+            if name not in names:
                 continue
-            run_dir.mkdir(parents=True, exist_ok=True)
-            cfg = self.configs[name]
-            atomic_write_text(run_dir / "recipe.resolved.yaml",
-                              yaml.safe_dump({"recipe": self.recipe.name, "stage": name, "hash": self.hashes[name],
-                                              "distilkit": __version__, **cfg}, sort_keys=False))
-            seed_everything(self.recipe.seed)
-            device = pick_device(stage.spec.train.device)
-            teacher = None
-            if stage.teacher is not None and stage.distill:
-                teacher = load_teacher(stage.teacher, self.resolved.data_info, self._teacher_checkpoint(stage), device)
-            train_set, val_set = self.dataset("train"), self.dataset("val")
-            with stage_progress(self.console, name) as on_step:
-                trainer = Trainer(stage, self.resolved.data_info, train_set, val_set, run_dir, self.recipe.seed,
-                                  teacher, on_step, stop_after, collate=self.collate, init=self._init(stage))
-                result = trainer.fit()
-            if stop_after is not None and result.steps < trainer.total_steps:
-                self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")
+            run_dir = self.run_dir(name)
+            with stage_lock(lock_path(self.root, run_dir.name), wait=wait,
+                            on_wait=lambda holder, n=name: self.console.print(
+                                f"stage [bold]{n}[/] is being trained by another distilkit run ({holder}); waiting")):
+                if name in again and run_dir.exists():
+                    self._replace(name, run_dir)
+                result = self._stage(name, run_dir, stop_after)
+            if result is None:  # stopped early on request (--stop-after)
                 return results
-            split = "test" if self.has_split("test") else "val"
-            test = trainer.evaluate_checkpoints(self.dataset(split))
-            summary = {
-                "status": "finished", "stage": name, "hash": self.hashes[name], "label": stage.spec.label or name,
-                "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),
-                "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
-                "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill],
-                "steps": result.steps, "train_seconds": round(result.seconds, 2),
-                "metric": {"name": stage.metric.name, "key": stage.metric.key} if stage.metric else None,
-                "best": result.best, "last": result.last, "report_split": split, "test": test,
-                "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
-            }
-            write_summary(run_dir, summary)
-            results.append(StageResult(name, run_dir, summary, reused=False))
-        write_report(self, results)
+            results.append(result)
         return results
+
+    def _stage(self, name: str, run_dir: Path, stop_after: int | None) -> StageResult | None:
+        """Reuse a finished stage or train and evaluate it (the caller holds its lock)."""
+        from distilkit.engine.io import seed_everything
+        from distilkit.engine.models import load_teacher, pick_device
+        from distilkit.console import stage_progress
+        from distilkit.engine.trainer import Trainer, write_summary
+
+        stage = self.resolved.stages[name]
+        done = read_summary(run_dir)
+        if done is not None:
+            self.console.print(f"[green]✓[/] stage [bold]{name}[/] reused from {run_dir}")
+            # the label is cosmetic (not part of the identity): show the recipe's current one
+            return StageResult(name, run_dir, {**done, "label": stage.spec.label or name}, reused=True)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        cfg = self.configs[name]
+        seed = stage_seed(self.resolved, stage)
+        atomic_write_text(run_dir / "recipe.resolved.yaml",
+                          yaml.safe_dump({"recipe": self.recipe.name, "stage": name, "hash": self.hashes[name],
+                                          "distilkit": __version__, **cfg}, sort_keys=False))
+        seed_everything(seed)
+        device = pick_device(stage.spec.train.device)
+        teacher = None
+        if stage.teacher is not None and stage.distill:
+            teacher = load_teacher(stage.teacher, self.resolved.data_info, self._teacher_checkpoint(stage), device)
+        train_set, val_set = self.dataset("train"), self.dataset("val")
+        with stage_progress(self.console, name) as on_step:
+            trainer = Trainer(stage, self.resolved.data_info, train_set, val_set, run_dir, seed,
+                              teacher, on_step, stop_after, collate=self.collate, init=self._init(stage))
+            result = trainer.fit()
+        if stop_after is not None and result.steps < trainer.total_steps:
+            self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")
+            return None
+        split = "test" if self.has_split("test") else "val"
+        test = trainer.evaluate_checkpoints(self.dataset(split))
+        trainer.write_preview(val_set)
+        summary = {
+            "status": "finished", "stage": name, "hash": self.hashes[name], "label": stage.spec.label or name,
+            "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),
+            "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
+            "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": seed,
+            "classes": {"names": list(self.resolved.data_info.classes.names),
+                        "colours": [list(c) for c in self.resolved.data_info.classes.colours]},
+            "steps": result.steps, "train_seconds": round(result.seconds, 2),
+            "metric": {"name": stage.metric.name, "key": stage.metric.key} if stage.metric else None,
+            "best": result.best, "last": result.last, "report_split": split, "test": test,
+            "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        }
+        write_summary(run_dir, summary)
+        try:
+            from distilkit.report.run import write_run_report
+
+            write_run_report(run_dir)
+        except Exception as exc:  # a plotting problem must not lose a finished stage
+            self.console.print(f"[yellow]{run_dir / 'report.md'} not written: {exc}[/]")
+        return StageResult(name, run_dir, summary, reused=False)

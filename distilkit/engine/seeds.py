@@ -1,9 +1,11 @@
-"""One recipe run with several training seeds: mean ± sample std per stage and paired differences.
+"""Stages over several training seeds: mean ± sample std and paired differences with a 95 % interval.
 
 Each seed is its own run (its own stage folders); this module only reads their summaries. Scores are the
 test split at the best-validation checkpoint (and at the last step). The paired difference of a stage to
 the baseline stage is taken seed by seed (same scenes, same seed), which removes the part of the spread
-the two share; a method "helps" here only when the mean difference is clearly larger than its spread.
+the two share; its 95 % interval is Student's t over the seeds (mean ± t₀.₉₇₅,ₙ₋₁ · s / √n). A method
+"helps" here only when that interval lies above zero. ``distilkit run --seed`` and ``distilkit sweep``
+both report through :func:`write_seeds_report`.
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None) -> li
                 "second": lambda r: r["best"][view.second[0]] if view.second else nan,
                 "last_main": lambda r: r["last"][view.main[0]]}
         row: dict[str, Any] = {"stage": name, "label": first["label"], "seeds": got, "view": view,
-                               "objectives": first["objectives"]}
+                               "objectives": first["objectives"], "split": first["split"]}
         for key, get in pick.items():
             values = [get(by_seed[s]) for s in got]
             row[key] = values
@@ -63,8 +65,19 @@ def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None) -> li
         paired = [pick["main"](by_seed[s]) - pick["main"](base[s]) for s in got if s in base] if comparable else []
         row["delta"] = paired
         row["delta_mean"], row["delta_std"] = _mean_std(paired) if paired else (math.nan, math.nan)
+        row["delta_ci"] = t_interval(paired)
         rows.append(row)
     return rows
+
+
+def t_interval(xs: list[float], level: float = 0.95) -> tuple[float, float]:
+    """The two-sided ``level`` Student-t interval of the mean of ``xs`` (nan for fewer than two values)."""
+    if len(xs) < 2 or any(math.isnan(x) for x in xs):
+        return math.nan, math.nan
+    from scipy.stats import t
+
+    mean, half = statistics.fmean(xs), float(t.ppf(0.5 + level / 2, len(xs) - 1)) * statistics.stdev(xs) / math.sqrt(len(xs))
+    return mean - half, mean + half
 
 
 def _pm(mean: float, std: float, scale: float = 100.0, sign: str = "") -> str:
@@ -74,12 +87,15 @@ def _pm(mean: float, std: float, scale: float = 100.0, sign: str = "") -> str:
     return f"{value} ± {scale * std:.2f}" if scale != 1.0 else f"{value} ± {std:.2g}"
 
 
-def _deltas(row: dict[str, Any]) -> tuple[str, str]:
+def _deltas(row: dict[str, Any]) -> tuple[str, str, str]:
     if not row["delta"]:
-        return "—", "—"
+        return "—", "—", "—"
     scale = row["view"].main[2]
-    per_seed = " / ".join(f"{scale * d:+.2f}" if scale != 1.0 else f"{d:+.4g}" for d in row["delta"])
-    return per_seed, _pm(row["delta_mean"], row["delta_std"], scale, "+")
+    one = (lambda d: f"{scale * d:+.2f}") if scale != 1.0 else (lambda d: f"{d:+.4g}")
+    per_seed = " / ".join(one(d) for d in row["delta"])
+    low, high = row["delta_ci"]
+    ci = "—" if math.isnan(low) else f"[{one(low)}, {one(high)}]"
+    return per_seed, _pm(row["delta_mean"], row["delta_std"], scale, "+"), ci
 
 
 def _view(rows: list[dict[str, Any]]) -> ScoreView | None:
@@ -89,7 +105,7 @@ def _view(rows: list[dict[str, Any]]) -> ScoreView | None:
 def _headers(view: ScoreView | None) -> list[str]:
     main = view.main[1] if view else "score"
     second = view.second[1] if view and view.second else "—"
-    return [f"{main} best", f"{second} best", f"{main} last", f"Δ {main} per seed", f"Δ {main}"]
+    return [f"{main} best", f"{second} best", f"{main} last", f"Δ {main} per seed", f"Δ {main}", "Δ 95 % interval"]
 
 
 def _cells(row: dict[str, Any]) -> list[str]:
@@ -99,44 +115,70 @@ def _cells(row: dict[str, Any]) -> list[str]:
             _pm(row["last_main_mean"], row["last_main_std"], view.main[2]), *_deltas(row)]
 
 
-def seeds_table(rows: list[dict[str, Any]], baseline: str | None) -> Any:
+def _split(rows: list[dict[str, Any]]) -> str:
+    return rows[0]["split"] if rows else "test"
+
+
+def _rule(rows: list[dict[str, Any]]) -> str:
+    """The selection rule: which checkpoint 'best' is."""
+    view = _view(rows)
+    if view is None:
+        return "'best' = the best-validation checkpoint"
+    return (f"'best' = the checkpoint with the best validation {view.main[1]}"
+            f"{' (lowest)' if view.lower_is_better else ''}")
+
+
+def seeds_table(rows: list[dict[str, Any]], baseline: str | None, what: str = "distilkit seeds",
+                first: str = "stage") -> Any:
     from rich.table import Table
 
     seeds = sorted({s for r in rows for s in r["seeds"]})
-    table = Table(title=f"distilkit seeds {', '.join(map(str, seeds))} — test split, mean ± std over seeds, "
-                        f"'best' = best-validation checkpoint; Δ = paired difference to '{baseline or '—'}'")
-    for col in ("stage", "distillation", *_headers(_view(rows))):
+    table = Table(title=f"{what} {', '.join(map(str, seeds))} — {_split(rows)} split, mean ± std over seeds, "
+                        f"{_rule(rows)}; Δ = paired difference to '{baseline or '—'}' with its 95 % t-interval")
+    for col in (first, "distillation", *_headers(_view(rows))):
         table.add_column(col, justify="left" if col in ("stage", "distillation") else "right")
     for row in rows:
         table.add_row(row["label"], row["objectives"], *_cells(row))
     return table
 
 
-def write_seeds_report(root: Path, rows: list[dict[str, Any]], baseline: str | None, console: Any) -> Path:
-    """Print the table and write ``seeds.md`` (and ``seeds.png``: each seed as a dot, the mean as a bar)."""
-    console.print(seeds_table(rows, baseline))
+def seeds_markdown(rows: list[dict[str, Any]], baseline: str | None, title: str, first: str = "stage",
+                   image: str | None = None, notes: list[str] | None = None) -> str:
+    """The table as Markdown, with a paragraph that says what every number is."""
     seeds = sorted({s for r in rows for s in r["seeds"]})
     view = _view(rows)
     main = view.main[1] if view else "score"
-    title = view.title if view else "scores"
-    lower = " (lower is better)" if view is not None and view.lower_is_better else ""
-    cols = ["stage", "distillation", "seeds", *_headers(view)]
-    lines = [f"# {root.name}: seeds {', '.join(map(str, seeds))}", "",
-             f"Test split, {title}, mean ± sample std over the seeds; 'best' = the checkpoint with the best "
-             f"validation {main}{lower}, 'last' = the final step. Δ = the paired difference in test {main} to "
-             f"'{baseline or '—'}', seed by seed.", "",
+    split = _split(rows)
+    cols = [first, "distillation", "seeds", *_headers(view)]
+    lines = [f"# {title}", "",
+             f"{split.capitalize()} split, {view.title if view else 'scores'}, mean ± sample std over seeds "
+             f"{', '.join(map(str, seeds))}; {_rule(rows)}, 'last' = the final step. Δ = the paired difference in "
+             f"{split} {main} to '{baseline or '—'}', seed by seed, with its 95 % Student-t interval over the seeds "
+             "(an interval that contains 0: no measurable effect).", *(["", *notes] if notes else []), "",
              "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for row in rows:
         lines.append(f"| {row['label']} | {row['objectives']} | {','.join(map(str, row['seeds']))} | "
                      + " | ".join(_cells(row)) + " |")
-    lines += ["", f"![test {main} per seed](seeds.png)", ""]
-    path = root / "seeds.md"
-    atomic_write_text(path, "\n".join(lines))
+    if image:
+        lines += ["", f"![{split} {main} per seed]({image})"]
+    return "\n".join(lines + [""])
+
+
+def write_seeds_report(root: Path, rows: list[dict[str, Any]], baseline: str | None, console: Any,
+                       stem: str = "seeds", title: str | None = None, first: str = "stage",
+                       notes: list[str] | None = None) -> Path:
+    """Print the table and write ``<stem>.md`` and ``<stem>.png`` (each seed as a dot, the mean as a bar with
+    its std as an error bar)."""
+    seeds = sorted({s for r in rows for s in r["seeds"]})
+    console.print(seeds_table(rows, baseline, "distilkit seeds" if stem == "seeds" else f"{root.name}: seeds", first))
+    path = root / f"{stem}.md"
+    atomic_write_text(path, seeds_markdown(rows, baseline, title or f"{root.name}: seeds {', '.join(map(str, seeds))}",
+                                           first, f"{stem}.png", notes))
     try:
-        _plot(root / "seeds.png", rows)
+        _plot(root / f"{stem}.png", rows)
     except Exception as exc:  # a plotting problem must not lose the table
-        console.print(f"[yellow]seeds.png not written: {exc}[/]")
-    console.print(f"seeds report: {path}")
+        console.print(f"[yellow]{stem}.png not written: {exc}[/]")
+    console.print(f"{'seeds' if stem == 'seeds' else stem} report: {path}")
     return path
 
 
@@ -154,15 +196,18 @@ def _plot(path: Path, rows: list[dict[str, Any]]) -> None:
                scale * row["main_std"], capsize=3)
         ax.scatter([i] * len(row["main"]), [scale * v for v in row["main"]], color="#08519c", s=12, zorder=3)
     ax.set_xticks(range(len(rows)), [r["label"] for r in rows], rotation=45, ha="right", fontsize=8)
-    ax.set_ylabel(f"test {name}{' (%)' if scale == 100 else ''}, best-val checkpoint")
+    ax.set_ylabel(f"{_split(rows)} {name}{' (%)' if scale == 100 else ''}, best-val checkpoint")
     ax.set_title("mean ± std over seeds; dots: single seeds")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp, dpi=110)
     plt.close(fig)
+    tmp.replace(path)
 
 
 def run_seeds(recipe: str | Path, output: str | Path, seeds: list[int], baseline: str | None = None,
-              quiet: bool = False, rerun: list[str] | None = None) -> list[dict[str, Any]]:
+              quiet: bool = False, rerun: list[str] | None = None, only: list[str] | None = None,
+              wait: bool = True) -> list[dict[str, Any]]:
     """Run the recipe once per seed (finished stages are reused), then report mean ± std over the seeds."""
     from distilkit.engine.pipeline import Pipeline
 
@@ -176,7 +221,7 @@ def run_seeds(recipe: str | Path, output: str | Path, seeds: list[int], baseline
             pipe.check_stages("--baseline", [baseline])
         if not quiet:
             pipe.console.rule(f"seed {seed}")
-        results[seed] = pipe.run(rerun=rerun)
+        results[seed] = pipe.run(rerun=rerun, only=only, wait=wait)
     assert pipe is not None
     chosen = baseline if baseline is not None else default_baseline(pipe.resolved)
     rows = seed_rows(results, chosen)

@@ -26,7 +26,7 @@ from torch import Tensor, nn
 from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
-from distilkit.engine.evaluate import Collate, evaluate
+from distilkit.engine.evaluate import Collate, evaluate, preview
 from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, LoopState, ProgressHook
 from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint,
                                  load_weights, rng_state, set_rng_state)
@@ -420,18 +420,44 @@ class Trainer:
         return evaluate(model if model is not None else self.student, dataset, self.stage.spec.train.batch_size,
                         self.device, self.collate, self.metric.cls)
 
+    def best_model(self) -> tuple[Adapter, int] | None:
+        """The student of ``best.pt`` and its step (None before the first evaluation)."""
+        best_path = self.ckpt_dir / "best.pt"
+        if not best_path.is_file():
+            return None
+        ckpt = load_checkpoint(best_path)
+        model = build_model(self.stage.student, self.info).to(self.device)
+        model.load_state_dict(ckpt["student"])
+        return model, int(ckpt["step"])
+
     def evaluate_checkpoints(self, dataset: Any) -> dict[str, Any]:
         """Scores on ``dataset`` (the test split) of the best-validation checkpoint and of the last one."""
         out: dict[str, Any] = {"last": self.evaluate(dataset), "last_step": self.total_steps}
-        best_path = self.ckpt_dir / "best.pt"
-        if best_path.is_file():
-            ckpt = load_checkpoint(best_path)
-            model = build_model(self.stage.student, self.info).to(self.device)
-            model.load_state_dict(ckpt["student"])
-            out["best"], out["best_step"] = self.evaluate(dataset, model), int(ckpt["step"])
+        best = self.best_model()
+        if best is not None:
+            out["best"], out["best_step"] = self.evaluate(dataset, best[0]), best[1]
         else:
             out["best"], out["best_step"] = out["last"], self.total_steps
         return out
+
+    def write_preview(self, dataset: Any) -> Path | None:
+        """``preview.npz``: the metric's bird's-eye view of the best checkpoint on the first sample of ``dataset``
+        (a validation scene), with the class names and colours to draw it (arrays only: loaded without pickle)."""
+        import numpy as np
+
+        best = self.best_model()
+        view = preview(best[0] if best is not None else self.student, dataset, self.device, self.collate,
+                       self.metric.cls)
+        if view is None:
+            return None
+        classes = self.info.classes
+        path = self.run_dir / "preview.npz"
+        tmp = self.run_dir / ".preview.tmp.npz"
+        np.savez_compressed(tmp, **view, class_names=np.array(classes.names),
+                            class_colours=np.array(classes.colours, dtype=np.uint8),
+                            step=np.array(best[1] if best is not None else self.total_steps))
+        os.replace(tmp, path)
+        return path
 
 
 def write_summary(run_dir: Path, summary: dict[str, Any]) -> None:

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from torch import Tensor
 
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.metrics.base import Metric
+from distilkit.metrics.bev import thin, top_class
 from distilkit.metrics.points import auc, chamfer_distance, jsd_bev, precision_recall_curves, voxel_confusion
 from distilkit.metrics.ssc import SSCMetric
 from distilkit.registry import METRICS
@@ -36,6 +38,24 @@ class SSCScore(Metric):
 
     def compute(self) -> dict[str, Any]:
         return self.acc.compute()
+
+    @classmethod
+    def preview(cls, prediction: Tensor, batch: Batch, info: DataInfo) -> dict[str, Any] | None:
+        """The first scene from above: its current input scan, the predicted and the true class per column."""
+        if info.grid is None:
+            return None
+        g = info.grid
+        out: dict[str, Any] = {
+            "prediction": top_class(prediction[0].argmax(dim=0), info.classes.ignore_index),
+            "target": top_class(batch.targets["voxel_label"][0], info.classes.ignore_index),
+            "extent": np.array([g.origin[0], g.origin[0] + g.shape[0] * g.voxel_size,
+                                g.origin[1], g.origin[1] + g.shape[1] * g.voxel_size], dtype=np.float32)}
+        if "points" in batch.inputs and "point_batch" in batch.inputs:
+            first = batch.inputs["point_batch"] == 0
+            if "point_frame" in batch.inputs:
+                first &= batch.inputs["point_frame"] == 0
+            out["input"] = thin(batch.inputs["points"][first])
+        return out
 
 
 class SceneCompletionScore(Metric):
@@ -95,6 +115,19 @@ class SceneCompletionScore(Metric):
             out.update(precision=auc(p), recall=auc(r), fscore=auc(f))
         else:
             out.update(precision=0.0, recall=0.0, fscore=0.0)
+        return out
+
+    @classmethod
+    def preview(cls, prediction: Any, batch: Batch, info: DataInfo) -> dict[str, Any] | None:
+        """The first scene from above: the scan, the completed and the true scene (points within 50 m)."""
+        target = thin(batch.targets["scene"][0, : int(batch.targets["scene_lengths"][0])])
+        low, high = target[:, :2].min(axis=0) - 2.0, target[:, :2].max(axis=0) + 2.0  # the scene, 2 m around
+        out = {"prediction": thin(prediction.cloud(0)), "target": target,
+               "extent": np.array([low[0], high[0], low[1], high[1]], dtype=np.float32)}
+        if "scan" in batch.inputs:
+            lengths = batch.inputs.get("scan_lengths")
+            n = int(lengths[0]) if lengths is not None else batch.inputs["scan"].shape[1]
+            out["input"] = thin(batch.inputs["scan"][0, :n])
         return out
 
 

@@ -1,41 +1,14 @@
-"""Progress bars, the final comparison table, and the Markdown + PNG report of a run."""
+"""A recipe's report: the comparison table of its stages (rich), ``report.md`` and ``report.png`` beside the
+stage folders."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 from distilkit.engine.io import atomic_write_text
 from distilkit.engine.scores import ScoreView, header, stage_row
-
-
-@contextlib.contextmanager
-def stage_progress(console: Any, name: str) -> Iterator[Callable[[int, int, dict[str, float]], None]]:
-    """A rich progress bar for one stage: steps, it/s, ETA and the current loss terms."""
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
-
-    columns = [TextColumn(f"[bold cyan]{name}[/]"), BarColumn(), MofNCompleteColumn(),
-               TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
-               TextColumn("{task.fields[terms]}")]
-    with Progress(*columns, console=console, transient=False) as progress:
-        task = progress.add_task(name, total=None, rate="", terms="")
-        state = {"t0": None, "s0": 0}
-
-        def on_step(step: int, total: int, values: dict[str, float]) -> None:
-            import time
-
-            now = time.perf_counter()
-            if state["t0"] is None:
-                state["t0"], state["s0"] = now, step - 1
-            done = step - state["s0"]
-            rate = done / max(now - state["t0"], 1e-9)
-            terms = " ".join(f"{k}={v:.3g}" for k, v in values.items())
-            progress.update(task, completed=step, total=total, rate=f"{rate:.2f} it/s", terms=terms)
-
-        yield on_step
 
 
 def _groups(rows: list[dict[str, Any]]) -> list[tuple[ScoreView, list[int]]]:
@@ -96,6 +69,14 @@ def _losses(run_dir: Path) -> tuple[list[int], list[float]]:
     return steps, losses
 
 
+def _seeds(default: int, results: list[Any]) -> str:
+    """'Seed 0', or each stage's seed when stages have their own."""
+    seeds = {r.name: r.summary.get("seed", default) for r in results}
+    if len(set(seeds.values())) <= 1:
+        return f"Seed {next(iter(seeds.values()), default)}"
+    return "Seeds " + ", ".join(f"{n} {s}" for n, s in seeds.items())
+
+
 def write_report(pipeline: Any, results: list[Any]) -> Path:
     """Print the comparison table and write ``report.md`` and ``report.png`` beside the stage folders."""
     pipeline.console.print(results_table(results))
@@ -105,7 +86,7 @@ def write_report(pipeline: Any, results: list[Any]) -> Path:
     lines = [f"# {pipeline.recipe.name}", ""]
     for view, members in groups:
         cols = ["stage", "model", "input", "teacher", "distillation", *_score_columns(view), "run"]
-        lines += [f"Seed {pipeline.recipe.seed}; {header(view, rows[members[0]]['split'])}.", "",
+        lines += [f"{_seeds(pipeline.recipe.seed, [results[i] for i in members])}; {header(view, rows[members[0]]['split'])}.", "",
                   "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
         for i in members:
             row = rows[i]

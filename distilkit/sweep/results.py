@@ -1,0 +1,83 @@
+"""A sweep's results: the finished runs' summaries as a table over seeds (mean ± std, paired differences to
+the baseline with 95 % intervals), ``results.md``, ``results.csv`` (one line per run) and ``results.png``."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from distilkit.engine.io import atomic_write_text
+from distilkit.engine.scores import stage_row
+from distilkit.engine.seeds import seed_rows, write_seeds_report
+
+
+@dataclass
+class RunRecord:
+    """One finished run of a sweep: a variant (or an upstream stage) at a seed."""
+
+    name: str  # the variant, or the upstream stage
+    seed: int
+    run_dir: Path
+    summary: dict[str, Any]
+    upstream: bool = False
+
+
+def sweep_rows(records: list[RunRecord], baseline: str | None, order: list[str]) -> list[dict[str, Any]]:
+    """Rows of :func:`~distilkit.engine.seeds.seed_rows` in ``order`` (variants first, then upstream stages)."""
+    by_seed: dict[int, list[RunRecord]] = {}
+    for r in records:
+        by_seed.setdefault(r.seed, []).append(r)
+    rows = {row["stage"]: row for row in seed_rows(by_seed, baseline)}
+    upstream = {r.name for r in records if r.upstream}
+    out = []
+    for name in order:
+        if name in rows:
+            row = rows[name]
+            if name in upstream:
+                row["label"] = f"*{row['label']}* (upstream)"
+            out.append(row)
+    return out
+
+
+def results_csv(records: list[RunRecord]) -> str:
+    """One line per run: the variant, seed, run folder and every score at the best and the last checkpoint."""
+    rows = [(r, stage_row(r.summary)) for r in records]
+    keys: list[str] = []
+    for _, row in rows:
+        keys += [k for k, _, _ in row["view"].columns if k not in keys]
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["variant", "label", "role", "seed", "metric", "split", "selected_by", "best_step", "steps",
+                     "train_seconds", *[f"best_{k}" for k in keys], *[f"last_{k}" for k in keys], "val_best",
+                     "run_dir"])
+    for r, row in rows:
+        view = row["view"]
+
+        def num(d: dict[str, float], k: str) -> str:
+            v = d.get(k, math.nan)
+            return "" if isinstance(v, float) and math.isnan(v) else f"{v:.6g}"
+
+        writer.writerow([r.name, row["label"], "upstream" if r.upstream else "variant", r.seed, view.metric,
+                         row["split"], f"val {view.select}", row["best_step"], row["steps"],
+                         r.summary.get("train_seconds", ""), *[num(row["best"], k) for k in keys],
+                         *[num(row["last"], k) for k in keys], num({"v": row["val"]}, "v"), str(r.run_dir)])
+    return buf.getvalue()
+
+
+def write_results(root: Path, name: str, records: list[RunRecord], baseline: str | None, order: list[str],
+                  console: Any, missing: list[str]) -> Path:
+    """Print the table; write results.md, results.csv and results.png under ``root``."""
+    rows = sweep_rows(records, baseline, order)
+    atomic_write_text(root / "results.csv", results_csv(records))
+    notes = [f"Runs not finished (not in the table): {', '.join(missing)}." if missing else "",
+             "One line per run, with every score and its folder: results.csv."]
+    path = write_seeds_report(root, rows, baseline, console, stem="results", title=f"sweep {name}",
+                              first="variant", notes=[n for n in notes if n])
+    return path
+
+
+__all__ = ["RunRecord", "results_csv", "sweep_rows", "write_results"]

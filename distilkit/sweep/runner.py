@@ -1,0 +1,241 @@
+"""Run a sweep: every variant at every seed, upstream stages shared, finished runs reused, then the table.
+
+A run is ``distilkit run <variant recipe> --seed S --stage <variant>`` on the sweep's output folder — in this
+process (``jobs=1``), in ``jobs`` parallel processes that split the CPU's threads between them, or on other
+machines from the commands of :func:`plan` (then ``distilkit sweep`` only collects). Two processes that need
+the same upstream stage take turns on its lock, so it is trained once.
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from distilkit.engine.io import atomic_write_text
+from distilkit.engine.pipeline import Pipeline, read_summary
+from distilkit.errors import DistilkitError, RecipeError
+from distilkit.sweep.results import RunRecord, write_results
+from distilkit.sweep.spec import Sweep, load_sweep
+
+
+@dataclass(frozen=True)
+class Task:
+    """One ``distilkit run``: the variant's recipe at a seed, for ``stages`` (the variant, or its upstream)."""
+
+    variant: str
+    seed: int
+    stages: tuple[str, ...]
+    recipe_file: Path
+
+    def argv(self, output: Path) -> list[str]:
+        return ["run", str(self.recipe_file), "--seed", str(self.seed), "--output", str(output),
+                "--stage", *self.stages]
+
+    @property
+    def title(self) -> str:
+        what = self.variant if self.stages == (self.variant,) else f"{', '.join(self.stages)} (for {self.variant})"
+        return f"{what}, seed {self.seed}"
+
+
+class SweepRun:
+    """A sweep bound to an output folder and seeds: its tasks, pipelines and finished runs."""
+
+    def __init__(self, sweep: Sweep | str | Path, output: str | Path = "runs", seeds: list[int] | None = None,
+                 quiet: bool = False, console: Any = None) -> None:
+        self.sweep = sweep if isinstance(sweep, Sweep) else load_sweep(sweep)
+        if seeds is not None and len(set(seeds)) != len(seeds):
+            raise DistilkitError(f"--seeds: give each seed once, got {' '.join(map(str, seeds))}")
+        self.seeds = list(seeds) if seeds else list(self.sweep.spec.seeds)
+        self.output = Path(output)
+        self.root = self.output / self.sweep.name
+        if console is None:
+            from distilkit.console import make_console
+
+            console = make_console(quiet=quiet)
+        self.console, self.quiet = console, quiet
+        self.pipes: dict[tuple[str, int], Pipeline] = {}
+        data: dict[str, dict[str, Any]] = {}  # data configuration -> its datasets, generated or read once
+        for variant, recipe in self.sweep.recipes.items():  # resolve every variant before anything runs
+            for seed in self.seeds:
+                try:
+                    pipe = Pipeline(recipe, self.output, console=console, quiet=quiet, seed=seed)
+                except RecipeError as err:
+                    raise RecipeError([(f"variants.{variant}" + (f" (recipe {p})" if p else ""), m)
+                                       for p, m in err.problems], self.sweep.source) from None
+                pipe.share_data(data)
+                self.pipes[variant, seed] = pipe
+
+    def recipe_file(self, variant: str) -> Path:
+        return self.root / "recipes" / f"{variant}.yaml"
+
+    def write_recipes(self) -> None:
+        """Each variant's recipe as a file (what the planned commands run), and the sweep as resolved."""
+        for variant, data in self.sweep.data.items():
+            text = yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
+            path = self.recipe_file(variant)
+            if not path.is_file() or path.read_text(encoding="utf-8") != text:
+                atomic_write_text(path, f"# variant {variant!r} of sweep {self.sweep.name} ({self.sweep.source})\n"
+                                  + text)
+
+    def upstream_tasks(self) -> list[Task]:
+        """One task per distinct set of upstream runs (by identity): with a shared teacher, one in all."""
+        seen: set[tuple[str, ...]] = set()
+        out = []
+        for seed in self.seeds:
+            for variant in self.sweep.recipes:
+                names = self.sweep.upstream_stages(variant)
+                if not names:
+                    continue
+                pipe = self.pipes[variant, seed]
+                key = tuple(sorted(pipe.run_dir(n).name for n in names))
+                if key not in seen:
+                    seen.add(key)
+                    out.append(Task(variant, seed, tuple(names), self.recipe_file(variant)))
+        return out
+
+    def variant_tasks(self) -> list[Task]:
+        return [Task(v, s, (v,), self.recipe_file(v)) for s in self.seeds for v in self.sweep.recipes]
+
+    def finished(self, task: Task) -> bool:
+        pipe = self.pipes[task.variant, task.seed]
+        return all(read_summary(pipe.run_dir(n)) is not None for n in task.stages)
+
+    # -- running -------------------------------------------------------------------------------------------
+
+    def plan(self) -> list[str]:
+        """``distilkit run`` command lines: the upstream runs first, then one per variant and seed."""
+        self.write_recipes()
+        return [shlex.join(["distilkit", *t.argv(self.output)]) for t in self.upstream_tasks() + self.variant_tasks()]
+
+    def run(self, jobs: int = 1) -> list[str]:
+        """Run what is not finished; return the failures (``task: message``), the others go on."""
+        self.write_recipes()
+        todo = [t for t in self.upstream_tasks() + self.variant_tasks() if not self.finished(t)]
+        total = len(self.variant_tasks())
+        self.console.print(f"sweep [bold]{self.sweep.name}[/]: {len(self.sweep.recipes)} variants × "
+                           f"{len(self.seeds)} seeds = {total} runs, {total - sum(t.stages == (t.variant,) for t in todo)}"
+                           f" finished; output {self.root}")
+        if jobs <= 1:
+            return self._in_process(todo)
+        return self._in_processes(todo, jobs)
+
+    def _in_process(self, todo: list[Task]) -> list[str]:
+        failures = []
+        for i, task in enumerate(todo, 1):
+            if not self.quiet:
+                self.console.rule(f"[{i}/{len(todo)}] {task.title}")
+            try:
+                self.pipes[task.variant, task.seed].run(only=list(task.stages), report=False)
+            except DistilkitError as exc:  # one run's failure (a NaN loss) must not stop the others
+                failures.append(f"{task.title}: {exc}")
+                self.console.print(f"[red]failed:[/] {task.title}: {exc}")
+        return failures
+
+    def _in_processes(self, todo: list[Task], jobs: int) -> list[str]:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        threads = max(1, cpus // jobs)
+        if jobs > cpus:
+            self.console.print(f"[yellow]--jobs {jobs} on {cpus} CPUs: jobs share cores (1 thread each)[/]")
+        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+        logs = self.root / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        failures: list[str] = []
+
+        def one(task: Task) -> None:
+            log = logs / f"{'+'.join(task.stages)}-seed{task.seed}.log"
+            with open(log, "w", encoding="utf-8") as out:
+                code = subprocess.call([sys.executable, "-m", "distilkit", *task.argv(self.output), "--quiet"],
+                                       stdout=out, stderr=subprocess.STDOUT, env=env)
+            if code != 0:
+                tail = log.read_text(encoding="utf-8", errors="replace").strip().splitlines()[-1:] or ["(no output)"]
+                failures.append(f"{task.title}: exit status {code}: {tail[0]} (log: {log})")
+
+        upstream = [t for t in todo if t.stages != (t.variant,)]
+        variants = [t for t in todo if t.stages == (t.variant,)]
+        with Progress(TextColumn(f"[cyan]sweep[/] {self.sweep.name} ({jobs} jobs × {threads} threads)"), BarColumn(),
+                      MofNCompleteColumn(), TimeElapsedColumn(), console=self.console,
+                      disable=self.quiet) as progress:
+            bar = progress.add_task("runs", total=len(todo))
+            with ThreadPoolExecutor(max_workers=jobs) as pool:
+                for phase in (upstream, variants):  # the shared teachers first, so no job waits on another
+                    for task, _ in zip(phase, pool.map(one, phase)):
+                        progress.advance(bar)
+        return failures
+
+    # -- collecting ----------------------------------------------------------------------------------------
+
+    def records(self) -> tuple[list[RunRecord], list[str]]:
+        """The finished runs (variants and their upstream stages) and the titles of the missing ones."""
+        records: list[RunRecord] = []
+        missing: list[str] = []
+        seen: set[Path] = set()
+        for seed in self.seeds:
+            for variant in self.sweep.recipes:
+                pipe = self.pipes[variant, seed]
+                for name in [*self.sweep.upstream_stages(variant), variant]:
+                    run_dir = pipe.run_dir(name)
+                    summary = read_summary(run_dir)
+                    if summary is None:
+                        if name == variant:
+                            missing.append(f"{variant} (seed {seed})")
+                        continue
+                    if run_dir in seen:  # a shared upstream run: counted once
+                        continue
+                    seen.add(run_dir)
+                    upstream = name != variant
+                    label = summary.get("label", name) if upstream else self.sweep.label(variant)
+                    records.append(RunRecord(name, seed, run_dir, {**summary, "label": label}, upstream))
+        return records, missing
+
+    def order(self) -> list[str]:
+        ups: list[str] = []
+        for variant in self.sweep.recipes:
+            ups += [n for n in self.sweep.upstream_stages(variant) if n not in ups]
+        return [*self.sweep.recipes, *ups]
+
+    def collect(self) -> Path | None:
+        records, missing = self.records()
+        if not records:
+            self.console.print(f"sweep {self.sweep.name}: no finished runs yet under {self.root}")
+            return None
+        if missing:
+            self.console.print(f"[yellow]not finished (left out of the table):[/] {', '.join(missing)}")
+        return write_results(self.root, self.sweep.name, records, self.sweep.baseline, self.order(), self.console,
+                             missing)
+
+
+def run_sweep(path: str | Path, output: str | Path = "runs", seeds: list[int] | None = None, jobs: int = 1,
+              plan: bool = False, collect: bool = False, quiet: bool = False) -> Path | None:
+    """``distilkit sweep``: run (or plan, or only collect) a sweep file and write its results."""
+    if jobs < 1:
+        raise DistilkitError(f"--jobs must be at least 1, got {jobs}")
+    sweep = SweepRun(path, output, seeds, quiet=quiet)
+    if plan:
+        lines = sweep.plan()
+        print(f"# {len(lines)} commands for sweep {sweep.sweep.name}: run the first "
+              f"{len(sweep.upstream_tasks())} (the upstream stages) before the others; then `distilkit sweep "
+              f"{path} --output {output}` collects", file=sys.stderr)
+        print("\n".join(lines))
+        return None
+    started = time.monotonic()
+    failures = [] if collect else sweep.run(jobs)
+    result = sweep.collect()
+    if not quiet:
+        sweep.console.print(f"sweep finished in {time.monotonic() - started:.1f} s")
+    if failures:
+        raise DistilkitError("some runs failed (the others are in the table):\n  " + "\n  ".join(failures))
+    return result
+
+
+__all__ = ["SweepRun", "Task", "run_sweep"]

@@ -1,0 +1,208 @@
+"""The sweep file: a base recipe, the stage to vary, named variants and seeds (``distilkit sweep``).
+
+Each variant becomes a recipe of its own (:func:`variant_data`): the base recipe with the sweep's and the
+variant's overrides applied, cut to the varied stage and the stages it needs, the varied stage renamed to the
+variant. All of them are named after the sweep, so they share one output folder, and an upstream stage (the
+teacher) that is the same in several of them has one identity there: it is trained once and shared.
+"""
+
+from __future__ import annotations
+
+import copy
+import re
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from distilkit.errors import RecipeError
+from distilkit.recipe import LossSpec, Recipe, parse_yaml, pydantic_problems, recipe_from_dict, stage_order
+
+_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+
+class VariantSpec(_Strict):
+    """One row of the comparison: distillation objectives, recipe overrides, or both."""
+
+    label: str | None = Field(None, description="display name in the table (default: the variant's name)")
+    distill: list[LossSpec] | None = Field(None, description="the varied stage's distillation objectives (replace the "
+                                                              "recipe's; [] = no distillation)")
+    set: dict[str, Any] = Field(default_factory=dict, alias="set",
+                                description="recipe overrides by dotted path, e.g. {stages.student.optimizer.lr: 0.01}")
+
+
+class SweepSpec(_Strict):
+    """A comparison of variants of one stage of a recipe over seeds."""
+
+    schema_version: Literal[1] = Field(1, description="sweep file format version")
+    name: str = Field(..., pattern=_NAME, description="sweep name (folder under the output)")
+    recipe: str | dict[str, Any] = Field(..., description="the base recipe: a path (relative to the sweep file) or "
+                                                          "the recipe itself")
+    stage: str = Field(..., description="the stage of the base recipe whose variants are compared")
+    teacher: str | None = Field(None, description="the stage the variants distil from (default: the varied stage's "
+                                                  "own `teacher`)")
+    seeds: list[int] = Field(default_factory=lambda: [0], min_length=1, description="training seeds "
+                                                                                     "(`--seeds` overrides)")
+    upstream: Literal["per_seed", "shared"] = Field(
+        "per_seed", description="the stages the variants need (the teacher): trained once per seed, or once for "
+                                "all seeds (at `upstream_seed`)")
+    upstream_seed: int | None = Field(None, description="with upstream: shared, their seed (default: the recipe's)")
+    baseline: str | None = Field(None, description="the variant the paired differences are taken to (default: the "
+                                                   "first variant without distillation)")
+    set: dict[str, Any] = Field(default_factory=dict, alias="set",
+                                description="overrides by dotted path applied to the base recipe for every variant")
+    variants: dict[str, VariantSpec] = Field(..., min_length=1, description="name -> variant, in table order")
+
+    @model_validator(mode="after")
+    def _names(self) -> "SweepSpec":
+        bad = [n for n in self.variants if not re.fullmatch(_NAME, n)]
+        if bad:
+            raise ValueError(f"variant name {bad[0]!r} must be letters, digits, '_', '-' or '.'")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"seeds: give each seed once, got {self.seeds}")
+        if self.baseline is not None and self.baseline not in self.variants:
+            raise ValueError(f"baseline {self.baseline!r} is not a variant (variants: {', '.join(self.variants)})")
+        return self
+
+
+class Sweep:
+    """A loaded sweep: the spec, its base recipe (as data) and one recipe per variant."""
+
+    def __init__(self, spec: SweepSpec, base: dict[str, Any], source: str) -> None:
+        self.spec, self.base, self.source = spec, base, source
+        self.data: dict[str, dict[str, Any]] = {name: variant_data(self, name) for name in spec.variants}
+        self.recipes: dict[str, Recipe] = {name: recipe_from_dict(d, source) for name, d in self.data.items()}
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    def label(self, variant: str) -> str:
+        return self.spec.variants[variant].label or variant
+
+    @property
+    def baseline(self) -> str | None:
+        """The named baseline, else the first variant whose stage has no distillation."""
+        if self.spec.baseline is not None:
+            return self.spec.baseline
+        return next((n for n, r in self.recipes.items() if not r.stages[n].distill), None)
+
+    def upstream_stages(self, variant: str) -> list[str]:
+        """The stages a variant's recipe runs before the variant itself (its teacher, ...)."""
+        return [n for n in stage_order(self.recipes[variant]) if n != variant]
+
+
+def set_path(data: dict[str, Any], path: str, value: Any, source: str, where: str) -> None:
+    """Set ``data[a][b][0]...`` from the dotted path ``a.b.0...`` (mappings are created on the way)."""
+    parts = path.split(".")
+    node: Any = data
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise RecipeError([(where, f"{path}: {'.'.join(parts[:i]) or 'the recipe'} is a list of {len(node)}; "
+                                           f"{part!r} is not an index of it")], source)
+            key: Any = int(part)
+        elif isinstance(node, dict):
+            key = part
+        else:
+            raise RecipeError([(where, f"{path}: {'.'.join(parts[:i])} is a {type(node).__name__}, not a mapping or "
+                                       "a list")], source)
+        if last:
+            node[key] = copy.deepcopy(value)
+        else:
+            if isinstance(node, dict) and node.get(key) is None:
+                node[key] = {}
+            node = node[key]
+
+
+def variant_data(sweep: Sweep, variant: str) -> dict[str, Any]:
+    """The recipe of one variant, as data (see the module docstring); a problem is named with the variant."""
+    spec, where = sweep.spec, f"variants.{variant}"
+    data = copy.deepcopy(sweep.base)
+    for path, value in spec.set.items():
+        set_path(data, path, value, sweep.source, "set")
+    chosen = spec.variants[variant]
+    for path, value in chosen.set.items():
+        set_path(data, path, value, sweep.source, f"{where}.set")
+    stages = data.get("stages") if isinstance(data.get("stages"), dict) else {}
+    if spec.stage not in stages:
+        raise RecipeError([("stage", f"the base recipe has no stage {spec.stage!r} (stages: {', '.join(stages)})")],
+                          sweep.source)
+    stage = stages[spec.stage]
+    if chosen.distill is not None:
+        stage["distill"] = [t.model_dump(mode="json", by_alias=True, exclude_none=True, exclude_defaults=True)
+                            for t in chosen.distill]
+    if spec.teacher is not None and stage.get("distill"):
+        stage["teacher"] = {"from": spec.teacher}
+    if not stage.get("distill"):  # no distillation: no teacher, so the run does not depend on one
+        stage.pop("teacher", None)
+    elif not stage.get("teacher"):
+        raise RecipeError([(where, f"distils, but stage {spec.stage!r} has no teacher: give the sweep "
+                                   "`teacher: STAGE`")], sweep.source)
+    if variant != spec.stage and variant in stages:
+        raise RecipeError([(where, f"variant {variant!r} has the name of a stage of the base recipe; rename it")],
+                          sweep.source)
+    data["name"] = spec.name
+    try:
+        full = recipe_from_dict(data, sweep.source)
+    except RecipeError as err:
+        raise RecipeError([(f"{where} (recipe {p})" if p else where, m) for p, m in err.problems], sweep.source) from None
+    needed = _needed(full, spec.stage)
+    kept = {(variant if n == spec.stage else n): copy.deepcopy(stages[n]) for n in stage_order(full) if n in needed}
+    if spec.upstream == "shared":
+        seed = spec.upstream_seed if spec.upstream_seed is not None else full.seed
+        for n in kept:
+            if n != variant:
+                kept[n]["seed"] = seed
+    if chosen.label is not None:
+        kept[variant]["label"] = chosen.label
+    data["stages"] = kept
+    return data
+
+
+def _needed(recipe: Recipe, stage: str) -> set[str]:
+    out, todo = set(), [stage]
+    while todo:
+        name = todo.pop()
+        if name in out:
+            continue
+        out.add(name)
+        s = recipe.stages[name]
+        todo += [src.from_ for src in (s.teacher, s.init) if src is not None and src.from_]
+    return out
+
+
+def load_sweep(path: str | Path) -> Sweep:
+    """Read a sweep file (``yaml.safe_load``) and build every variant's recipe; problems are RecipeErrors."""
+    path = Path(path)
+    source = str(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RecipeError([("", f"cannot read sweep file: {exc}")], source) from None
+    data = parse_yaml(text, source)
+    if not isinstance(data, dict):
+        raise RecipeError([("", f"a sweep file must be a YAML mapping, got {type(data).__name__}")], source)
+    try:
+        spec = SweepSpec.model_validate(data)
+    except ValidationError as err:
+        raise RecipeError(pydantic_problems(err), source) from None
+    if isinstance(spec.recipe, str):
+        base_path = (path.parent / spec.recipe) if not Path(spec.recipe).is_absolute() else Path(spec.recipe)
+        try:
+            base = parse_yaml(base_path.read_text(encoding="utf-8"), str(base_path))
+        except (OSError, UnicodeDecodeError) as exc:
+            raise RecipeError([("recipe", f"cannot read the base recipe: {exc}")], source) from None
+        if not isinstance(base, dict):
+            raise RecipeError([("recipe", f"{base_path} is not a recipe (a YAML mapping)")], source)
+    else:
+        base = spec.recipe
+    return Sweep(spec, base, source)
+
+
+__all__ = ["Sweep", "SweepSpec", "VariantSpec", "load_sweep", "set_path", "variant_data"]

@@ -1,0 +1,135 @@
+"""distilkit sweep: variants of one stage over seeds, upstream stages shared, resumed, planned for a cluster."""
+
+from __future__ import annotations
+
+import csv
+import shlex
+from pathlib import Path
+
+import pytest
+import yaml
+
+from conftest import tiny_recipe
+from distilkit.cli import main
+from distilkit.engine.pipeline import Pipeline
+from distilkit.errors import RecipeError
+from distilkit.recipe import load_recipe
+from distilkit.sweep.runner import SweepRun
+from distilkit.sweep.spec import load_sweep
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def write_sweep(tmp_path: Path, **extra) -> Path:
+    base = tiny_recipe(steps=1)
+    base["stages"]["student"].pop("distill")
+    base["stages"]["student"].pop("teacher")
+    (tmp_path / "base.yaml").write_text(yaml.safe_dump(base))
+    sweep = {"schema_version": 1, "name": "sw", "recipe": "base.yaml", "stage": "student", "teacher": "teacher",
+             "seeds": [0, 1], "variants": {"none": {"distill": []},
+                                           "dskd": {"label": "DSKD", "distill": [{"name": "dskd", "weight": 10}]}},
+             **extra}
+    path = tmp_path / "sweep.yaml"
+    path.write_text(yaml.safe_dump(sweep, sort_keys=False))
+    return path
+
+
+def summaries(root: Path) -> dict[str, float]:
+    return {p.parent.name: p.stat().st_mtime for p in root.glob("*/summary.json")}
+
+
+def test_a_sweep_runs_every_variant_and_seed_shares_teachers_and_resumes(tmp_path: Path, capsys) -> None:
+    path = write_sweep(tmp_path)
+    out = tmp_path / "runs"
+    assert main(["sweep", str(path), "-o", str(out), "-q"]) == 0
+    root = out / "sw"
+    runs = summaries(root)
+    # one teacher per seed (upstream: per_seed), one run per variant and seed; the none variant has no teacher
+    assert sorted(n.split("-")[0] for n in runs) == ["dskd", "dskd", "none", "none", "teacher", "teacher"]
+    with open(root / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert sorted((r["variant"], r["seed"], r["role"]) for r in rows) == [
+        ("dskd", "0", "variant"), ("dskd", "1", "variant"), ("none", "0", "variant"), ("none", "1", "variant"),
+        ("teacher", "0", "upstream"), ("teacher", "1", "upstream")]
+    by = {(r["variant"], r["seed"]): r for r in rows}
+    assert all(r["selected_by"] == "val miou" and r["split"] == "test" for r in rows)
+    md = (root / "results.md").read_text()
+    assert "| DSKD | dskd×10 | 0,1 |" in md and "Δ 95 % interval" in md and "best validation mIoU" in md
+    delta = 100 * (float(by["dskd", "0"]["best_miou"]) - float(by["none", "0"]["best_miou"]))
+    assert f"{delta:+.2f} / " in md  # the paired difference of seed 0, from the per-run scores
+    assert (root / "results.png").stat().st_size > 0
+    # started again: everything is reused, nothing is written again
+    assert main(["sweep", str(path), "-o", str(out), "-q"]) == 0
+    assert summaries(root) == runs
+
+
+def test_a_shared_teacher_is_trained_once_and_an_interrupted_sweep_resumes(tmp_path: Path) -> None:
+    path = write_sweep(tmp_path, upstream="shared", seeds=[3, 4])
+    out = tmp_path / "runs"
+    sweep = SweepRun(path, out, quiet=True)
+    assert len(sweep.upstream_tasks()) == 1  # one teacher for both seeds
+    sweep.pipes["dskd", 4].run(only=["dskd"], report=False)  # a sweep stopped after its first run
+    before = summaries(out / "sw")
+    sweep.run()
+    after = summaries(out / "sw")
+    assert {k: after[k] for k in before} == before and len(after) == 5  # resumed: the finished runs are kept
+    teachers = list((out / "sw").glob("teacher-*/summary.json"))
+    assert len(teachers) == 1 and yaml.safe_load((teachers[0].parent / "recipe.resolved.yaml").read_text())["seed"] == 0
+    records, missing = sweep.records()
+    assert not missing and len(records) == 5
+
+
+def test_planned_commands_run_the_same_stages_and_sweep_then_only_collects(tmp_path: Path, capsys) -> None:
+    path = write_sweep(tmp_path, seeds=[0])
+    out = tmp_path / "runs"
+    assert main(["sweep", str(path), "-o", str(out), "--plan"]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.strip().splitlines()
+    assert lines[0].endswith("--stage teacher") and len(lines) == 3 and "run the first 1" in captured.err
+    for line in lines:  # what each task of a cluster job array would run
+        argv = shlex.split(line)
+        assert argv[0] == "distilkit" and main(argv[1:] + ["-q"]) == 0
+    sweep = SweepRun(path, out, quiet=True)
+    for variant, recipe in sweep.sweep.recipes.items():  # the written recipes have the in-process identities
+        assert Pipeline(load_recipe(sweep.recipe_file(variant)), out, seed=0).hashes == sweep.pipes[variant, 0].hashes
+    runs = summaries(out / "sw")
+    assert main(["sweep", str(path), "-o", str(out), "-q", "--collect"]) == 0
+    assert summaries(out / "sw") == runs and (out / "sw" / "results.md").is_file()
+
+
+def test_jobs_run_in_parallel_processes(tmp_path: Path) -> None:
+    path = write_sweep(tmp_path, seeds=[0])
+    out = tmp_path / "runs"
+    assert main(["sweep", str(path), "-o", str(out), "-q", "--jobs", "2"]) == 0
+    assert len(summaries(out / "sw")) == 3
+    logs = sorted(p.name for p in (out / "sw" / "logs").iterdir())
+    assert logs == ["dskd-seed0.log", "none-seed0.log", "teacher-seed0.log"]
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"variants": {"x": {"distil": []}}}, "variants.x.distil: unknown key"),
+    ({"variants": {"x": {"set": {"stages.student.train.steps.deep": 1}}}},
+     "variants.x.set: stages.student.train.steps.deep: stages.student.train.steps is a int"),
+    ({"variants": {"kd": {"distill": [{"name": "kdd"}]}}}, "variants.kd"),
+    ({"variants": {"x": {"set": {"stages.student.optimizer.lr": -1}}}}, "variants.x (recipe stages.student.optimizer.lr)"),
+    ({"stage": "studnet"}, "no stage 'studnet'"),
+    ({"baseline": "nothing"}, "baseline 'nothing' is not a variant"),
+    ({"variants": {"teacher": {"distill": []}}}, "has the name of a stage"),
+    ({"teacher": None, "variants": {"kd": {"distill": [{"name": "kd"}]}}}, "has no teacher"),
+    ({"seeds": [1, 1]}, "give each seed once"),
+])
+def test_sweep_file_problems_are_named(tmp_path: Path, change: dict, message: str) -> None:
+    path = write_sweep(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data.update(change)
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(RecipeError) as err:
+        SweepRun(path, tmp_path / "runs", quiet=True)
+    assert message in str(err.value) and str(path) in str(err.value)
+
+
+@pytest.mark.parametrize("name", ["scpnet_table4", "scribble2scene_table5", "dskd_weight"])
+def test_shipped_sweeps_resolve(name: str, tmp_path: Path) -> None:
+    sweep = SweepRun(ROOT / "recipes" / "sweeps" / f"{name}.yaml", tmp_path, quiet=True)
+    assert sweep.sweep.baseline == "none" and len(sweep.variant_tasks()) == 3 * len(sweep.sweep.recipes)
+    assert load_sweep(ROOT / "recipes" / "sweeps" / f"{name}.yaml").recipes["none"].stages["none"].teacher is None
