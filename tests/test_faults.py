@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
+import sys
 import threading
+import time
 
 import pytest
 import yaml
@@ -58,8 +62,46 @@ def test_a_truncated_last_checkpoint_falls_back_to_the_previous_one_with_the_sam
     bad = [r for r in log if r.get("event") == "unreadable_checkpoint"]
     assert bad and bad[0]["path"].endswith("last.pt") and "not a readable checkpoint" in bad[0]["error"]
     assert [r["step"] for r in log if r.get("event") == "resume"] == [2]
-    def scores(summary: dict) -> dict:  # everything but the forward timing
-        return {k: ({m: v for m, v in x.items() if m != "seconds_per_sample"} if isinstance(x, dict) else x)
-                for k, x in summary["test"].items()}
-
     assert scores(result.summary) == scores(clean.summary)  # the same final metrics as an uninterrupted run
+
+
+def scores(summary: dict) -> dict:
+    """A summary's test scores, everything but the forward timing."""
+    return {k: ({m: v for m, v in x.items() if m != "seconds_per_sample"} if isinstance(x, dict) else x)
+            for k, x in summary["test"].items()}
+
+
+def _kill_when(cmd: list[str], ready, timeout: float = 120.0) -> None:
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        t0 = time.monotonic()
+        while not ready() and proc.poll() is None and time.monotonic() - t0 < timeout:
+            time.sleep(0.005)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+
+
+@pytest.mark.parametrize("moment", ["first checkpoint", "best checkpoint", "sixth log line", "evaluation"])
+def test_a_run_killed_at_any_moment_resumes_to_the_same_final_metrics(tmp_path, moment: str) -> None:
+    recipe = tiny_recipe(steps=8, distill=False)
+    recipe["stages"]["teacher"]["train"]["eval_every"] = 4
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    (clean,) = Pipeline(recipe_from_dict(recipe), tmp_path / "clean", quiet=True).run()
+    pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
+    run_dir = pipe.run_dir("teacher")
+    ready = {"first checkpoint": lambda: (run_dir / "checkpoints" / "last.pt").is_file(),
+             "best checkpoint": lambda: (run_dir / "checkpoints" / "best.pt").is_file(),
+             "sixth log line": lambda: (run_dir / "metrics.jsonl").is_file()
+             and (run_dir / "metrics.jsonl").read_text().count("\n") >= 6,
+             "evaluation": lambda: any(run_dir.glob("**/.*"))}[moment]  # a temporary file: a write under way
+    _kill_when([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "runs"), "-q"], ready)
+    if moment != "evaluation":  # killed mid-run (the last moment may race with the end of the run)
+        assert not (run_dir / "summary.json").is_file()
+    assert not (run_dir / "summary.json").is_file() or json.loads((run_dir / "summary.json").read_text())
+    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    assert scores(result.summary) == scores(clean.summary)
+    assert not [p.name for p in run_dir.glob("**/.*")]  # no temporary file of the killed writer is left
+    for name in ("last.pt", "best.pt"):
+        assert load_checkpoint(run_dir / "checkpoints" / name)["step"] in (4, 8)

@@ -296,6 +296,8 @@ class Pipeline:
             # the label is cosmetic (not part of the identity): show the recipe's current one
             return StageResult(name, run_dir, {**done, "label": stage.spec.label or name}, reused=True)
         run_dir.mkdir(parents=True, exist_ok=True)
+        for stale in [*run_dir.glob(".*"), *run_dir.glob("checkpoints/.*")]:  # a killed writer's temporary files
+            stale.unlink(missing_ok=True)
         cfg = self.configs[name]
         seed = stage_seed(self.resolved, stage)
         atomic_write_text(run_dir / "recipe.resolved.yaml",

@@ -134,6 +134,9 @@ def variant_data(sweep: Sweep, variant: str) -> dict[str, Any]:
         raise RecipeError([("stage", f"the base recipe has no stage {spec.stage!r} (stages: {', '.join(stages)})")],
                           sweep.source)
     stage = stages[spec.stage]
+    if not isinstance(stage, dict):
+        raise RecipeError([(where, f"stage {spec.stage!r} of the recipe is a {type(stage).__name__}, not a mapping")],
+                          sweep.source)
     if chosen.distill is not None:
         stage["distill"] = [t.model_dump(mode="json", by_alias=True, exclude_none=True, exclude_defaults=True)
                             for t in chosen.distill]
@@ -150,10 +153,11 @@ def variant_data(sweep: Sweep, variant: str) -> dict[str, Any]:
     data["name"] = spec.name
     try:
         full = recipe_from_dict(data, sweep.source)
+        order = stage_order(full)  # every teacher/init stage exists, no cycles
     except RecipeError as err:
         raise RecipeError([(f"{where} (recipe {p})" if p else where, m) for p, m in err.problems], sweep.source) from None
     needed = _needed(full, spec.stage)
-    kept = {(variant if n == spec.stage else n): copy.deepcopy(stages[n]) for n in stage_order(full) if n in needed}
+    kept = {(variant if n == spec.stage else n): copy.deepcopy(stages[n]) for n in order if n in needed}
     if spec.upstream == "shared":
         seed = spec.upstream_seed if spec.upstream_seed is not None else full.seed
         for n in kept:

@@ -1,0 +1,138 @@
+"""Property-based tests (hypothesis): random mutations of valid recipes and sweep files. Only RecipeError
+escapes the loaders (the CLI: exit status 2, one message); a short run of a mutated recipe ends in success or a
+DistilkitError (exit status 2), never in another exception."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from conftest import tiny_recipe
+from distilkit.cli import main
+from distilkit.engine.resolve import resolve
+from distilkit.errors import RecipeError
+from distilkit.recipe import recipe_from_dict
+from distilkit.sweep.spec import SweepSpec, load_sweep
+
+NAMES = ["scpnet", "js3cnet", "lidiff", "dskd", "kd", "fitnets", "ce", "lovasz", "teacher", "student", "miou",
+         "synthetic-lidar", "completion", "feature", "logits", "best", "last", "linear", "adam", "sgd", "bf16"]
+
+# values a mutation puts in: wrong types, out-of-range numbers, near-miss names, containers
+SMALL_VALUES = st.one_of(
+    st.none(), st.booleans(), st.integers(-3, 64), st.floats(allow_nan=True, allow_infinity=True, width=32),
+    st.sampled_from(NAMES), st.text(max_size=8),
+    st.lists(st.integers(-2, 16), max_size=3), st.dictionaries(st.sampled_from(NAMES), st.integers(0, 4), max_size=2))
+
+
+def paths(node: Any, prefix: tuple = ()) -> list[tuple]:
+    """Every path to a value in nested dicts and lists."""
+    out = [prefix] if prefix else []
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out += paths(v, prefix + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            out += paths(v, prefix + (i,))
+    return out
+
+
+@st.composite
+def mutated(draw: Any, valid: dict[str, Any], values: Any = SMALL_VALUES, under: tuple = ()) -> dict[str, Any]:
+    """``valid`` with one to three mutations: a value replaced, a key deleted, an unknown key added, a key renamed."""
+    data = copy.deepcopy(valid)
+    for _ in range(draw(st.integers(1, 3))):
+        candidates = [p for p in paths(data) if p[: len(under)] == under and len(p) > len(under)]
+        if not candidates:
+            break
+        path = draw(st.sampled_from(candidates))
+        parent: Any = data
+        for part in path[:-1]:
+            parent = parent[part]
+        key = path[-1]
+        kind = draw(st.sampled_from(["replace", "replace", "delete", "add", "rename"]))
+        if kind == "replace":
+            parent[key] = draw(values)
+        elif kind == "delete":
+            del parent[key]
+        elif kind == "add" and isinstance(parent, dict):
+            parent[draw(st.sampled_from(NAMES + ["extra"]))] = draw(values)
+        elif kind == "rename" and isinstance(parent, dict):
+            parent[draw(st.sampled_from(NAMES)) + "_"] = parent.pop(key)
+    return data
+
+
+RECIPE = tiny_recipe(steps=1)
+SWEEP = {"schema_version": 1, "name": "sw", "recipe": copy.deepcopy(RECIPE), "stage": "student", "seeds": [0, 1],
+         "variants": {"none": {"distill": []}, "kd": {"distill": [{"name": "kd", "weight": 1.0}]},
+                      "lr": {"set": {"stages.student.optimizer.lr": 0.01}}}}
+PROPERTY = settings(max_examples=250, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def load_and_resolve(data: Any) -> None:
+    resolve(recipe_from_dict(data, "mutated"), "mutated")
+
+
+def test_the_valid_originals_load() -> None:
+    load_and_resolve(RECIPE)
+    SweepSpec.model_validate(SWEEP)
+
+
+@PROPERTY
+@given(mutated(RECIPE))
+def test_mutated_recipes_raise_only_recipe_errors(data: dict[str, Any]) -> None:
+    try:
+        load_and_resolve(data)
+    except RecipeError as err:
+        assert str(err).startswith("mutated:") and len(str(err)) < 4000
+    # anything else (KeyError, TypeError, ValidationError, ...) fails the test
+
+
+@PROPERTY
+@given(mutated(SWEEP))
+def test_mutated_sweep_files_raise_only_recipe_errors(tmp_path_factory: pytest.TempPathFactory,
+                                                      data: dict[str, Any]) -> None:
+    from distilkit.sweep.runner import SweepRun
+
+    path = tmp_path_factory.mktemp("sweep") / "sweep.yaml"
+    path.write_text(yaml.safe_dump(data))
+    try:
+        SweepRun(load_sweep(path), tmp_path_factory.mktemp("runs"), quiet=True)
+    except RecipeError as err:
+        assert str(err).startswith(str(path))
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+                                                                  HealthCheck.function_scoped_fixture])
+@given(mutated(RECIPE), st.one_of(st.none(), st.floats(0.0, 1.0)))
+def test_the_cli_answers_mutated_recipes_with_status_0_or_2(tmp_path: Path, capsys: Any, data: Any,
+                                                            cut: float | None) -> None:
+    path = tmp_path / "r.yaml"
+    text = yaml.safe_dump(data)
+    if cut is not None:  # a file cut at a random place, as a crash or a bad copy leaves it
+        text = text[: int(len(text) * cut)]
+    path.write_text(text)
+    status = main(["validate", str(path)])
+    err = capsys.readouterr().err
+    assert status in (0, 2)
+    if status == 2:
+        assert err.startswith("error: ") and "Traceback" not in err
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+                                                                 HealthCheck.function_scoped_fixture])
+@given(mutated(RECIPE, under=("stages",)))
+def test_short_runs_of_mutated_recipes_end_in_success_or_a_clear_error(tmp_path: Path, capsys: Any,
+                                                                       data: Any) -> None:
+    """Mutations of the stages only (the data stays small), one training step (--stop-after 1)."""
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(data))
+    status = main(["run", str(path), "-o", str(tmp_path / "runs"), "-q", "--stop-after", "1"])
+    assert status in (0, 2)
+    if status == 2:
+        assert capsys.readouterr().err.startswith("error: ")
