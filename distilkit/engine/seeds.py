@@ -195,7 +195,7 @@ def _plot(path: Path, rows: list[dict[str, Any]]) -> None:
         ax.bar(i, scale * row["main_mean"], color="#9ecae1", yerr=None if math.isnan(row["main_std"]) else
                scale * row["main_std"], capsize=3)
         ax.scatter([i] * len(row["main"]), [scale * v for v in row["main"]], color="#08519c", s=12, zorder=3)
-    ax.set_xticks(range(len(rows)), [r["label"] for r in rows], rotation=45, ha="right", fontsize=8)
+    ax.set_xticks(range(len(rows)), [r["label"].replace("*", "") for r in rows], rotation=45, ha="right", fontsize=8)
     ax.set_ylabel(f"{_split(rows)} {name}{' (%)' if scale == 100 else ''}, best-val checkpoint")
     ax.set_title("mean ± std over seeds; dots: single seeds")
     fig.tight_layout()
