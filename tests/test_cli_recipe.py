@@ -179,3 +179,11 @@ def test_readme_python_examples_run() -> None:
     for code in blocks:
         code = code.replace("100_000", "2_000")  # same code, smaller tensors
         exec(compile(code, "README.md", "exec"), {})
+
+
+def test_bench_sampler_builds_lidiff_through_the_registry_and_times_both_step_counts(capsys) -> None:
+    from distilkit.bench import run_bench
+
+    (row,) = run_bench(["sampler"], quick=True, repeat=1)
+    assert row["fast_ms"] > 0 and row["naive_ms"] > 0 and "rel_err" not in row  # different outputs: no error column
+    assert "sampler 8 vs 50 steps" in capsys.readouterr().out
