@@ -12,7 +12,37 @@ import sys
 from typing import Sequence
 
 
+def _launch(args: argparse.Namespace) -> int:
+    """``distilkit run ... --nproc-per-node N``: the same command in N processes per node, started by PyTorch's
+    elastic launcher (torchrun), each with its share of the CPU's threads."""
+    import os
+    import subprocess
+
+    from distilkit.errors import DistilkitError
+
+    n, nodes = args.nproc_per_node, args.nnodes
+    if n < 1 or nodes < 1:
+        raise DistilkitError(f"--nproc-per-node and --nnodes must be at least 1, got {n} and {nodes}")
+    rest = [args.recipe, "--output", args.output, *(["--quiet"] if args.quiet else []),
+            *(["--no-wait"] if args.no_wait else []), *(["--seed", *map(str, args.seed)] if args.seed else []),
+            *(["--baseline", args.baseline] if args.baseline else []), *(["--rerun", *args.rerun] if args.rerun else []),
+            *(["--stage", *args.stage] if args.stage else []),
+            *(["--stop-after", str(args.stop_after)] if args.stop_after is not None else [])]
+    where = (["--standalone"] if nodes == 1 else
+             [f"--nnodes={nodes}", f"--node-rank={args.node_rank}", f"--master-addr={args.master_addr}",
+              f"--master-port={args.master_port}"])
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", str(max(1, cpus // n)))}
+    cmd = [sys.executable, "-m", "torch.distributed.run", f"--nproc-per-node={n}", *where, "-m", "distilkit", "run",
+           *rest]
+    return subprocess.call(cmd, env=env)
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
+    import os
+
+    if args.nproc_per_node is not None and "LOCAL_RANK" not in os.environ:
+        return _launch(args)
     if args.seed is not None and len(args.seed) > 1:
         from distilkit.engine.seeds import run_seeds
 
@@ -137,6 +167,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run only these stages and the stages they need (their teacher, their initial weights)")
     r.add_argument("--no-wait", action="store_true",
                    help="stop with an error instead of waiting when another distilkit run is training a stage")
+    d = r.add_argument_group("multi-process training (PyTorch's torchrun; gloo on the CPU, NCCL on GPUs)")
+    d.add_argument("--nproc-per-node", type=int, default=None, metavar="N",
+                   help="train each stage in N processes on this node, train.batch_size being the global batch")
+    d.add_argument("--nnodes", type=int, default=1, metavar="M", help="nodes taking part (default 1)")
+    d.add_argument("--node-rank", type=int, default=0, help="this node's rank (0 .. M-1)")
+    d.add_argument("--master-addr", default="127.0.0.1", help="address of node 0")
+    d.add_argument("--master-port", type=int, default=29500, help="free port on node 0")
     r.add_argument("--stop-after", type=int, default=None, metavar="STEPS", help=argparse.SUPPRESS)
     r.set_defaults(fn=_cmd_run)
     w = sub.add_parser("sweep", help="compare variants of a stage (distillation methods, weights, any override) "

@@ -20,8 +20,8 @@ the student unless :meth:`own_optimizer` returns an optimizer (own learning rate
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
-from typing import Any, ClassVar
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar, Iterable
 
 import torch
 from pydantic import BaseModel
@@ -33,11 +33,14 @@ from distilkit.data.batch import Batch
 @dataclass
 class TermContext:
     """What a term may reach beyond its roles: the frozen teacher (and its capabilities, e.g. ``denoise``),
-    the student, and the device. Bound once, before training."""
+    the student, and the device. Bound once, before training. A term that steps its own optimizer calls
+    ``sync(params)`` between its backward pass and the step: in multi-process training it averages those
+    gradients over the processes (a no-op in one process)."""
 
     student: nn.Module
     teacher: nn.Module | None
     device: torch.device
+    sync: Callable[[Iterable[nn.Parameter]], None] = field(default=lambda params: None)
 
 
 class Term(nn.Module, ABC):

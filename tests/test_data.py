@@ -87,6 +87,17 @@ def test_cache_is_reused(tmp_path, monkeypatch) -> None:
     assert np.array_equal(a["points"], b["points"])
 
 
+def test_a_corrupt_cache_entry_is_regenerated_not_trusted(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("DISTILKIT_CACHE", str(tmp_path))
+    a = generate_split(P, "val", 1)
+    (entry,) = tmp_path.rglob("*.npz")
+    entry.write_bytes(entry.read_bytes()[: entry.stat().st_size // 2])  # a write cut short, a bad disk
+    b = generate_split(P, "val", 1)
+    assert np.array_equal(a["points"], b["points"]) and np.array_equal(a["voxel_label"], b["voxel_label"])
+    with np.load(entry, allow_pickle=False) as z:  # written again, whole
+        assert np.array_equal(z["points"], a["points"])
+
+
 def test_collate_sets_invalid_to_ignore() -> None:
     ds = build_synthetic(P, "train")
     batch = collate_lidar([ds[0], ds[1]])

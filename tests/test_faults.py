@@ -72,7 +72,13 @@ def scores(summary: dict) -> dict:
 
 
 def _kill_when(cmd: list[str], ready, timeout: float = 120.0) -> None:
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    import os
+
+    import torch
+
+    # the same threads as this process: reductions split over another number of threads round differently
+    env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     try:
         t0 = time.monotonic()
         while not ready() and proc.poll() is None and time.monotonic() - t0 < timeout:

@@ -10,6 +10,7 @@ stages downstream of them) on purpose; the replaced folder is kept beside the ne
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import time
@@ -167,6 +168,9 @@ class Pipeline:
             console = make_console(quiet=quiet)
         self.console = console
         self._data: dict[str, Any] = {}  # split -> dataset
+        from distilkit.engine.distributed import SINGLE
+
+        self.world = SINGLE  # the processes of this run: set in run() from torchrun's environment
 
     def share_data(self, store: dict[str, dict[str, Any]]) -> None:
         """Share datasets with the other pipelines in ``store`` that have the same data configuration (a sweep's
@@ -240,11 +244,18 @@ class Pipeline:
         ``only``: just these stages and the stages they need (then no recipe report is written: it would
         describe part of the recipe). A stage another process is training is waited for and then reused
         (``wait=False``: :class:`~distilkit.errors.RunLockedError` instead)."""
+        from distilkit.engine.distributed import world_from_env
+
         if only:
             self.check_stages("--stage", only)
+        self.world = world_from_env()
+        if not self.world.main:  # one process prints and writes
+            from distilkit.console import make_console
+
+            self.console = make_console(quiet=True)
         names = upstream(self.resolved, set(only)) if only else set(self.resolved.order)
         results = self._run(stop_after, rerun, names, wait)
-        if report and not only and len(results) == len(self.resolved.order):
+        if report and not only and len(results) == len(self.resolved.order) and self.world.main:
             from distilkit.report.recipe import write_report
 
             write_report(self, results)
@@ -271,11 +282,13 @@ class Pipeline:
             if name not in names:
                 continue
             run_dir = self.run_dir(name)
-            with stage_lock(lock_path(self.root, run_dir.name), wait=wait,
-                            on_wait=lambda holder, n=name: self.console.print(
-                                f"stage [bold]{n}[/] is being trained by another distilkit run ({holder}); waiting")):
-                if name in again and run_dir.exists():
+            lock = stage_lock(lock_path(self.root, run_dir.name), wait=wait,
+                              on_wait=lambda holder, n=name: self.console.print(
+                                  f"stage [bold]{n}[/] is being trained by another distilkit run ({holder}); waiting"))
+            with lock if self.world.main else contextlib.nullcontext():  # the writing process holds it
+                if name in again and run_dir.exists() and self.world.main:
                     self._replace(name, run_dir)
+                self.world.barrier()  # the others look at the stage's folder once it is settled
                 result = self._stage(name, run_dir, stop_after)
             if result is None:  # stopped early on request (--stop-after)
                 return results
@@ -295,14 +308,15 @@ class Pipeline:
             self.console.print(f"[green]✓[/] stage [bold]{name}[/] reused from {run_dir}")
             # the label is cosmetic (not part of the identity): show the recipe's current one
             return StageResult(name, run_dir, {**done, "label": stage.spec.label or name}, reused=True)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        for stale in [*run_dir.glob(".*"), *run_dir.glob("checkpoints/.*")]:  # a killed writer's temporary files
-            stale.unlink(missing_ok=True)
         cfg = self.configs[name]
         seed = stage_seed(self.resolved, stage)
-        atomic_write_text(run_dir / "recipe.resolved.yaml",
-                          yaml.safe_dump({"recipe": self.recipe.name, "stage": name, "hash": self.hashes[name],
-                                          "distilkit": __version__, **cfg}, sort_keys=False))
+        if self.world.main:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            for stale in [*run_dir.glob(".*"), *run_dir.glob("checkpoints/.*")]:  # a killed writer's temporary files
+                stale.unlink(missing_ok=True)
+            atomic_write_text(run_dir / "recipe.resolved.yaml",
+                              yaml.safe_dump({"recipe": self.recipe.name, "stage": name, "hash": self.hashes[name],
+                                              "distilkit": __version__, **cfg}, sort_keys=False))
         seed_everything(seed)
         device = pick_device(stage.spec.train.device)
         teacher = None
@@ -311,7 +325,8 @@ class Pipeline:
         train_set, val_set = self.dataset("train"), self.dataset("val")
         with stage_progress(self.console, name) as on_step:
             trainer = Trainer(stage, self.resolved.data_info, train_set, val_set, run_dir, seed,
-                              teacher, on_step, stop_after, collate=self.collate, init=self._init(stage))
+                              teacher, on_step, stop_after, collate=self.collate, init=self._init(stage),
+                              world=self.world)
             result = trainer.fit()
         if stop_after is not None and result.steps < trainer.total_steps:
             self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")
@@ -324,6 +339,7 @@ class Pipeline:
             "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),
             "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
             "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": seed,
+            "processes": self.world.size,
             "classes": {"names": list(self.resolved.data_info.classes.names),
                         "colours": [list(c) for c in self.resolved.data_info.classes.colours]},
             "steps": result.steps, "train_seconds": round(result.seconds, 2),
@@ -331,6 +347,8 @@ class Pipeline:
             "best": result.best, "last": result.last, "report_split": split, "test": test,
             "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
+        if not self.world.main:
+            return StageResult(name, run_dir, summary, reused=False)
         write_summary(run_dir, summary)
         try:
             from distilkit.report.run import write_run_report

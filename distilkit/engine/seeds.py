@@ -225,5 +225,6 @@ def run_seeds(recipe: str | Path, output: str | Path, seeds: list[int], baseline
     assert pipe is not None
     chosen = baseline if baseline is not None else default_baseline(pipe.resolved)
     rows = seed_rows(results, chosen)
-    write_seeds_report(pipe.root, rows, chosen, pipe.console)
+    if pipe.world.main:  # multi-process runs: one writer
+        write_seeds_report(pipe.root, rows, chosen, pipe.console)
     return rows

@@ -26,6 +26,7 @@ from torch import Tensor, nn
 from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
+from distilkit.engine.distributed import SINGLE, World, sync_batchnorm
 from distilkit.engine.evaluate import Collate, evaluate, preview
 from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, LoopState, ProgressHook
 from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint,
@@ -62,7 +63,8 @@ class TrainResult:
 class Trainer:
     def __init__(self, stage: ResolvedStage, info: DataInfo, train_set: Any, val_set: Any, run_dir: Path, seed: int,
                  teacher: Adapter | None = None, on_step: Callable[[int, int, dict[str, float]], None] | None = None,
-                 stop_after: int | None = None, *, collate: Collate, init: tuple[Path, bool] | None = None) -> None:
+                 stop_after: int | None = None, *, collate: Collate, init: tuple[Path, bool] | None = None,
+                 world: World = SINGLE) -> None:
         self.stage, self.info, self.train_set, self.val_set = stage, info, train_set, val_set
         self.collate = collate  # the dataset's registered collate
         self._checked: set[str] = set()  # roles whose outputs passed the tap checks
@@ -72,7 +74,9 @@ class Trainer:
         assert stage.metric is not None, "a resolved stage always has its metric"
         self.metric = stage.metric
         self.run_dir, self.seed, self.on_step, self.stop_after = run_dir, seed, on_step, stop_after
+        self.world = world  # the processes of a multi-process run (one by default)
         spec = stage.spec.train
+        self._check_world(len(train_set), spec.batch_size)
         self.device = pick_device(spec.device)
         torch.manual_seed(seed)
         self.student = build_model(stage.student, info)
@@ -80,7 +84,7 @@ class Trainer:
             path, strict = init
             left = load_weights(self.student, stage.student.cls.read_weights(str(path)), strict, f"init {path}")
             self._init_log = {"event": "init", "from": str(path), "left_out": left}
-        self.student = self.student.to(self.device)
+        self.student = sync_batchnorm(self.student, world, self.device).to(self.device)
         self.task = nn.ModuleList(t.cls(t.params) for t in stage.task_losses).to(self.device)
         self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
         self.teacher = teacher
@@ -100,6 +104,21 @@ class Trainer:
         # the loop's lifecycle, in order: log, progress, evaluate (best.pt), checkpoint (last.pt)
         self.hooks: list[Hook] = [LogHook(), *([ProgressHook(on_step)] if on_step else []), EvalHook(),
                                   CheckpointHook()]
+        self._rank_rng(0)
+
+    def _rank_rng(self, step: int) -> None:
+        """Multi-process: each process its own random stream from here on (noise levels, dropout), the same ones
+        again when the run resumes at ``step`` — models and connectors were built above from the common seed."""
+        if self.world.distributed:
+            torch.manual_seed((self.seed * 1_000_003 + step) * 1_009 + self.world.rank)
+
+    def _check_world(self, n: int, batch_size: int) -> None:
+        """Every process gets samples of every global batch (the last one of an epoch included)."""
+        size = self.world.size
+        if size > 1 and (batch_size % size or 0 < n % batch_size < size):
+            raise DistilkitError(f"stage {self.stage.name!r}: train.batch_size {batch_size} is the global batch of "
+                                 f"{size} processes; it must be a multiple of {size} (and the last batch of an epoch "
+                                 f"of {n} samples, {n % batch_size}, at least {size})")
 
     def _autocast(self) -> Any:
         """The models' forward precision (``train.precision``); a no-op context for fp32."""
@@ -153,6 +172,8 @@ class Trainer:
 
     def _save_last(self, step: int, best: dict[str, Any]) -> None:
         """``last.pt``; the one it replaces is kept as ``last.prev.pt``, the fallback if ``last.pt`` is ever unreadable."""
+        if not self.world.main:
+            return
         last = self.ckpt_dir / "last.pt"
         if last.is_file():
             os.replace(last, self.ckpt_dir / "last.prev.pt")
@@ -167,6 +188,8 @@ class Trainer:
         })
 
     def _save_best(self, step: int, scores: dict[str, Any]) -> None:
+        if not self.world.main:
+            return
         atomic_torch_save(self.ckpt_dir / "best.pt", {
             "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
             "objectives": self.objectives.state_dict(), "connectors": self.connectors.state_dict(),
@@ -175,6 +198,8 @@ class Trainer:
         })
 
     def _log(self, record: dict[str, Any]) -> None:
+        if not self.world.main:  # one writer
+            return
         self.run_dir.mkdir(parents=True, exist_ok=True)
         with open(self.run_dir / "metrics.jsonl", "a", encoding="utf-8") as f:
             f.write(json.dumps(record) + "\n")
@@ -182,7 +207,7 @@ class Trainer:
     def _truncate_log(self, step: int) -> None:
         """Drop log records written after ``step`` (the checkpoint a resume starts from): no duplicates."""
         path = self.run_dir / "metrics.jsonl"
-        if not path.is_file():
+        if not path.is_file() or not self.world.main:
             return
         keep = []
         for line in path.read_text(encoding="utf-8").splitlines():
@@ -229,7 +254,8 @@ class Trainer:
         g = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
         perm = torch.randperm(len(self.train_set), generator=g)
         bs = self.stage.spec.train.batch_size
-        return self.collate([self.train_set[int(j)] for j in perm[i * bs:(i + 1) * bs]]).to(self.device)
+        mine = self.world.shard([int(j) for j in perm[i * bs:(i + 1) * bs]])  # this process's share
+        return self.collate([self.train_set[j] for j in mine]).to(self.device)
 
     @property
     def terms(self) -> list[StageTerm]:
@@ -280,15 +306,18 @@ class Trainer:
                         self.connectors[j] = Connector(spec.connector, s_out[spec.taps["student"]],
                                                        t_out[spec.taps["teacher"]])
                 for term in self.terms:  # bound first: setup may build from the teacher (an auxiliary copy)
-                    term.module.bind(TermContext(self.student, self.teacher, self.device))
+                    term.module.bind(self._context())
                     term.module.setup(self._roles(term, s_out, t_out, batch, partial=True), batch)
             self.student.train(was)
         self.task.to(self.device)
         self.objectives.to(self.device)
         self.connectors.to(self.device)
         for term in self.terms:
-            term.module.bind(TermContext(self.student, self.teacher, self.device))
+            term.module.bind(self._context())
         self.own_optimizers = [term.module.own_optimizer() for term in self.terms]
+
+    def _context(self) -> TermContext:
+        return TermContext(self.student, self.teacher, self.device, sync=self.world.average_gradients)
 
     def _check_outputs(self, model: Adapter, outputs: dict[str, Any], role: str, strict: bool = True) -> None:
         """Every declared tap the forward returned is of its kind, and every tap a term reads is there (checked
@@ -371,6 +400,7 @@ class Trainer:
             if self.scaler.is_enabled() and ckpt.get("scaler"):
                 self.scaler.load_state_dict(ckpt["scaler"])
             set_rng_state(ckpt["rng"])
+            self._rank_rng(int(ckpt["step"]))
             start_step, best = int(ckpt["step"]), ckpt["best"]
             self._truncate_log(start_step)
             self._log({"event": "resume", "step": start_step})
@@ -394,13 +424,15 @@ class Trainer:
         terms = self.loss_terms(batch)
         loss = torch.stack(list(terms.values())).sum()
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
-        if bad:
+        if self.world.any(bool(bad)):  # all processes stop together
+            bad = bad or ["(in another process)"]
             raise NonFiniteLossError(
                 f"stage {self.stage.name!r}, step {step + 1}: loss term(s) {', '.join(bad)} became "
-                f"{', '.join(str(float(terms[k].detach())) for k in bad)}; training stopped, the last checkpoint "
+                f"{', '.join(str(float(terms[k].detach())) if k in terms else 'non-finite' for k in bad)}; training stopped, the last checkpoint "
                 f"({last_path}) is kept. Lower the learning rate or the term's weight.")
         self.optimizer.zero_grad(set_to_none=True)
         self.scaler.scale(loss).backward()
+        self.world.average_gradients(self.trainable)  # multi-process: every process takes the same step
         self.scaler.unscale_(self.optimizer)
         grad_norm = self._grad_norm(self.stage.spec.train.grad_clip)
         if not torch.isfinite(grad_norm) and not self.scaler.is_enabled():  # fp16: the scaler skips the step
@@ -445,6 +477,8 @@ class Trainer:
         (a validation scene), with the class names and colours to draw it (arrays only: loaded without pickle)."""
         import numpy as np
 
+        if not self.world.main:
+            return None
         best = self.best_model()
         view = preview(best[0] if best is not None else self.student, dataset, self.device, self.collate,
                        self.metric.cls)

@@ -91,6 +91,7 @@ class VSD(MultiTapObjective):
             loss = nn.functional.mse_loss(self.aux.predict_noise(x_t, t, taps["condition"]), eps)  # eq. 5
             self.opt.zero_grad(set_to_none=True)
             loss.backward()
+            self.context.sync(p for p in self.aux.parameters() if p.requires_grad)
             if self.params.aux_grad_clip is not None:
                 nn.utils.clip_grad_norm_([p for p in self.aux.parameters() if p.requires_grad], self.params.aux_grad_clip)
             self.opt.step()

@@ -1,0 +1,104 @@
+"""Multi-process training: the processes of one run (``distilkit run --nproc-per-node N``, launched by PyTorch's
+elastic launcher ``torchrun``) and what they share.
+
+Each process trains the same student on its share of every global batch (``train.batch_size`` is the global
+batch: sample ``j`` of a batch goes to rank ``j mod N``); after the backward pass the gradients of everything
+the stage optimizes — student, connectors, the networks objectives own (FitNets' regressor, MGD's generator) —
+are averaged over the processes in one flattened all-reduce, so every process takes the same step, the way DDP
+averages a model's gradients. Terms that train their own network (VSD's score network) average theirs through
+:attr:`distilkit.term.TermContext.sync`. The frozen teacher is not synchronised (it does not train). Only rank 0
+writes (checkpoints, logs, summaries, reports); every process evaluates, with identical weights, the same scores.
+
+Equal to one process on the same global batch when the loss of a batch is the mean of per-sample losses of
+equal weight and the model has no batch statistics. BatchNorm layers use each process's own share (as DDP
+without SyncBatchNorm does; PyTorch's SyncBatchNorm runs on GPUs only, and is switched on there).
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+from dataclasses import dataclass
+from typing import Iterable
+
+import torch
+from torch import nn
+
+
+@dataclass(frozen=True)
+class World:
+    """The processes of a run: this one's ``rank`` among ``size`` (1: no distribution)."""
+
+    rank: int = 0
+    size: int = 1
+    local_rank: int = 0
+
+    @property
+    def main(self) -> bool:
+        """The process that writes."""
+        return self.rank == 0
+
+    @property
+    def distributed(self) -> bool:
+        return self.size > 1
+
+    def shard(self, indices: list[int]) -> list[int]:
+        """This process's samples of a global batch."""
+        return indices[self.rank::self.size]
+
+    def average_gradients(self, params: Iterable[nn.Parameter]) -> None:
+        """Replace each parameter's gradient by its mean over the processes (a missing gradient counts as 0)."""
+        if not self.distributed:
+            return
+        params = [p for p in params if p.requires_grad]
+        if not params:
+            return
+        flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params])
+        torch.distributed.all_reduce(flat)
+        flat /= self.size
+        offset = 0
+        for p in params:
+            n = p.numel()
+            p.grad = flat[offset:offset + n].view_as(p).clone()
+            offset += n
+
+    def any(self, flag: bool) -> bool:
+        """Whether ``flag`` is true in any process (so that all stop together, none waits for the others)."""
+        if not self.distributed:
+            return flag
+        t = torch.tensor([1.0 if flag else 0.0])
+        torch.distributed.all_reduce(t, op=torch.distributed.ReduceOp.MAX)
+        return bool(t.item() > 0)
+
+    def barrier(self) -> None:
+        if self.distributed:
+            torch.distributed.barrier()
+
+
+SINGLE = World()
+
+
+def world_from_env() -> World:
+    """The world ``torchrun`` describes in the environment (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``), its process
+    group started (gloo for CPU tensors, NCCL for CUDA ones); a single process without them."""
+    size = int(os.environ.get("WORLD_SIZE", "1"))
+    if size <= 1:
+        return SINGLE
+    rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    if not torch.distributed.is_initialized():
+        backend = "gloo"
+        if torch.cuda.is_available():
+            torch.cuda.set_device(local)
+            backend = "cpu:gloo,cuda:nccl"
+        torch.distributed.init_process_group(backend, timeout=datetime.timedelta(hours=2))
+    return World(rank, size, local)
+
+
+def sync_batchnorm(model: nn.Module, world: World, device: torch.device) -> nn.Module:
+    """BatchNorm statistics over all processes where PyTorch supports it (CUDA); unchanged otherwise."""
+    if world.distributed and device.type == "cuda":
+        return nn.SyncBatchNorm.convert_sync_batchnorm(model)
+    return model
+
+
+__all__ = ["SINGLE", "World", "sync_batchnorm", "world_from_env"]

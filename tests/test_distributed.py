@@ -1,0 +1,115 @@
+"""Multi-process training on the CPU (gloo): two processes take the same step as one process on the same global
+batch — student, FitNets' connector and every other trainable — and `distilkit run --nproc-per-node 2` (torchrun)
+trains a recipe to the end with one writer."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+import torch.multiprocessing as mp
+import yaml
+
+from conftest import tiny_recipe
+from distilkit.engine.distributed import World
+from distilkit.engine.models import build_model, freeze
+from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.trainer import Trainer
+from distilkit.errors import DistilkitError
+from distilkit.recipe import recipe_from_dict
+
+
+def register_camera() -> None:
+    """The camera-style toy of test_contracts (no BatchNorm; its CE is a mean over equally many voxels per sample)."""
+    import test_contracts as tc
+    from distilkit.registry import ADAPTERS, DATASETS
+
+    if "tiny-camera-data" not in DATASETS:
+        DATASETS.add("tiny-camera-data", tc.camera_split, description="test", paper="tests",
+                     params=tc.CameraDataParams, info=tc.camera_info, collate=tc.collate_camera, version=1,
+                     has_split=lambda p, s: True)
+    if "tiny-camera" not in ADAPTERS:
+        ADAPTERS.add("tiny-camera", tc.TinyCamera, description="test", paper="tests",
+                     consumes=tuple(tc.TinyCamera.TAPS.values()))
+
+
+def one_step(world: World, folder: Path) -> dict[str, dict[str, torch.Tensor]]:
+    """One training step of a distilled student (CE + KD + FitNets with its linear connector) on global batch 0;
+    the gradients it took and the weights after it, by qualified name."""
+    register_camera()
+    train = {"steps": 2, "batch_size": 4, "eval_every": 2}
+    recipe = {"schema_version": 1, "name": "ddp", "seed": 0, "data": {"dataset": "tiny-camera-data", "params": {}},
+              "stages": {"teacher": {"model": {"adapter": "tiny-camera", "params": {"channels": 6}}, "train": train},
+                         "student": {"model": {"adapter": "tiny-camera", "params": {}}, "teacher": {"from": "teacher"},
+                                     "task_losses": [{"name": "ce"}],
+                                     "distill": [{"name": "kd", "weight": 1.0},
+                                                 {"name": "fitnets", "weight": 1.0,
+                                                  "taps": {"student": "image_features", "teacher": "image_features"}}],
+                                     "train": train}}}
+    pipe = Pipeline(recipe_from_dict(recipe), folder, quiet=True)
+    stage, info = pipe.resolved.stages["student"], pipe.resolved.data_info
+    torch.manual_seed(7)
+    teacher = freeze(build_model(stage.teacher, info, "teacher"))
+    trainer = Trainer(stage, info, pipe.dataset("train"), pipe.dataset("val"), folder / f"rank{world.rank}", 0,
+                      teacher, collate=pipe.collate, world=world)
+    batch = trainer._batch(0)
+    assert batch.size == 4 // world.size  # this process's share of the global batch
+    trainer.train_step(batch, 0)
+    named = trainer.named_trainables()
+    assert any(n.startswith("connector.") for n, _ in named)  # FitNets' regressor trains too
+    return {"grads": {n: p.grad.detach().clone() for n, p in named},
+            "weights": {n: p.detach().clone() for n, p in named}}
+
+
+def _worker(rank: int, size: int, init_file: str, folder: str) -> None:
+    torch.set_num_threads(1)
+    torch.distributed.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=size)
+    try:
+        torch.save(one_step(World(rank, size), Path(folder)), Path(folder) / f"out{rank}.pt")
+    finally:
+        torch.distributed.destroy_process_group()
+
+
+def test_two_processes_take_the_same_step_as_one_on_the_global_batch(tmp_path: Path) -> None:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as each worker; given back after, since later tests compare with subprocesses
+    try:
+        single = one_step(World(), tmp_path / "single")
+    finally:
+        torch.set_num_threads(threads)
+    mp.spawn(_worker, args=(2, str(tmp_path / "init"), str(tmp_path)), nprocs=2, join=True)
+    outs = [torch.load(tmp_path / f"out{r}.pt", weights_only=True) for r in range(2)]
+    for name, grad in single["grads"].items():
+        for out in outs:
+            torch.testing.assert_close(out["grads"][name], grad, rtol=1e-5, atol=1e-7, msg=name)
+            torch.testing.assert_close(out["weights"][name], single["weights"][name], rtol=1e-5, atol=1e-7, msg=name)
+    assert any(g.abs().sum() > 0 for g in single["grads"].values())
+
+
+def test_a_global_batch_that_does_not_split_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(DistilkitError, match=r"train.batch_size 4 is the global batch of 3 processes; it must be a "
+                                             r"multiple of 3"):
+        one_step(World(0, 3), tmp_path)  # refused before any collective operation
+
+
+def test_distilkit_run_with_two_processes_trains_with_one_writer(tmp_path: Path) -> None:
+    recipe: dict[str, Any] = tiny_recipe(steps=3)
+    for stage in recipe["stages"].values():
+        stage["train"].update(batch_size=2, eval_every=3)
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    done = subprocess.run([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "runs"), "-q",
+                           "--nproc-per-node", "2"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    for name in ("teacher", "student"):
+        (run,) = (tmp_path / "runs" / "tiny").glob(f"{name}-*")
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["processes"] == 2 and summary["status"] == "finished"
+        steps = [json.loads(x).get("step") for x in (run / "metrics.jsonl").read_text().splitlines()
+                 if "loss" in json.loads(x)]
+        assert steps == [1, 2, 3]  # each step logged once: one writer
