@@ -25,7 +25,7 @@ def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
         for k, v in d.items():
             out.update(_flat(v, f"{prefix}{k}."))
         return out
-    return {prefix[:-1]: d}
+    return {prefix[:-1]: d} if d is not None else {}  # None and absent read the same
 
 
 def config_diff(a: Path, b: Path) -> list[tuple[str, Any, Any]]:
@@ -102,6 +102,15 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path | None = 
     return folder / "compare.md"
 
 
+def _task_loss(terms: dict[str, tuple[list[int], list[float]]]) -> dict[str, tuple[list[int], list[float]]]:
+    """The logged total minus the distillation terms (``kd_*``): what both runs optimise alike."""
+    if "loss" not in terms:
+        return {}
+    steps, total = terms["loss"]
+    kd = [dict(zip(*v)) for k, v in terms.items() if k.startswith("kd_")]
+    return {"task loss": (steps, [t - sum(d.get(s, 0.0) for d in kd) for s, t in zip(steps, total)])}
+
+
 def _plot(path: Path, a: Path, b: Path, sa: dict[str, Any], ra: dict[str, Any], rb: dict[str, Any], la: str,
           lb: str) -> None:
     import matplotlib
@@ -114,11 +123,9 @@ def _plot(path: Path, a: Path, b: Path, sa: dict[str, Any], ra: dict[str, Any], 
     n_rows = 1 + (pa is not None and pb is not None)
     fig = plt.figure(figsize=(15, 4.5 * n_rows))
     ax1 = fig.add_subplot(n_rows, 2, 1)
-    ta, _ = plots.read_log(a)
-    tb, _ = plots.read_log(b)
-    plots.loss_curves(ax1, {"loss": ta["loss"]} if "loss" in ta else {}, prefix="A ", style="-")
-    plots.loss_curves(ax1, {"loss": tb["loss"]} if "loss" in tb else {}, prefix="B ", style="--")
-    ax1.set_title("total training loss (A solid, B dashed)")
+    plots.loss_curves(ax1, _task_loss(plots.read_log(a)[0]), prefix="A ", style="-")
+    plots.loss_curves(ax1, _task_loss(plots.read_log(b)[0]), prefix="B ", style="--")
+    ax1.set_title("task loss, without distillation terms (A solid, B dashed)")
     ax2 = fig.add_subplot(n_rows, 2, 2)
     if view.per_class is not None and ra["class_scores"] and rb["class_scores"]:
         names, colours = class_table(sa, view)
