@@ -52,7 +52,7 @@ def test_a_sweep_runs_every_variant_and_seed_shares_teachers_and_resumes(tmp_pat
         ("dskd", "0", "variant"), ("dskd", "1", "variant"), ("none", "0", "variant"), ("none", "1", "variant"),
         ("teacher", "0", "upstream"), ("teacher", "1", "upstream")]
     by = {(r["variant"], r["seed"]): r for r in rows}
-    assert all(r["selected_by"] == "val miou" and r["split"] == "test" for r in rows)
+    assert all(r["selected_by"] == "val miou" and r["split"] == "test" and int(r["threads"]) >= 1 for r in rows)
     md = (root / "results.md").read_text()
     assert "| DSKD | dskd×10 | 0,1 |" in md and "Δ 95 % interval" in md and "best validation mIoU" in md
     delta = 100 * (float(by["dskd", "0"]["best_miou"]) - float(by["none", "0"]["best_miou"]))

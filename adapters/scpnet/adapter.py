@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
@@ -20,12 +20,22 @@ class SCPNetParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     frames: int = Field(1, ge=1, description="input scans fused (teacher: 4-5, student: 1)")
     channels: int = Field(32, ge=1, description="completion sub-network width (paper: 32)")
-    point_mlp: list[int] = Field(default_factory=lambda: [64, 128], description="point MLP widths (paper: 64,128,256,256)")
+    point_mlp: list[Annotated[int, Field(ge=1)]] = Field(default_factory=lambda: [64, 128], min_length=1,
+                                                         description="point MLP widths (paper: 64,128,256,256)")
     seg_channels: int = Field(32, ge=1, description="segmentation U-Net base width")
-    kernels: list[int] | None = Field(None, description="MPB path kernel sizes (paper: 3,5,7 at 0.2 m; default: "
-                                                        "scaled to the grid so the receptive field stays ~1.6 m)")
-    conv_kernel: int | None = Field(None, ge=1, description="ConvBlock kernel of the middle branch (paper: 3; "
-                                                            "default: scaled to the grid)")
+    kernels: list[Annotated[int, Field(ge=1, le=15)]] | None = Field(
+        None, min_length=1, description="MPB path kernel sizes, odd, 1-15 (paper: 3,5,7 at 0.2 m; default: scaled to "
+                                        "the grid so the receptive field stays ~1.6 m)")
+    conv_kernel: int | None = Field(None, ge=1, le=15, description="ConvBlock kernel of the middle branch, odd, 1-15 "
+                                                                   "(paper: 3; default: scaled to the grid)")
+
+    @field_validator("kernels", "conv_kernel")
+    @classmethod
+    def _odd(cls, v: Any) -> Any:
+        sizes = v if isinstance(v, list) else [v] if v is not None else []
+        if any(k % 2 == 0 for k in sizes):
+            raise ValueError(f"kernel sizes must be odd (the grid stays aligned), got {v}")
+        return v
 
 
 class SCPNetAdapter(MultiFrameLidarAdapter):

@@ -297,6 +297,8 @@ class Pipeline:
 
     def _stage(self, name: str, run_dir: Path, stop_after: int | None) -> StageResult | None:
         """Reuse a finished stage or train and evaluate it (the caller holds its lock)."""
+        import torch
+
         from distilkit.engine.io import seed_everything
         from distilkit.engine.models import load_teacher, pick_device
         from distilkit.console import stage_progress
@@ -339,7 +341,7 @@ class Pipeline:
             "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),
             "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
             "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": seed,
-            "processes": self.world.size,
+            "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them
             "classes": {"names": list(self.resolved.data_info.classes.names),
                         "colours": [list(c) for c in self.resolved.data_info.classes.colours]},
             "steps": result.steps, "train_seconds": round(result.seconds, 2),
