@@ -71,7 +71,9 @@ RECIPE = tiny_recipe(steps=1)
 SWEEP = {"schema_version": 1, "name": "sw", "recipe": copy.deepcopy(RECIPE), "stage": "student", "seeds": [0, 1],
          "variants": {"none": {"distill": []}, "kd": {"distill": [{"name": "kd", "weight": 1.0}]},
                       "lr": {"set": {"stages.student.optimizer.lr": 0.01}}}}
-PROPERTY = settings(max_examples=250, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+# derandomize: the same examples on every run (seeded from the test's name), so CI is repeatable; after changing the
+# loaders, search wider once by hand (derandomize=False, more examples)
+PROPERTY = settings(max_examples=250, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 
 
 def load_and_resolve(data: Any) -> None:
@@ -107,7 +109,7 @@ def test_mutated_sweep_files_raise_only_recipe_errors(tmp_path_factory: pytest.T
         assert str(err).startswith(str(path))
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+@settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow,
                                                                   HealthCheck.function_scoped_fixture])
 @given(mutated(RECIPE), st.one_of(st.none(), st.floats(0.0, 1.0)))
 def test_the_cli_answers_mutated_recipes_with_status_0_or_2(tmp_path: Path, capsys: Any, data: Any,
@@ -130,7 +132,7 @@ def _limited() -> None:  # in the child: 4 GiB of address space, so a runaway al
     resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
 
 
-@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+@settings(max_examples=20, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow,
                                                                  HealthCheck.function_scoped_fixture])
 @given(mutated(RECIPE, under=("stages",)))
 def test_short_runs_of_mutated_recipes_end_in_success_or_a_clear_error(tmp_path: Path, data: Any) -> None:
