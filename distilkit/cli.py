@@ -31,8 +31,9 @@ def _launch(args: argparse.Namespace) -> int:
     where = (["--standalone"] if nodes == 1 else
              [f"--nnodes={nodes}", f"--node-rank={args.node_rank}", f"--master-addr={args.master_addr}",
               f"--master-port={args.master_port}"])
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", str(max(1, cpus // n)))}
+    from distilkit.engine.cpus import usable_cpus
+
+    env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", str(max(1, usable_cpus() // n)))}
     cmd = [sys.executable, "-m", "torch.distributed.run", f"--nproc-per-node={n}", *where, "-m", "distilkit", "run",
            *rest]
     return subprocess.call(cmd, env=env)

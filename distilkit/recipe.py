@@ -237,6 +237,21 @@ def load_recipe(path: str | Path) -> Recipe:
     return recipe_from_dict(parse_yaml(text, str(path)), str(path))
 
 
+def needed_stages(recipe: Recipe, names: set[str]) -> set[str]:
+    """``names`` and every stage they use as teacher or initial weights, transitively (references checked by
+    :func:`stage_order`)."""
+    out: set[str] = set()
+    todo = list(names)
+    while todo:
+        name = todo.pop()
+        if name in out:
+            continue
+        out.add(name)
+        stage = recipe.stages[name]
+        todo += [src.from_ for src in (stage.teacher, stage.init) if src is not None and src.from_]
+    return out
+
+
 def stage_order(recipe: Recipe) -> list[str]:
     """Stage names in dependency order (a teacher stage before its students)."""
     order: list[str] = []

@@ -81,8 +81,8 @@ def load_and_resolve(data: Any) -> None:
 
 
 def test_the_valid_originals_load() -> None:
-    load_and_resolve(RECIPE)
-    SweepSpec.model_validate(SWEEP)
+    assert list(resolve(recipe_from_dict(RECIPE, "valid"), "valid").stages) == ["teacher", "student"]
+    assert list(SweepSpec.model_validate(SWEEP).variants) == ["none", "kd", "lr"]
 
 
 @PROPERTY

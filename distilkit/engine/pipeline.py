@@ -24,7 +24,7 @@ from distilkit import __version__
 from distilkit.engine.io import atomic_write_text
 from distilkit.engine.resolve import ResolvedRecipe, ResolvedStage, ResolvedTerm, resolve
 from distilkit.errors import RecipeError
-from distilkit.recipe import Recipe, load_recipe
+from distilkit.recipe import Recipe, load_recipe, needed_stages
 from distilkit.registry import DATASETS
 
 
@@ -115,16 +115,6 @@ def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
         init_from = stage.spec.init.from_ if stage.spec.init is not None else None
         if stage.teacher_from in out or init_from in out:
             out.add(name)
-    return out
-
-
-def upstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
-    """``names`` and every stage they use as teacher or initial weights, transitively."""
-    out = set(names)
-    for name in reversed(res.order):  # dependency order reversed: a user comes before what it needs
-        if name in out:
-            stage = res.stages[name]
-            out |= {src.from_ for src in (stage.spec.teacher, stage.spec.init) if src is not None and src.from_}
     return out
 
 
@@ -253,7 +243,7 @@ class Pipeline:
             from distilkit.console import make_console
 
             self.console = make_console(quiet=True)
-        names = upstream(self.resolved, set(only)) if only else set(self.resolved.order)
+        names = needed_stages(self.recipe, set(only)) if only else set(self.resolved.order)
         results = self._run(stop_after, rerun, names, wait)
         if report and not only and len(results) == len(self.resolved.order) and self.world.main:
             from distilkit.report.recipe import write_report
@@ -334,8 +324,9 @@ class Pipeline:
             self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")
             return None
         split = "test" if self.has_split("test") else "val"
-        test = trainer.evaluate_checkpoints(self.dataset(split))
-        trainer.write_preview(val_set)
+        best = trainer.best_model()  # read once: scored on the test split, previewed on a validation scene
+        test = trainer.evaluate_checkpoints(self.dataset(split), best)
+        trainer.write_preview(val_set, best)
         summary = {
             "status": "finished", "stage": name, "hash": self.hashes[name], "label": stage.spec.label or name,
             "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),

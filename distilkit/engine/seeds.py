@@ -183,14 +183,11 @@ def write_seeds_report(root: Path, rows: list[dict[str, Any]], baseline: str | N
 
 
 def _plot(path: Path, rows: list[dict[str, Any]]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from distilkit.report import plots
 
     view = _view(rows)
     _, name, scale = view.main if view else ("", "score", 1.0)
-    fig, ax = plt.subplots(figsize=(max(6.0, 0.6 * len(rows) + 2), 4.0))
+    fig, (ax,) = plots.figure(1, width=max(6.0, 0.6 * len(rows) + 2))
     for i, row in enumerate(rows):
         ax.bar(i, scale * row["main_mean"], color="#9ecae1", yerr=None if math.isnan(row["main_std"]) else
                scale * row["main_std"], capsize=3)
@@ -198,11 +195,7 @@ def _plot(path: Path, rows: list[dict[str, Any]]) -> None:
     ax.set_xticks(range(len(rows)), [r["label"].replace("*", "") for r in rows], rotation=45, ha="right", fontsize=8)
     ax.set_ylabel(f"{_split(rows)} {name}{' (%)' if scale == 100 else ''}, best-val checkpoint")
     ax.set_title("mean ± std over seeds; dots: single seeds")
-    fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    plots.save(fig, path)
 
 
 def run_seeds(recipe: str | Path, output: str | Path, seeds: list[int], baseline: str | None = None,

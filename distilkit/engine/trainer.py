@@ -462,24 +462,24 @@ class Trainer:
         model.load_state_dict(ckpt["student"])
         return model, int(ckpt["step"])
 
-    def evaluate_checkpoints(self, dataset: Any) -> dict[str, Any]:
-        """Scores on ``dataset`` (the test split) of the best-validation checkpoint and of the last one."""
+    def evaluate_checkpoints(self, dataset: Any, best: tuple[Adapter, int] | None) -> dict[str, Any]:
+        """Scores on ``dataset`` (the test split) of the best-validation checkpoint (``best``, from
+        :meth:`best_model`) and of the last one."""
         out: dict[str, Any] = {"last": self.evaluate(dataset), "last_step": self.total_steps}
-        best = self.best_model()
         if best is not None:
             out["best"], out["best_step"] = self.evaluate(dataset, best[0]), best[1]
         else:
             out["best"], out["best_step"] = out["last"], self.total_steps
         return out
 
-    def write_preview(self, dataset: Any) -> Path | None:
-        """``preview.npz``: the metric's bird's-eye view of the best checkpoint on the first sample of ``dataset``
-        (a validation scene), with the class names and colours to draw it (arrays only: loaded without pickle)."""
+    def write_preview(self, dataset: Any, best: tuple[Adapter, int] | None) -> Path | None:
+        """``preview.npz``: the metric's bird's-eye view of the best checkpoint (``best``, else the current student)
+        on the first sample of ``dataset`` (a validation scene), with the class names and colours to draw it (arrays
+        only: loaded without pickle)."""
         import numpy as np
 
         if not self.world.main:
             return None
-        best = self.best_model()
         view = preview(best[0] if best is not None else self.student, dataset, self.device, self.collate,
                        self.metric.cls)
         if view is None:

@@ -102,15 +102,6 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path | None = 
     return folder / "compare.md"
 
 
-def _task_loss(terms: dict[str, tuple[list[int], list[float]]]) -> dict[str, tuple[list[int], list[float]]]:
-    """The logged total minus the distillation terms (``kd_*``): what both runs optimise alike."""
-    if "loss" not in terms:
-        return {}
-    steps, total = terms["loss"]
-    kd = [dict(zip(*v)) for k, v in terms.items() if k.startswith("kd_")]
-    return {"task loss": (steps, [t - sum(d.get(s, 0.0) for d in kd) for s, t in zip(steps, total)])}
-
-
 def _plot(path: Path, a: Path, b: Path, sa: dict[str, Any], ra: dict[str, Any], rb: dict[str, Any], la: str,
           lb: str) -> None:
     import matplotlib
@@ -123,8 +114,8 @@ def _plot(path: Path, a: Path, b: Path, sa: dict[str, Any], ra: dict[str, Any], 
     n_rows = 1 + (pa is not None and pb is not None)
     fig = plt.figure(figsize=(15, 4.5 * n_rows))
     ax1 = fig.add_subplot(n_rows, 2, 1)
-    plots.loss_curves(ax1, _task_loss(plots.read_log(a)[0]), prefix="A ", style="-")
-    plots.loss_curves(ax1, _task_loss(plots.read_log(b)[0]), prefix="B ", style="--")
+    plots.loss_curves(ax1, plots.task_loss(plots.read_log(a)[0]), prefix="A ", style="-")
+    plots.loss_curves(ax1, plots.task_loss(plots.read_log(b)[0]), prefix="B ", style="--")
     ax1.set_title("task loss, without distillation terms (A solid, B dashed)")
     ax2 = fig.add_subplot(n_rows, 2, 2)
     if view.per_class is not None and ra["class_scores"] and rb["class_scores"]:

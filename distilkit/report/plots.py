@@ -96,6 +96,16 @@ def class_bars(ax: Any, names: list[str], colours: list[tuple[int, int, int]], v
         ax.legend(fontsize=7)
 
 
+def task_loss(terms: dict[str, tuple[list[int], list[float]]]) -> dict[str, tuple[list[int], list[float]]]:
+    """The logged total minus the distillation terms (``kd_*``): what runs with and without distillation optimise
+    alike."""
+    if "loss" not in terms:
+        return {}
+    steps, total = terms["loss"]
+    kd = [dict(zip(*v)) for k, v in terms.items() if k.startswith("kd_")]
+    return {"task loss": (steps, [t - sum(d.get(s, 0.0) for d in kd) for s, t in zip(steps, total)])}
+
+
 def bev_panel(ax: Any, value: np.ndarray, extent: np.ndarray, colours: np.ndarray, title: str) -> None:
     """One bird's-eye panel: a class-id image (x forward up, y left to the left) or a point cloud coloured by
     height."""
@@ -141,4 +151,5 @@ def bev_row(axes: list[Any], preview: dict[str, np.ndarray], title: str = "") ->
             ax.set_axis_off()
 
 
-__all__ = ["bev_panel", "bev_row", "class_bars", "figure", "loss_curves", "read_log", "read_preview", "save"]
+__all__ = ["bev_panel", "bev_row", "class_bars", "figure", "loss_curves", "read_log", "read_preview", "save",
+           "task_loss"]

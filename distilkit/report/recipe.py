@@ -3,7 +3,6 @@ stage folders."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -54,21 +53,6 @@ def results_table(results: list[Any]) -> Any:
     return tables[0] if len(tables) == 1 else Group(*tables)
 
 
-def _losses(run_dir: Path) -> tuple[list[int], list[float]]:
-    steps, losses = [], []
-    path = run_dir / "metrics.jsonl"
-    if path.is_file():
-        for line in path.read_text().splitlines():
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                continue
-            if "loss" in rec:  # the task loss: the total without distillation terms
-                steps.append(rec["step"])
-                losses.append(rec["loss"] - sum(v for k, v in rec.items() if k.startswith("kd_")))
-    return steps, losses
-
-
 def _seeds(default: int, results: list[Any]) -> str:
     """'Seed 0', or each stage's seed when stages have their own."""
     seeds = {r.name: r.summary.get("seed", default) for r in results}
@@ -114,16 +98,13 @@ def write_report(pipeline: Any, results: list[Any]) -> Path:
 
 
 def _plot(path: Path, results: list[Any], rows: list[dict[str, Any]]) -> None:
-    import matplotlib
+    from distilkit.report import plots
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    fig, (ax1, ax2) = plots.figure(2, width=5.5)
     for r in results:
-        steps, losses = _losses(r.run_dir)
-        if steps:
-            ax1.plot(steps, losses, label=r.summary.get("label", r.name))
+        task = plots.task_loss(plots.read_log(r.run_dir)[0])
+        if task:
+            ax1.plot(*task["task loss"], label=r.summary.get("label", r.name))
     ax1.set_xlabel("step")
     ax1.set_ylabel("task loss (without distillation terms)")
     ax1.set_yscale("log")
@@ -141,8 +122,4 @@ def _plot(path: Path, results: list[Any], rows: list[dict[str, Any]]) -> None:
     ax2.set_title(f"{rows[0]['split'] if rows else 'test'} split, best-validation checkpoint")
     ax2.legend(fontsize=8)
     ax2.tick_params(axis="x", rotation=20)
-    fig.tight_layout()
-    tmp = path.with_name(".report.tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    plots.save(fig, path)

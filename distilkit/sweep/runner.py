@@ -20,6 +20,7 @@ from typing import Any
 
 import yaml
 
+from distilkit.engine.cpus import usable_cpus
 from distilkit.engine.io import atomic_write_text
 from distilkit.engine.pipeline import Pipeline, read_summary
 from distilkit.errors import DistilkitError, RecipeError
@@ -143,7 +144,7 @@ class SweepRun:
     def _in_processes(self, todo: list[Task], jobs: int) -> list[str]:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        cpus = usable_cpus()
         threads = max(1, cpus // jobs)
         if jobs > cpus:
             self.console.print(f"[yellow]--jobs {jobs} on {cpus} CPUs: jobs share cores (1 thread each)[/]")

@@ -16,7 +16,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from distilkit.errors import RecipeError
-from distilkit.recipe import LossSpec, Recipe, parse_yaml, pydantic_problems, recipe_from_dict, stage_order
+from distilkit.recipe import (LossSpec, Recipe, needed_stages, parse_yaml, pydantic_problems, recipe_from_dict,
+                              stage_order)
 
 _NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"
 
@@ -156,7 +157,7 @@ def variant_data(sweep: Sweep, variant: str) -> dict[str, Any]:
         order = stage_order(full)  # every teacher/init stage exists, no cycles
     except RecipeError as err:
         raise RecipeError([(f"{where} (recipe {p})" if p else where, m) for p, m in err.problems], sweep.source) from None
-    needed = _needed(full, spec.stage)
+    needed = needed_stages(full, {spec.stage})
     kept = {(variant if n == spec.stage else n): copy.deepcopy(stages[n]) for n in order if n in needed}
     if spec.upstream == "shared":
         seed = spec.upstream_seed if spec.upstream_seed is not None else full.seed
@@ -167,18 +168,6 @@ def variant_data(sweep: Sweep, variant: str) -> dict[str, Any]:
         kept[variant]["label"] = chosen.label
     data["stages"] = kept
     return data
-
-
-def _needed(recipe: Recipe, stage: str) -> set[str]:
-    out, todo = set(), [stage]
-    while todo:
-        name = todo.pop()
-        if name in out:
-            continue
-        out.add(name)
-        s = recipe.stages[name]
-        todo += [src.from_ for src in (s.teacher, s.init) if src is not None and src.from_]
-    return out
 
 
 def load_sweep(path: str | Path) -> Sweep:
