@@ -123,13 +123,32 @@ def _cmd_list(args: argparse.Namespace) -> int:
         table.add_column("name", style="bold")
         table.add_column("description")
         table.add_column("paper")
-        table.add_column("taps")
+        table.add_column(_LIST_COLUMN[kind])
         for e in reg:
-            table.add_row(e.name, e.description, e.paper, ", ".join(e.consumes))
+            table.add_row(e.name, e.description, e.paper, _list_cell(kind, e))
         console.print(table)
     for msg in plugin_errors:
         console.print(f"[yellow]warning:[/] {msg}")
     return 0
+
+
+_LIST_COLUMN = {"adapters": "taps (name: kind)", "objectives": "reads (tap kinds)", "task losses": "reads (tap kinds)",
+                "datasets": "batch fields", "metrics": "scores (tap kind)"}
+
+
+def _list_cell(kind: str, entry: object) -> str:
+    """What ``distilkit list`` shows of a component: an adapter's taps by name and kind, the tap kinds a term reads,
+    the batch fields a dataset provides (from its default parameters), what a metric scores."""
+    obj, meta = getattr(entry, "obj"), getattr(entry, "meta")
+    if kind == "adapters" and getattr(obj, "TAPS", None):
+        return ", ".join(f"{name}: {k}" for name, k in obj.TAPS.items())
+    if kind == "datasets" and "info" in meta and "params" in meta:
+        try:  # a dataset with required parameters (a root folder) still shows what its defaults give
+            fields = meta["info"](meta["params"].model_construct()).fields
+        except Exception:
+            return "—"
+        return ", ".join(sorted(fields))
+    return ", ".join(getattr(entry, "consumes")) or "—"
 
 
 def _cmd_schema(args: argparse.Namespace) -> int:

@@ -42,3 +42,7 @@ class GridMismatchError(DistilkitError):
 
 class RunLockedError(DistilkitError):
     """Another distilkit process is writing to the same output folder."""
+
+
+class PluginError(DistilkitError):
+    """distilkit's own components (the built-in adapters) failed to load: the installation is broken."""

@@ -1,8 +1,8 @@
 """The recipe schema (pydantic v2): the single source of truth for configuration.
 
 Recipes are read with ``yaml.safe_load`` only and may name registered components only.
-:func:`load_recipe` parses and validates the structure; :func:`check_recipe` also builds every
-parameter model from the registries and checks taps, so that mistakes are found before training.
+:func:`load_recipe` parses and validates the structure; :func:`distilkit.engine.resolve.resolve` then builds
+every parameter model from the registries and checks taps, so that mistakes are found before training.
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Generic, Iterator, TypeVar
 
-from distilkit.errors import UnknownNameError
+from distilkit.errors import PluginError, UnknownNameError
 
 T = TypeVar("T")
 
@@ -84,7 +84,8 @@ class Registry(Generic[T]):
         close = difflib.get_close_matches(str(name), list(self._entries), n=3, cutoff=0.6)
         hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
         known = ", ".join(sorted(self._entries)) or "none"
-        return f"unknown {self.kind} {name!r}{hint} (known: {known})"
+        broken = "".join(f"; {msg}" for msg in plugin_errors)  # the component may live in a plugin that failed
+        return f"unknown {self.kind} {name!r}{hint} (known: {known}){broken}"
 
     def names(self, pattern: str | None = None) -> list[str]:
         load_plugins()
@@ -122,28 +123,55 @@ _BUILTIN_MODULES = (
 _loaded = False
 _loading = False
 plugin_errors: list[str] = []
+BUILTIN_DISTRIBUTION = "distilkit"  # entry points of distilkit's own distribution are the built-in adapters
+
+
+def _is_builtin(ep: Any) -> bool:
+    """Whether an entry point belongs to distilkit itself (its built-in adapters) rather than a user's package."""
+    dist = getattr(ep, "dist", None)
+    name = getattr(dist, "name", None) or (getattr(dist, "metadata", None) or {}).get("Name")
+    if name is not None:
+        return str(name).lower() == BUILTIN_DISTRIBUTION
+    return str(ep.value).split(":")[0].split(".")[0] == "distilkit_adapters"
+
+
+def _failure(ep: Any, exc: BaseException) -> str:
+    """``plugin 'name' (module:attr) failed to load: Type: message (at file:line)``, the line where it failed."""
+    import traceback
+
+    frames = traceback.extract_tb(exc.__traceback__)
+    where = f" (at {frames[-1].filename}:{frames[-1].lineno})" if frames else ""
+    return f"plugin {ep.name!r} ({ep.value}) failed to load: {type(exc).__name__}: {exc}{where}"
 
 
 def load_plugins(force: bool = False) -> None:
     """Import the built-in components and every ``distilkit.plugins`` entry point (once;
-    ``force=True`` looks for entry points again, e.g. after a package was installed)."""
+    ``force=True`` looks for entry points again, e.g. after a package was installed).
+
+    distilkit's own adapters failing to load is an error (:class:`~distilkit.errors.PluginError`: the
+    installation is broken). A user's plugin that fails is named with its entry point and the cause in a
+    warning, and again in the error of any lookup of a name that is not found (it may be that plugin's)."""
     global _loaded, _loading
     if _loading or (_loaded and not force):
         return
-    _loading = True
+    _loading, _loaded = True, False  # a load that fails leaves it unloaded: the next lookup raises again
     try:
         for mod in _BUILTIN_MODULES:
             importlib.import_module(mod)
         from importlib.metadata import entry_points
 
+        plugin_errors.clear()
         for ep in entry_points(group=ENTRY_POINT_GROUP):
             try:
                 target = ep.load()
                 if callable(target):
                     target()
-            except Exception as exc:  # a broken third-party plugin must not break distilkit
-                msg = f"plugin {ep.name!r} ({ep.value}) failed to load: {exc}"
-                plugin_errors.append(msg)
+            except Exception as exc:
+                msg = _failure(ep, exc)
+                if _is_builtin(ep):  # distilkit's own adapters: the installation is broken
+                    raise PluginError(f"distilkit's built-in {msg}; the installation is incomplete or broken: "
+                                      "reinstall distilkit") from exc
+                plugin_errors.append(msg)  # a user's plugin must not break distilkit
                 warnings.warn(msg, RuntimeWarning, stacklevel=2)
         _loaded = True
     finally:

@@ -73,7 +73,8 @@ def objectives_markdown() -> str:
         doc = " ".join((e.obj.__doc__ or "").split())
         out += [f"## {e.name}", "", e.description + ".", "", f"- **Paper:** {e.paper}",
                 f"- **Equation:** `{e.meta['equation']}`", f"- **Tensors:** {e.meta['shapes']}",
-                f"- **Default weight:** {e.meta['default_weight']:g}", "", doc, ""]
+                f"- **Default weight:** {e.meta['default_weight']:g}", f"- **Function:** `{e.meta['function']}`",
+                "", doc, ""]
         props = e.obj.Params.model_json_schema().get("properties", {})
         if props:
             out += ["| parameter | default | description |", "|---|---|---|"]

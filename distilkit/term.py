@@ -28,12 +28,15 @@ from pydantic import BaseModel
 from torch import Tensor, nn
 
 from distilkit.data.batch import Batch
+from distilkit.data.classes import IGNORE_INDEX
+from distilkit.data.info import DataInfo
 
 
 @dataclass
 class TermContext:
     """What a term may reach beyond its roles: the frozen teacher (and its capabilities, e.g. ``denoise``),
-    the student, and the device. Bound once, before training. A term that steps its own optimizer calls
+    the student, the device and the data's facts (``info``: class table with its ignore index, grid, cameras).
+    Bound once, before training. A term that steps its own optimizer calls
     ``sync(params)`` between its backward pass and the step: in multi-process training it averages those
     gradients over the processes (a no-op in one process)."""
 
@@ -41,6 +44,7 @@ class TermContext:
     teacher: nn.Module | None
     device: torch.device
     sync: Callable[[Iterable[nn.Parameter]], None] = field(default=lambda params: None)
+    info: DataInfo | None = None
 
 
 class Term(nn.Module, ABC):
@@ -76,6 +80,12 @@ class Term(nn.Module, ABC):
 
     def bind(self, context: TermContext) -> None:
         self.context = context
+
+    @property
+    def ignore_index(self) -> int:
+        """The label never used in losses: the data's class table's (SemanticKITTI's 255 before binding)."""
+        info = self.context.info if self.context is not None else None
+        return info.classes.ignore_index if info is not None else IGNORE_INDEX
 
     def own_optimizer(self) -> torch.optim.Optimizer | None:
         """An optimizer for this term's own modules, stepped in :meth:`update` (default: none)."""

@@ -249,3 +249,138 @@ def test_pkt_fused_backward_matches_naive(g, n, ds, dt, block) -> None:
         assert close(L.pkt(z, t, block=block), naive_pkt(z, t))
     grads_close(lambda: L.pkt(s, t, block=block), lambda: naive_pkt(s, t), (s,))
     assert torch.autograd.gradcheck(lambda x: L.pkt(x, t, block=block), (s.detach().clone().add_(0.1).requires_grad_(),))
+
+
+# ---- CleanerS, PVKD, MGD as plain functions -------------------------------------------------------------------
+def naive_cleaners(ys, yt, labels, T, kd_sc, kd_sa, ignore):
+    """CleanerS from its definition, voxel by voxel: centres = class means of the labelled voxels, KL of the
+    softened centres, MSE of every non-ignored voxel's cosine to every centre."""
+    sc_tot, sa_tot, n = 0.0, 0.0, 0
+    for i in range(ys.shape[0]):
+        vox = [idx for idx in _spatial(ys) if int(labels[(i,) + idx]) != ignore]
+        classes = sorted({int(labels[(i,) + idx]) for idx in vox} - {0})
+        if not classes:
+            continue
+        gs, gt = [], []
+        for c in classes:
+            mem = [idx for idx in vox if int(labels[(i,) + idx]) == c]
+            gs.append(sum(ys[(i, slice(None)) + idx] for idx in mem) / len(mem))
+            gt.append(sum(yt[(i, slice(None)) + idx] for idx in mem) / len(mem))
+        kl = 0.0
+        for a, b in zip(gs, gt):
+            ps, pt = torch.softmax(a / T, 0), torch.softmax(b / T, 0)
+            kl = kl + sum(pt[k] * torch.log(pt[k] / ps[k]) for k in range(len(pt)))
+        sc_tot = sc_tot + T * T * kl / len(classes)
+        sq = []
+        for idx in vox:
+            vs, vt = ys[(i, slice(None)) + idx], yt[(i, slice(None)) + idx]
+            for a, b in zip(gs, gt):
+                sq.append((vs @ a / (vs.norm() * a.norm()) - vt @ b / (vt.norm() * b.norm())) ** 2)
+        sa_tot = sa_tot + sum(sq) / len(sq)
+        n += 1
+    return (kd_sc * sc_tot + kd_sa * sa_tot) / max(n, 1)
+
+
+@pytest.mark.parametrize("T", [1.0, 2.0])
+def test_cleaners_matches_its_definition(g, T) -> None:
+    s, t, labels, _ = _rgo_inputs(g)
+    labels[1, 1, 1, 0] = 7  # a class id the data may use as its ignore label
+    fast = L.cleaners(s, t, labels, T, kd_sc=0.7, kd_sa=1.3, ignore_index=7)
+    slow = naive_cleaners(s, t, labels, T, 0.7, 1.3, 7)
+    assert close(fast, slow)
+    grads_close(lambda: L.cleaners(s, t, labels, T, 0.7, 1.3, 7), lambda: naive_cleaners(s, t, labels, T, 0.7, 1.3, 7),
+                (s, t))
+    assert not close(fast, L.cleaners(s, t, labels, T, 0.7, 1.3, 255))  # the ignore label matters
+    fs, ft = torch.randn(2, 3, 4, 4, dtype=D, generator=g), torch.randn(2, 3, 4, 4, dtype=D, generator=g)
+    with_features = L.cleaners(s, t, labels, T, 0.7, 1.3, 7, fs, ft, kd_t=0.5)
+    assert close(with_features, slow + 0.5 * ((fs - ft) ** 2).mean())
+    with pytest.raises(ValueError, match="labels"):
+        L.cleaners(s, t, labels[:, :1], T)
+
+
+def naive_relation_gap(a, b):
+    n = a.shape[0]
+    return sum((a[i] @ a[j] / (a[i].norm() * a[j].norm()) - b[i] @ b[j] / (b[i].norm() * b[j].norm())) ** 2
+               for i in range(n) for j in range(n)) / n**2
+
+
+def test_pvkd_is_kd_plus_the_mean_relation_gap_inside_supervoxels(g) -> None:
+    coords = torch.unique(torch.stack([torch.randint(0, 2, (60,), generator=g), torch.randint(0, 8, (60,), generator=g),
+                                       torch.randint(0, 8, (60,), generator=g), torch.randint(0, 2, (60,), generator=g)],
+                                      1), dim=0)
+    fs = torch.randn(len(coords), 3, dtype=D, generator=g, requires_grad=True)
+    ft = torch.randn(len(coords), 5, dtype=D, generator=g)
+    groups, r_bin = L.supervoxel_ids(coords, (8, 8, 2), radial_bins=2, angular_bins=2, height_bins=1)
+    assert int(r_bin.max()) <= 1 and len(torch.unique(groups)) > 2
+    # samples never share a supervoxel
+    assert not set(groups[coords[:, 0] == 0].tolist()) & set(groups[coords[:, 0] == 1].tolist())
+    ls = torch.randn(2, 4, 8, 8, 2, dtype=D, generator=g, requires_grad=True)
+    lt = torch.randn(2, 4, 8, 8, 2, dtype=D, generator=g)
+    mask = torch.rand(2, 8, 8, 2, generator=g) < 0.5
+
+    def slow():
+        gaps = [naive_relation_gap(fs[groups == i], ft[groups == i]) for i in torch.unique(groups)]
+        return 0.5 * naive_kd(ls, lt, 2.0, mask) + 10.0 * sum(gaps) / len(gaps)
+
+    def fast():
+        return L.pvkd(fs, ft, groups, ls, lt, 2.0, mask, output_weight=0.5, affinity_weight=10.0)
+
+    assert close(fast(), slow())
+    grads_close(fast, slow, (fs, ls))
+    chosen = torch.tensor([0, 2])
+    ids = torch.unique(groups)
+    want = sum(naive_relation_gap(fs[groups == ids[j]], ft[groups == ids[j]]) for j in chosen) / 2
+    assert close(L.pvkd_affinity(fs, ft, groups, chosen), want)
+
+
+def test_mgd_reconstructs_the_teacher_from_the_kept_positions(g) -> None:
+    s = torch.randn(2, 3, 4, 4, dtype=D, generator=g, requires_grad=True)
+    t = torch.randn(2, 3, 4, 4, dtype=D, generator=g)
+    gen = torch.nn.Conv2d(3, 3, 3, padding=1).to(D)
+    keep = torch.rand(2, 1, 4, 4, generator=g) >= 0.5
+    want = 0.0
+    masked = s * keep  # every channel of a position is masked together
+    out = gen(masked)
+    for idx in torch.cartesian_prod(*[torch.arange(n) for n in t.shape]):
+        want = want + (out[tuple(idx)] - t[tuple(idx)]) ** 2
+    want = want / t.numel()
+    assert close(L.mgd(s, t, gen, keep=keep), want)
+    torch.manual_seed(3)
+    drawn = L.mgd(s, t, gen, mask_ratio=0.65)
+    torch.manual_seed(3)
+    again = (torch.rand(2, 1, 4, 4) >= 0.65)
+    assert close(drawn, L.mgd(s, t, gen, keep=again))
+    assert close(L.mgd(s, t, gen, mask_ratio=0.0), ((gen(s) - t) ** 2).mean())
+    with pytest.raises(ValueError, match="mask_ratio"):
+        L.mgd(s, t, gen, mask_ratio=1.0)
+
+
+def test_rgo2d_takes_the_class_tables_ignore_label(g) -> None:
+    s, t, labels, mask = _rgo_inputs(g)
+    labels[labels == 3] = 3  # class 3 present; treat it as the data's ignore label
+    as_class = L.rgo2d(s, t, labels, mask)
+    ignored = L.rgo2d(s, t, labels, mask, ignore_index=3)
+    want = sum(w * sum(naive_rgo2d_region(s, t, torch.where(labels == 3, 255, labels), mask & r))
+               for w, r in zip((0.06, 0.15, 0.20), range_regions(tuple(s.shape[2:]), "boxes")))
+    assert close(ignored, want) and not close(as_class, ignored)
+
+
+def test_the_objectives_compute_their_functions_with_the_data_ignore_label(g) -> None:
+    """CleanerS, RGO²D, KD read the class table's ignore label from the bound context, not a constant."""
+    from dataclasses import replace
+
+    from distilkit.data.batch import Batch
+    from distilkit.data.info import ClassTable, DataInfo
+    from distilkit.registry import OBJECTIVES
+    from distilkit.term import TermContext
+
+    s, t, labels, mask = _rgo_inputs(g)
+    batch = Batch({}, {"voxel_target": labels}, {"size": 2})
+    info = DataInfo(None, replace(ClassTable.semantickitti(), ignore_index=2))
+    for name, fn in (("cleaners", lambda: L.cleaners(s, t, labels, ignore_index=2)),
+                     ("rgo2d", lambda: L.rgo2d(s, t, labels, (labels != 2) & (labels != 0), ignore_index=2)),
+                     ("kd", lambda: L.kd(s, t, 1.0, labels != 2))):
+        cls = OBJECTIVES.get(name)
+        obj = cls(cls.Params())
+        obj.bind(TermContext(torch.nn.Identity(), None, torch.device("cpu"), info=info))
+        assert close(obj.compute({"student": s, "teacher": t}, batch), fn()), name

@@ -114,9 +114,25 @@ def test_nan_loss_stops_with_a_clear_error_and_keeps_the_checkpoint(tmp_path, mo
             terms["ce"] = terms["ce"] * float("nan")
 
     poison_terms(monkeypatch, nan_ce)
-    with pytest.raises(NonFiniteLossError, match="ce"):
+    with pytest.raises(NonFiniteLossError, match=r"ce.*the last checkpoint \(.*last\.pt, step 1\) is kept"):
         pipe.run()
     assert load_checkpoint(pipe.run_dir("teacher") / "checkpoints" / "last.pt")["step"] == 1
+
+
+def test_a_run_that_fails_before_any_checkpoint_says_none_was_kept(tmp_path, monkeypatch) -> None:
+    recipe = tiny_recipe(steps=3, distill=False)
+    recipe["stages"]["teacher"]["train"]["checkpoint_every"] = 10
+    pipe = pipeline(tmp_path, recipe)
+
+    def nan_ce(self, terms, call):
+        if call == 2:
+            terms["ce"] = terms["ce"] * float("nan")
+
+    poison_terms(monkeypatch, nan_ce)
+    with pytest.raises(NonFiniteLossError, match=r"no checkpoint had been written yet") as err:
+        pipe.run()
+    assert "is kept" not in str(err.value)
+    assert not (pipe.run_dir("teacher") / "checkpoints" / "last.pt").exists()
 
 
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path) -> None:

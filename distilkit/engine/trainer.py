@@ -70,6 +70,7 @@ class Trainer:
         self._checked: set[str] = set()  # roles whose outputs passed the tap checks
         self._init_log: dict[str, Any] | None = None
         self._last_taps: dict[int, dict[str, Any]] = {}  # per term, detached, for its update()
+        self._saved_step: int | None = None  # the step of last.pt (None: none written yet)
         self.own_optimizers: list[torch.optim.Optimizer | None] = []
         assert stage.metric is not None, "a resolved stage always has its metric"
         self.metric = stage.metric
@@ -186,6 +187,13 @@ class Trainer:
             "step": step, "best": best, "rng": rng_state(), "adapter": self.stage.student.adapter,
             "adapter_params": self.stage.student.params.model_dump(mode="json"),
         })
+        self._saved_step = step
+
+    def _kept(self) -> str:
+        """What a stopped run leaves to resume from, as it is: the last checkpoint and its step, or none."""
+        if self._saved_step is None:
+            return "no checkpoint had been written yet (a new run starts from step 0)"
+        return f"the last checkpoint ({self.ckpt_dir / 'last.pt'}, step {self._saved_step}) is kept"
 
     def _save_best(self, step: int, scores: dict[str, Any]) -> None:
         if not self.world.main:
@@ -317,7 +325,7 @@ class Trainer:
         self.own_optimizers = [term.module.own_optimizer() for term in self.terms]
 
     def _context(self) -> TermContext:
-        return TermContext(self.student, self.teacher, self.device, sync=self.world.average_gradients)
+        return TermContext(self.student, self.teacher, self.device, sync=self.world.average_gradients, info=self.info)
 
     def _check_outputs(self, model: Adapter, outputs: dict[str, Any], role: str, strict: bool = True) -> None:
         """Every declared tap the forward returned is of its kind, and every tap a term reads is there (checked
@@ -402,6 +410,7 @@ class Trainer:
             set_rng_state(ckpt["rng"])
             self._rank_rng(int(ckpt["step"]))
             start_step, best = int(ckpt["step"]), ckpt["best"]
+            self._saved_step = start_step
             self._truncate_log(start_step)
             self._log({"event": "resume", "step": start_step})
         elif self._init_log is not None:
@@ -420,7 +429,6 @@ class Trainer:
 
     def train_step(self, batch: Batch, step: int) -> dict[str, float]:
         """One optimizer step of the student (then the objectives' own updates); returns the values to log."""
-        last_path = self.ckpt_dir / "last.pt"
         terms = self.loss_terms(batch)
         loss = torch.stack(list(terms.values())).sum()
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
@@ -428,8 +436,8 @@ class Trainer:
             bad = bad or ["(in another process)"]
             raise NonFiniteLossError(
                 f"stage {self.stage.name!r}, step {step + 1}: loss term(s) {', '.join(bad)} became "
-                f"{', '.join(str(float(terms[k].detach())) if k in terms else 'non-finite' for k in bad)}; training stopped, the last checkpoint "
-                f"({last_path}) is kept. Lower the learning rate or the term's weight.")
+                f"{', '.join(str(float(terms[k].detach())) if k in terms else 'non-finite' for k in bad)}; training stopped, "
+                f"{self._kept()}. Lower the learning rate or the term's weight.")
         self.optimizer.zero_grad(set_to_none=True)
         self.scaler.scale(loss).backward()
         self.world.average_gradients(self.trainable)  # multi-process: every process takes the same step
@@ -438,8 +446,8 @@ class Trainer:
         if not torch.isfinite(grad_norm) and not self.scaler.is_enabled():  # fp16: the scaler skips the step
             raise NonFiniteLossError(
                 f"stage {self.stage.name!r}, step {step + 1}: the gradient became {float(grad_norm)} "
-                f"({self._blame(batch)}) although every loss term was finite; no weight was updated, the last "
-                f"checkpoint ({last_path}) is kept. Lower the learning rate or the term's weight.")
+                f"({self._blame(batch)}) although every loss term was finite; no weight was updated, {self._kept()}. "
+                "Lower the learning rate or the term's weight.")
         self.scaler.step(self.optimizer)
         self.scaler.update()
         extra: dict[str, float] = {}

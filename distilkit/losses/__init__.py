@@ -8,13 +8,17 @@ Class/channel dimension is 1 for dense maps; ``mask`` arguments are bool tensors
 map without its class dimension.
 """
 
+from distilkit.losses.cleaners import cleaners
 from distilkit.losses.dskd import dskd
 from distilkit.losses.feature import fitnet, nst, pkt
 from distilkit.losses.logit import dist, kd
+from distilkit.losses.mgd import mgd
+from distilkit.losses.pvkd import pvkd, pvkd_affinity, supervoxel_ids
 from distilkit.losses.rgo2d import rgo2d, rgo2d_region
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
 from distilkit.losses.structural import curvature, point_wise, scene_wise, select_keypoints, structural
 from distilkit.losses.vsd import vsd
 
-__all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "rgo2d_region", "rgo2d", "cross_entropy", "lovasz_softmax",
-           "vsd", "scene_wise", "point_wise", "curvature", "select_keypoints", "structural"]
+__all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "pvkd", "pvkd_affinity", "supervoxel_ids", "mgd", "cleaners",
+           "rgo2d_region", "rgo2d", "cross_entropy", "lovasz_softmax", "vsd", "scene_wise", "point_wise", "curvature",
+           "select_keypoints", "structural"]

@@ -2,7 +2,7 @@
 
 Follows the authors' code (seed_code.md §2.2): inside a region, for each sample, the voxels of the
 dense-geometry occupancy ``mask`` are selected; for every scribble class present among them
-(label != 0, and != 255 which we treat as ignore) the class-mean logits form the global semantic
+(label != 0, and != ``ignore_index``, the class table's ignore label) the class-mean logits form the global semantic
 logits (GSL, K_c x K). *Global*: DIST-style inter/intra Pearson terms on softmax(GSL) of student
 and teacher. *Local* (LSA): each voxel's cosine similarity to every GSL row, student vs teacher,
 compared with MSE. Both are averaged over the batch. GSL by ``index_add`` and LSA by a normalised
@@ -106,13 +106,14 @@ def range_regions(shape: Sequence[int], kind: str = "boxes", device: torch.devic
 
 def rgo2d(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, mask: Tensor,
           regions: str | Sequence[Tensor] = "boxes", region_weights: Sequence[float] = (0.06, 0.15, 0.20),
-          inter: float = 2.625, intra: float = 0.375) -> Tensor:
+          inter: float = 2.625, intra: float = 0.375, ignore_index: int = 255) -> Tensor:
     """Scribble2Scene eq. 2-4 without the image-feature term: sum_r w_r (global_r + local_r).
 
     ``regions``: ``"boxes"`` (default, the authors' nested boxes), ``"rings"``, or a list of bool
     masks of shape (*S) or (B, *S), one per weight. The occupied voxels of all regions are gathered
     once per sample (so the backward pass scatters once into the grid); each region then works on
-    its subset of those rows. Equal to ``sum_r w_r * sum(rgo2d_region(..., mask & region_r))``.
+    its subset of those rows. Equal to ``sum_r w_r * sum(rgo2d_region(..., mask & region_r))``. Labels equal to
+    ``ignore_index`` (the class table's) select no class.
     """
     _check(student_logits, teacher_logits, labels, mask)
     spatial = tuple(student_logits.shape[2:])
@@ -133,7 +134,7 @@ def rgo2d(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, mask: 
         lab = labels[i].reshape(-1)[idx]
         rows = member[:, idx]
         for w, inside in zip(region_weights, rows):
-            out = _terms(ys[inside], yt[inside], lab[inside], inter, intra, 255)
+            out = _terms(ys[inside], yt[inside], lab[inside], inter, intra, ignore_index)
             if out is not None:
                 total = total + w * (out[0] + out[1]) / b
     return total

@@ -44,13 +44,15 @@ class MultiTapObjective(Objective):
 
 
 def register_objective(name: str, cls: type[Objective], *, description: str, paper: str, equation: str,
-                       shapes: str) -> type[Objective]:
-    """Register ``cls`` under ``name``; tap kinds and the default weight are read from the class."""
+                       shapes: str, function: str | None = None) -> type[Objective]:
+    """Register ``cls`` under ``name``; tap kinds and the default weight are read from the class. ``function``:
+    the plain function of ``distilkit.losses`` that computes its maths (default: ``name``)."""
     from distilkit.registry import OBJECTIVES
 
     kinds = tuple(dict.fromkeys(cls.CONSUMES.values()))
     return OBJECTIVES.add(name, cls, description=description, paper=paper, consumes=kinds,
-                          default_weight=cls.DEFAULT_WEIGHT, equation=equation, shapes=shapes)
+                          default_weight=cls.DEFAULT_WEIGHT, equation=equation, shapes=shapes,
+                          function=f"distilkit.losses.{function or name}")
 
 
 __all__ = ["MultiTapObjective", "Objective", "TermContext", "register_objective"]

@@ -16,15 +16,16 @@ from distilkit.taps import SparseVoxels
 MaskName = Literal["all", "valid", "occupied"]
 
 
-def voxel_mask(batch: Batch, which: str) -> Tensor | None:
-    """(B, X, Y, Z) bool: ``all`` -> None, ``valid`` = observed and labelled, ``occupied`` = ground truth non-empty."""
+def voxel_mask(batch: Batch, which: str, ignore_index: int = IGNORE_INDEX) -> Tensor | None:
+    """(B, X, Y, Z) bool: ``all`` -> None, ``valid`` = observed and labelled (target != ``ignore_index``, the class
+    table's), ``occupied`` = valid and non-empty."""
     if which == "all":
         return None
     target = batch.targets["voxel_target"]
     if which == "valid":
-        return target != IGNORE_INDEX
+        return target != ignore_index
     if which == "occupied":
-        return (target != IGNORE_INDEX) & (target != 0)
+        return (target != ignore_index) & (target != 0)
     raise ValueError(f"unknown voxel mask {which!r} (all, valid or occupied)")
 
 

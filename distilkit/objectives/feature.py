@@ -10,6 +10,7 @@ from torch import Tensor, nn
 
 from distilkit.data.batch import Batch
 from distilkit.losses.feature import fitnet, nst
+from distilkit.losses.mgd import mgd
 from distilkit.objectives.base import Objective, register_objective
 from distilkit.objectives.common import conv1x1, match_spatial
 
@@ -52,8 +53,8 @@ class MGDParams(BaseModel):
 
 
 class MGD(Objective):
-    """MGD (Yang et al., ECCV 2022): mask random positions of the (aligned) student map and let a
-    generator (conv3-ReLU-conv3) reconstruct the teacher's full map; MSE (mean over elements)."""
+    """MGD (Yang et al., ECCV 2022): mask random positions of the (aligned) student
+    map and let a generator (conv3-ReLU-conv3) reconstruct the teacher's full map; MSE (mean over elements)."""
 
     Params = MGDParams
     CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
@@ -67,14 +68,13 @@ class MGD(Objective):
         self.generator = nn.Sequential(conv(c, c, 3, padding=1), nn.ReLU(inplace=True), conv(c, c, 3, padding=1))
 
     def forward(self, student: Tensor, teacher: Tensor, batch: Batch) -> Tensor:
-        x = match_spatial(self.align(student), tuple(teacher.shape[2:]))
-        keep = (torch.rand((x.shape[0], 1, *x.shape[2:]), device=x.device) >= self.params.mask_ratio).to(x.dtype)
-        return fitnet(self.generator(x * keep), teacher)
+        return mgd(match_spatial(self.align(student), tuple(teacher.shape[2:])), teacher, self.generator,
+                   self.params.mask_ratio)
 
 
 register_objective("fitnets", FitNets, description="FitNets hint: MSE after a learnable 1x1 regressor (2-D or 3-D)",
                paper="Romero et al., ICLR 2015; SCPNet Table 4", equation="mean (r(F_s) − F_t)²",
-               shapes="(B, C_s, *S) and (B, C_t, *S') feature maps; r: 1×1 conv C_s → C_t")
+               shapes="(B, C_s, *S) and (B, C_t, *S') feature maps; r: 1×1 conv C_s → C_t", function="fitnet")
 register_objective("nst", NST, description="NST: squared MMD (polynomial kernel) between channel-response distributions",
                paper="Huang & Wang, arXiv 2017 (Neuron Selectivity Transfer); SCPNet Table 4", equation="mean k(T,T) + mean k(S,S) − 2 mean k(S,T), k(a,b) = (aᵀb)²",
                shapes="(B, C_s, *S), (B, C_t, *S); the larger map is pooled to the smaller")

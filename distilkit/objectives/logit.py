@@ -28,7 +28,7 @@ class KD(Objective):
     DEFAULT_WEIGHT = 1.0
 
     def forward(self, student: Tensor, teacher: Tensor, batch: Batch) -> Tensor:
-        return kd(student, teacher, self.params.temperature, voxel_mask(batch, self.params.voxels))
+        return kd(student, teacher, self.params.temperature, voxel_mask(batch, self.params.voxels, self.ignore_index))
 
 
 class DISTParams(BaseModel):
@@ -50,7 +50,7 @@ class DIST(Objective):
         k = student.shape[1]
         rows_s = student.movedim(1, -1).reshape(-1, k)
         rows_t = teacher.movedim(1, -1).reshape(-1, k)
-        mask = voxel_mask(batch, self.params.voxels)
+        mask = voxel_mask(batch, self.params.voxels, self.ignore_index)
         if mask is not None:
             rows_s, rows_t = rows_s[mask.reshape(-1)], rows_t[mask.reshape(-1)]
         p = self.params

@@ -4,15 +4,13 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-import torch
-import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
 from distilkit.data.batch import Batch
-from distilkit.data.classes import IGNORE_INDEX
 from distilkit.losses.feature import fitnet
-from distilkit.losses.rgo2d import _gsl, centre_affinity, rgo2d
+from distilkit.losses.cleaners import cleaners
+from distilkit.losses.rgo2d import rgo2d
 from distilkit.objectives.base import MultiTapObjective, register_objective
 from distilkit.objectives.common import match_spatial, voxel_mask
 
@@ -23,10 +21,10 @@ LOGITS_AND_OPTIONAL_FEATURES = {"student": "voxel_logits", "teacher": "voxel_log
 FEATURE_ROLES = frozenset({"student_features", "teacher_features"})
 
 
-def labels_and_geometry(batch: Batch) -> tuple[Tensor, Tensor]:
+def labels_and_geometry(batch: Batch, ignore_index: int) -> tuple[Tensor, Tensor]:
     """Scribble labels (``scribble`` if the data has them, else the dense target) and the dense-geometry
-    occupancy mask (target neither empty nor ignored), as in the authors' code."""
-    occupied = voxel_mask(batch, "occupied")
+    occupancy mask (target neither empty nor ``ignore_index``), as in the authors' code."""
+    occupied = voxel_mask(batch, "occupied", ignore_index)
     assert occupied is not None
     return batch.targets.get("scribble", batch.targets["voxel_target"]), occupied
 
@@ -60,8 +58,9 @@ class RGO2D(MultiTapObjective):
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         p = self.params
-        labels, geometry = labels_and_geometry(batch)
-        loss = rgo2d(taps["student"], taps["teacher"], labels, geometry, p.regions, p.region_weights, p.inter, p.intra)
+        labels, geometry = labels_and_geometry(batch, self.ignore_index)
+        loss = rgo2d(taps["student"], taps["teacher"], labels, geometry, p.regions, p.region_weights, p.inter, p.intra,
+                     self.ignore_index)
         feat = _feature_term(taps)
         return loss if feat is None else loss + p.feature_weight * feat
 
@@ -88,28 +87,11 @@ class CleanerS(MultiTapObjective):
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         p = self.params
-        s_logits, t_logits = taps["student"], taps["teacher"]
-        labels = batch.targets["voxel_target"]
-        zero = s_logits.sum() * 0.0
-        sc, sa, n = zero, zero, 0
-        for i in range(s_logits.shape[0]):
-            valid = (labels[i] != IGNORE_INDEX).reshape(-1)
-            ys = s_logits[i].flatten(1).T[valid]
-            yt = t_logits[i].flatten(1).T[valid].to(ys.dtype)
-            lab = labels[i].reshape(-1)[valid]
-            sel = lab != 0
-            if not bool(sel.any()):
-                continue
-            classes, inv = torch.unique(lab[sel], return_inverse=True)
-            gs, gt = _gsl(ys[sel], inv, classes.numel()), _gsl(yt[sel], inv, classes.numel())
-            log_ps = torch.log_softmax(gs / p.temperature, 1)
-            log_pt = torch.log_softmax(gt / p.temperature, 1)
-            sc = sc + p.temperature**2 * (log_pt.exp() * (log_pt - log_ps)).sum(1).mean()
-            sa = sa + F.mse_loss(centre_affinity(ys, gs), centre_affinity(yt, gt))
-            n += 1
-        total = (p.kd_sc * sc + p.kd_sa * sa) / max(n, 1)
-        feat = _feature_term(taps)
-        return total if feat is None else total + p.kd_t * feat
+        sf, tf = taps.get("student_features"), taps.get("teacher_features")
+        if sf is not None and tf is not None:
+            sf = match_spatial(sf, tuple(tf.shape[2:]))
+        return cleaners(taps["student"], taps["teacher"], batch.targets["voxel_target"], p.temperature, p.kd_sc,
+                        p.kd_sa, self.ignore_index, sf, tf, p.kd_t)
 
 
 register_objective("rgo2d", RGO2D, description="RGO²D: range-guided global (class-centre DIST) + local (affinity) distillation",

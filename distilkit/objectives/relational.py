@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import torch
@@ -10,9 +9,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
 from distilkit.data.batch import Batch
-from distilkit.losses.dskd import dskd
 from distilkit.losses.feature import pkt
-from distilkit.losses.logit import kd
+from distilkit.losses.pvkd import pvkd, supervoxel_ids
 from distilkit.objectives.base import MultiTapObjective, Objective, register_objective
 from distilkit.objectives.common import MaskName, aligned_pairs, voxel_mask
 from distilkit.taps import SparseVoxels
@@ -84,38 +82,21 @@ class PVKD(MultiTapObjective):
     TEACHER_ROLES = frozenset({"teacher", "teacher_logits"})
     DEFAULT_WEIGHT = 1.0
 
-    def supervoxel_ids(self, coords: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
-        p = self.params
-        x, y, z = shape
-        cx = coords[:, 1].float() + 0.5
-        cy = coords[:, 2].float() + 0.5 - y / 2
-        r = torch.sqrt(cx**2 + cy**2)
-        r_bin = (r / math.hypot(x, y / 2) * p.radial_bins).long().clamp(0, p.radial_bins - 1)
-        a_bin = ((torch.atan2(cy, cx) + math.pi / 2) / math.pi * p.angular_bins).long().clamp(0, p.angular_bins - 1)
-        z_bin = (coords[:, 3] * p.height_bins // z).clamp(0, p.height_bins - 1)
-        cell = (r_bin * p.angular_bins + a_bin) * p.height_bins + z_bin
-        n_cells = p.radial_bins * p.angular_bins * p.height_bins
-        return coords[:, 0] * n_cells + cell, r_bin
-
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         p = self.params
-        out = kd(taps["student_logits"], taps["teacher_logits"], p.temperature, voxel_mask(batch, p.voxels))
         student: SparseVoxels = taps["student"]
         fs, ft, _ = aligned_pairs(student, taps["teacher"])
-        groups, r_bin = self.supervoxel_ids(student.coords, student.spatial_shape)
-        ids, inv = torch.unique(groups, return_inverse=True)
-        chosen = torch.arange(ids.numel(), device=ids.device)
-        if p.num_supervoxels is not None and ids.numel() > p.num_supervoxels:
-            weight = torch.zeros(ids.numel(), device=ids.device).index_reduce_(0, inv, r_bin.float() + 1, "amax",
-                                                                                include_self=False)
-            chosen = torch.multinomial(weight, p.num_supervoxels, replacement=False)
-        order = torch.argsort(inv)
-        counts = torch.bincount(inv, minlength=ids.numel())
-        starts = torch.cumsum(counts, 0) - counts
-        aff = [dskd(fs[order[s:s + c]], ft[order[s:s + c]])
-               for s, c in zip(starts[chosen].tolist(), counts[chosen].tolist())]
-        affinity = torch.stack(aff).mean() if aff else fs.sum() * 0.0
-        return p.output_weight * out + p.affinity_weight * affinity
+        groups, r_bin = supervoxel_ids(student.coords, student.spatial_shape, p.radial_bins, p.angular_bins,
+                                       p.height_bins)
+        chosen = None
+        if p.num_supervoxels is not None:  # difficulty-aware: far cells are drawn more often
+            ids, inv = torch.unique(groups, return_inverse=True)
+            if ids.numel() > p.num_supervoxels:
+                weight = torch.zeros(ids.numel(), device=ids.device).index_reduce_(0, inv, r_bin.float() + 1, "amax",
+                                                                                    include_self=False)
+                chosen = torch.multinomial(weight, p.num_supervoxels, replacement=False)
+        return pvkd(fs, ft, groups, taps["student_logits"], taps["teacher_logits"], p.temperature,
+                    voxel_mask(batch, p.voxels, self.ignore_index), p.output_weight, p.affinity_weight, chosen)
 
 
 register_objective("pkt", PKT, description="PKT: KL between cosine-kernel probability distributions over sampled voxels",

@@ -1,0 +1,2 @@
+"""Comparison sweeps: variants of one stage over seeds (``spec`` the file, ``runner`` the runs, ``results`` the
+table)."""
