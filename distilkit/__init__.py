@@ -18,4 +18,8 @@
 
 __version__ = "0.1.0"
 
+from distilkit.repro import set_environment as _set_environment
+
+_set_environment()  # MKL's and cuBLAS's reproducibility, read when they first run (DISTILKIT_DETERMINISTIC=0 opts out)
+
 __all__ = ["__version__"]

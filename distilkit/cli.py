@@ -262,7 +262,7 @@ def _cmd_complete(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(argv)  # `import distilkit` set the libraries' reproducibility before torch
     try:
         return int(args.fn(args) or 0)
     except KeyboardInterrupt:

@@ -5,6 +5,8 @@ from pathlib import Path
 
 import pytest
 
+import distilkit  # noqa: F401  first: it sets MKL's reproducibility before any test multiplies a matrix
+
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURES = Path(__file__).resolve().parent / "fixtures"  # copied in; tests never read outside the repo
 

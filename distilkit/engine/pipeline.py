@@ -290,6 +290,7 @@ class Pipeline:
         import torch
 
         from distilkit.engine.io import seed_everything
+        from distilkit.repro import use_deterministic_algorithms
         from distilkit.engine.models import load_teacher, pick_device
         from distilkit.console import stage_progress
         from distilkit.engine.trainer import Trainer, write_summary
@@ -310,6 +311,7 @@ class Pipeline:
                               yaml.safe_dump({"recipe": self.recipe.name, "stage": name, "hash": self.hashes[name],
                                               "distilkit": __version__, **cfg}, sort_keys=False))
         seed_everything(seed)
+        deterministic = use_deterministic_algorithms()
         device = pick_device(stage.spec.train.device)
         teacher = None
         if stage.teacher is not None and stage.distill:
@@ -333,6 +335,7 @@ class Pipeline:
             "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
             "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": seed,
             "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them
+            "deterministic": deterministic,
             "classes": {"names": list(self.resolved.data_info.classes.names),
                         "colours": [list(c) for c in self.resolved.data_info.classes.colours]},
             "steps": result.steps, "train_seconds": round(result.seconds, 2),

@@ -1,0 +1,45 @@
+"""Bitwise-repeatable runs: the same recipe and seed give the same checkpoints in any process on one machine.
+
+Two things vary between processes on the CPU unless they are pinned:
+
+* PyTorch's CPU backward of advanced indexing (``x[idx]`` with repeated indices, e.g. gathering k nearest
+  neighbours) accumulates from several threads in a racy order; ``torch.use_deterministic_algorithms`` makes it
+  (and every other op that has a deterministic variant) deterministic — set when a stage starts;
+* MKL's reductions may depend on the memory alignment of an operand (a view into a tensor); its strict
+  conditional numerical reproducibility (``MKL_CBWR=AUTO,STRICT``) pins them, and cuBLAS needs a fixed workspace
+  (``CUBLAS_WORKSPACE_CONFIG``) — both read when the libraries first run, so ``import distilkit`` sets them (the
+  command line imports it before torch; subprocesses, sweeps' jobs and torchrun's children inherit them). A program
+  that multiplies matrices with torch before it imports distilkit keeps MKL's default mode.
+
+On by default; ``DISTILKIT_DETERMINISTIC=0`` turns both off (faster where the deterministic variants are slower).
+Same numbers need the same thread count too (``torch.get_num_threads()``, recorded in each stage's summary).
+"""
+
+from __future__ import annotations
+
+import os
+
+ENV = "DISTILKIT_DETERMINISTIC"
+LIBRARY_ENV = {"MKL_CBWR": "AUTO,STRICT", "CUBLAS_WORKSPACE_CONFIG": ":4096:8"}
+
+
+def enabled() -> bool:
+    """Whether runs are made bitwise repeatable (``DISTILKIT_DETERMINISTIC``, default on)."""
+    return os.environ.get(ENV, "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+def set_environment() -> None:
+    """Before torch loads: the libraries' reproducibility settings, unless the user set them (or opted out)."""
+    if enabled():
+        for key, value in LIBRARY_ENV.items():
+            os.environ.setdefault(key, value)
+
+
+def use_deterministic_algorithms() -> bool:
+    """Deterministic variants of PyTorch's ops for the training that follows (a warning, not an error, for an
+    op that has none); returns whether they are on."""
+    import torch
+
+    on = enabled()
+    torch.use_deterministic_algorithms(on, warn_only=True)
+    return on
