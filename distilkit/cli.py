@@ -96,7 +96,34 @@ def _cmd_validate(args: argparse.Namespace) -> int:
             + (f"; {', '.join(t.name for t in s.distill)}" if s.distill else "") + ")"
             for n, s in res.stages.items())
         print(f"{path}: ok — {len(res.stages)} stage(s): {stages}")
+        if not args.no_memory:
+            _validate_memory(res)
     return 0
+
+
+def _validate_memory(res: object) -> None:
+    """Each training stage's memory per step (one step at small sizes, scaled), with a warning where it does not
+    fit in what the machine has free."""
+    from distilkit.console import make_console
+    from distilkit.engine.memory import estimate_stage
+
+    console = make_console()
+    for name in res.order:  # type: ignore[attr-defined]
+        try:
+            with console.status(f"stage {name}: one training step at a small size, to estimate its memory"):
+                estimate = estimate_stage(res, name)
+        except Exception as exc:  # the estimate is advice: a probe that fails must not fail validation
+            console.print(f"[yellow]stage {name}: memory not estimated ({type(exc).__name__}: {exc})[/]")
+            continue
+        if estimate is None:
+            continue
+        print(f"  {estimate.line()}")
+        warning = estimate.warning()
+        if warning:
+            stage = res.stages[name]  # type: ignore[attr-defined]
+            console.print(f"[yellow]warning:[/] {warning}: lower train.batch_size (now {estimate.batch_size}), the "
+                          f"grid (data.params.scale) or the size of {stage.student.adapter}'s model", highlight=False,
+                          soft_wrap=True)
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
@@ -219,6 +246,8 @@ def build_parser() -> argparse.ArgumentParser:
     cp.set_defaults(fn=_cmd_compare)
     v = sub.add_parser("validate", help="check recipes without training (exit status 2 on a problem)")
     v.add_argument("recipes", nargs="+")
+    v.add_argument("--no-memory", action="store_true", help="skip the memory estimate (one training step of each "
+                   "stage at a small size)")
     v.set_defaults(fn=_cmd_validate)
     ls = sub.add_parser("list", help="registered adapters, objectives, task losses, datasets and metrics")
     ls.add_argument("kind", nargs="?", choices=["adapters", "objectives", "task losses", "datasets", "metrics"])

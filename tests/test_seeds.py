@@ -16,10 +16,11 @@ from distilkit.engine.seeds import default_baseline, seed_rows
 from distilkit.recipe import recipe_from_dict
 
 
-def fake(stage: str, miou: float, iou: float, last: float) -> SimpleNamespace:
-    summary = {"stage": stage, "label": stage, "adapter": "scpnet", "objectives": [],
+def fake(stage: str, miou: float, iou: float, last: float, val: float = 0.2,
+         objectives: tuple[str, ...] = ()) -> SimpleNamespace:
+    summary = {"stage": stage, "label": stage, "adapter": "scpnet", "objectives": list(objectives), "input": "1 frame",
                "test": {"best": {"miou": miou, "iou": iou}, "last": {"miou": last, "iou": iou}, "best_step": 5},
-               "report_split": "test"}
+               "best": {"step": 5, "scores": {"miou": val, "iou": iou}}, "report_split": "test"}
     return SimpleNamespace(name=stage, summary=summary, reused=False)
 
 
@@ -111,4 +112,42 @@ def test_seed_tables_follow_the_stage_metric_not_ssc(tmp_path: Path) -> None:
     assert rows["kd"]["main"] == [0.20, 0.35] and rows["kd"]["delta"] == pytest.approx([-0.10, -0.05])
     path = write_seeds_report(tmp_path, list(rows.values()), "plain", Console(file=open(tmp_path / "out.txt", "w")))
     text = path.read_text()
-    assert "| chamfer best |" in text and "Δ chamfer" in text and "-0.075 ± 0.035" in text and "mIoU" not in text
+    assert "| test chamfer best |" in text and "Δ test chamfer" in text and "-0.075 ± 0.035" in text and "mIoU" not in text
+
+
+def test_weights_are_chosen_on_validation_never_on_test(tmp_path: Path) -> None:
+    """Two weights of DSKD: the one with the better mean validation mIoU is chosen even though the other has the
+    better test mIoU; a method tried at one weight is its own choice; the report leads with the chosen rows, says
+    what the seeds can resolve and draws the paired differences with their intervals."""
+    from rich.console import Console
+
+    from distilkit.engine.seeds import write_seeds_report
+
+    rows_in = {  # stage: (test mIoU per seed, val mIoU per seed, objectives)
+        "none": ([0.30, 0.32, 0.31], [0.29, 0.30, 0.30], ()),
+        "dskd_300": ([0.36, 0.37, 0.35], [0.30, 0.31, 0.30], ("dskd×300",)),  # best on test
+        "dskd_3000": ([0.33, 0.34, 0.33], [0.33, 0.34, 0.32], ("dskd×3000",)),  # best on validation
+        "kd": ([0.31, 0.30, 0.32], [0.30, 0.29, 0.31], ("kd×1",)),
+    }
+    results = {seed: [fake(stage, test[i], 0.5, test[i], val[i], objs) for stage, (test, val, objs) in rows_in.items()]
+               for i, seed in enumerate((0, 1, 2))}
+    rows = {r["stage"]: r for r in seed_rows(results, "none")}
+    assert rows["dskd_3000"]["chosen"] and not rows["dskd_300"]["chosen"]
+    assert rows["kd"]["chosen"] and rows["none"]["chosen"] and rows["dskd_300"]["alternatives"] == 2
+    assert rows["dskd_3000"]["val_mean"] == pytest.approx(np.mean(rows_in["dskd_3000"][1]))
+    assert rows["dskd_3000"]["val_std"] == pytest.approx(np.std(rows_in["dskd_3000"][1], ddof=1))
+    path = write_seeds_report(tmp_path, list(rows.values()), "none", Console(file=open(tmp_path / "o.txt", "w")))
+    text = path.read_text()
+    chosen_table = text.split("## Each method at the weight chosen on validation")[1].split("## Every variant")[0]
+    assert "dskd_3000 ◆" in chosen_table and "dskd_300 " not in chosen_table and "| kd |" in chosen_table
+    assert "| val mIoU (selects) | test mIoU best |" in text and "Power: with 3 seeds" in text
+    assert (tmp_path / "seeds_forest.png").stat().st_size > 1000 and "seeds_forest.png" in text
+
+
+def test_detectable_effect_is_the_normal_theory_approximation() -> None:
+    from distilkit.engine.seeds import detectable_effect
+
+    # t(0.975, 7) = 2.364624 and t(0.80, 7) = 0.896030 (a printed t table: 2.365 and 0.896)
+    assert detectable_effect(1.5, 8) == pytest.approx((2.364624 + 0.896030) * 1.5 / np.sqrt(8), rel=1e-5)
+    assert detectable_effect(1.5, 16) < detectable_effect(1.5, 8) < detectable_effect(3.0, 8)
+    assert np.isnan(detectable_effect(1.0, 1))

@@ -16,6 +16,7 @@ from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES, remap, seg_lut, ss
 from distilkit.data.info import DataInfo
 from distilkit.data.lidar import LIDAR_INPUTS, LIDAR_TARGETS, collate_lidar
 from distilkit.data.params import SceneParams, SemanticKittiParams, SyntheticParams
+from distilkit.data.probe import cloud_plan, grid_plan
 from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.data import semantickitti as skio
 from distilkit.errors import DataError
@@ -148,7 +149,7 @@ DATASETS.add(
     description="procedural street scenes, ray-cast LiDAR scans, multi-frame input and SSC ground truth (cached on disk)",
     paper="distilkit (SemanticKITTI conventions, Behley et al. ICCV 2019)",
     params=SyntheticParams, info=synthetic_info, collate=collate_lidar, version=GENERATOR_VERSION,
-    has_split=lambda p, split: True,
+    has_split=lambda p, split: True, probe=grid_plan,
 )
 DATASETS.add(
     "semantickitti", _kitti_factory,
@@ -156,7 +157,7 @@ DATASETS.add(
     paper="Behley et al., SemanticKITTI, ICCV 2019",
     params=SemanticKittiParams,
     info=kitti_info, collate=collate_lidar, version=1,
-    has_split=lambda p, split: split != "test" or bool(p.test_sequences),
+    has_split=lambda p, split: split != "test" or bool(p.test_sequences), probe=grid_plan,
 )
 
 
@@ -184,5 +185,5 @@ DATASETS.add(
                 "(padded point clouds; cached on disk)",
     paper="Nunes et al., LiDiff, CVPR 2024 (data pipeline); distilkit synthetic streets",
     params=SceneParams, info=_scenes_info, collate=_collate_scenes, version=1,
-    has_split=lambda p, split: True,
+    has_split=lambda p, split: True, probe=cloud_plan,
 )

@@ -290,6 +290,7 @@ class Pipeline:
         import torch
 
         from distilkit.engine.io import seed_everything
+        from distilkit.engine.memory import is_out_of_memory, out_of_memory
         from distilkit.repro import use_deterministic_algorithms
         from distilkit.engine.models import load_teacher, pick_device
         from distilkit.console import stage_progress
@@ -317,18 +318,25 @@ class Pipeline:
         if stage.teacher is not None and stage.distill:
             teacher = load_teacher(stage.teacher, self.resolved.data_info, self._teacher_checkpoint(stage), device)
         train_set, val_set = self.dataset("train"), self.dataset("val")
-        with stage_progress(self.console, name) as on_step:
-            trainer = Trainer(stage, self.resolved.data_info, train_set, val_set, run_dir, seed,
-                              teacher, on_step, stop_after, collate=self.collate, init=self._init(stage),
-                              world=self.world)
-            result = trainer.fit()
-        if stop_after is not None and result.steps < trainer.total_steps:
-            self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")
-            return None
-        split = "test" if self.has_split("test") else "val"
-        best = trainer.best_model()  # read once: scored on the test split, previewed on a validation scene
-        test = trainer.evaluate_checkpoints(self.dataset(split), best)
-        trainer.write_preview(val_set, best)
+        trainer: Trainer | None = None
+        try:
+            with stage_progress(self.console, name) as on_step:
+                trainer = Trainer(stage, self.resolved.data_info, train_set, val_set, run_dir, seed,
+                                  teacher, on_step, stop_after, collate=self.collate, init=self._init(stage),
+                                  world=self.world)
+                result = trainer.fit()
+            if stop_after is not None and result.steps < trainer.total_steps:
+                self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")
+                return None
+            split = "test" if self.has_split("test") else "val"
+            best = trainer.best_model()  # read once: scored on the test split, previewed on a validation scene
+            test = trainer.evaluate_checkpoints(self.dataset(split), best)
+            trainer.write_preview(val_set, best)
+        except (RuntimeError, MemoryError) as exc:  # out of memory: one line that says what to lower
+            if not is_out_of_memory(exc):
+                raise
+            kept = trainer.kept() if trainer is not None else "no checkpoint had been written yet"
+            raise out_of_memory(stage, self.resolved.data_info, exc, kept) from None
         summary = {
             "status": "finished", "stage": name, "hash": self.hashes[name], "label": stage.spec.label or name,
             "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),

@@ -74,6 +74,7 @@ def stage_row(summary: dict[str, Any]) -> dict[str, Any]:
             "input": summary.get("input", _frames(summary.get("frames"))),
             "teacher": summary.get("teacher") or "—",
             "objectives": ", ".join(summary.get("objectives", [])) or "—", "view": view,
+            "objective_list": list(summary.get("objectives", [])),
             "best": {k: best.get(k, nan) for k, _, _ in view.columns},
             "last": {k: last.get(k, nan) for k, _, _ in view.columns},
             "val": val.get(view.select, nan),

@@ -189,7 +189,7 @@ class Trainer:
         })
         self._saved_step = step
 
-    def _kept(self) -> str:
+    def kept(self) -> str:
         """What a stopped run leaves to resume from, as it is: the last checkpoint and its step, or none."""
         if self._saved_step is None:
             return "no checkpoint had been written yet (a new run starts from step 0)"
@@ -437,7 +437,7 @@ class Trainer:
             raise NonFiniteLossError(
                 f"stage {self.stage.name!r}, step {step + 1}: loss term(s) {', '.join(bad)} became "
                 f"{', '.join(str(float(terms[k].detach())) if k in terms else 'non-finite' for k in bad)}; training stopped, "
-                f"{self._kept()}. Lower the learning rate or the term's weight.")
+                f"{self.kept()}. Lower the learning rate or the term's weight.")
         self.optimizer.zero_grad(set_to_none=True)
         self.scaler.scale(loss).backward()
         self.world.average_gradients(self.trainable)  # multi-process: every process takes the same step
@@ -446,7 +446,7 @@ class Trainer:
         if not torch.isfinite(grad_norm) and not self.scaler.is_enabled():  # fp16: the scaler skips the step
             raise NonFiniteLossError(
                 f"stage {self.stage.name!r}, step {step + 1}: the gradient became {float(grad_norm)} "
-                f"({self._blame(batch)}) although every loss term was finite; no weight was updated, {self._kept()}. "
+                f"({self._blame(batch)}) although every loss term was finite; no weight was updated, {self.kept()}. "
                 "Lower the learning rate or the term's weight.")
         self.scaler.step(self.optimizer)
         self.scaler.update()

@@ -1,0 +1,138 @@
+"""Memory: `distilkit validate` estimates a stage's peak memory per training step and warns where it does not fit;
+a stage that runs out of memory anyway ends in one line that names it and says what to lower, its checkpoint kept."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from conftest import tiny_recipe
+from distilkit.cli import main
+from distilkit.engine import memory
+from distilkit.engine.io import load_checkpoint
+from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.resolve import resolve
+from distilkit.recipe import recipe_from_dict
+
+GIB = 1024**3
+
+
+def test_the_estimate_counts_weights_once_and_the_rest_per_sample() -> None:
+    one, two = tiny_recipe(steps=1), tiny_recipe(steps=1)
+    two["stages"]["teacher"]["train"]["batch_size"] = 2
+    first = memory.estimate_stage(resolve(recipe_from_dict(one), "one"), "teacher")
+    second = memory.estimate_stage(resolve(recipe_from_dict(two), "two"), "teacher")
+    assert first is not None and second is not None
+    assert first.how == "measured" and first.low == first.high and first.size == "a 32x32x4 grid"
+    fixed, total = memory.measure_step(resolve(recipe_from_dict(one), "one"), "teacher",
+                                       first_scene := resolve(recipe_from_dict(one), "one").data_params)
+    assert first_scene.scale == 8 and first.high == pytest.approx(total, rel=1e-6)
+    assert 0 < fixed < total
+    assert second.high == pytest.approx(fixed + 2 * (total - fixed), rel=1e-6)  # the per-sample part twice
+    # a stage that does not train needs no estimate
+    three = tiny_recipe(steps=1)
+    three["stages"]["teacher"]["train"] = {"steps": 0}
+    assert memory.estimate_stage(resolve(recipe_from_dict(three), "three"), "teacher") is None
+
+
+def test_validate_prints_the_estimate_and_warns_when_the_step_does_not_fit(tmp_path: Path, capsys,
+                                                                         monkeypatch) -> None:
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(tiny_recipe(steps=1)))
+    assert main(["validate", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "stage teacher: about" in out and "per training step on the cpu (batch 1, a 32x32x4 grid; measured)" in out
+    assert "warning" not in out
+    monkeypatch.setattr(memory, "available_memory", lambda device: 1024**2)  # a machine with 1 MiB free
+    assert main(["validate", str(path)]) == 0  # advice, not an error
+    out = capsys.readouterr().out
+    assert "warning: stage teacher needs at least" in out and "more than the 0.0 GB free on the cpu" in out
+    assert "lower train.batch_size (now 1), the grid (data.params.scale) or the size of scpnet's model" in out
+    assert main(["validate", str(path), "--no-memory"]) == 0
+    assert "per training step" not in capsys.readouterr().out
+
+
+def test_an_extrapolated_estimate_is_a_range_and_the_warning_says_may() -> None:
+    est = memory.MemoryEstimate("teacher", 12 * GIB, 25 * GIB, 2, "a 256x256x32 grid",
+                                "extrapolated from 32,768 and 262,144 voxels", "cpu", 21 * GIB)
+    assert est.figure == "12.0-25.0 GB" and est.warning().startswith("stage teacher may need up to 25.0 GB")
+    assert memory.MemoryEstimate("t", 5 * GIB, 5.2 * GIB, 2, "", "", "cpu", 21 * GIB).warning() is None
+
+
+def test_running_out_of_memory_is_one_line_and_keeps_the_checkpoint(tmp_path: Path, monkeypatch, capsys) -> None:
+    recipe = tiny_recipe(steps=3, distill=False)
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    from distilkit.engine.trainer import Trainer
+
+    real = Trainer.loss_terms
+    calls = {"n": 0}
+
+    def allocation_fails(self, batch):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate "
+                               "memory: you tried to allocate 34359738368 bytes. Error code 12 (Cannot allocate memory)")
+        return real(self, batch)
+
+    monkeypatch.setattr(Trainer, "loss_terms", allocation_fails)
+    pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
+    with pytest.raises(memory.OutOfMemoryError) as err:
+        pipe.run()
+    text = str(err.value)
+    assert "\n" not in text and text.startswith("stage 'teacher' ran out of memory (an allocation of 32,768 MiB failed")
+    assert "train.batch_size 1, a 32x32x4 grid, adapter scpnet" in text and "step 1) is kept" in text
+    assert "Lower train.batch_size, the grid (data.params.scale) or the model's size" in text
+    assert load_checkpoint(pipe.run_dir("teacher") / "checkpoints" / "last.pt")["step"] == 1
+    calls["n"] = 0
+    assert main(["run", str(path), "-o", str(tmp_path / "cli"), "-q"]) == 2
+    err_text = capsys.readouterr().err
+    assert err_text.startswith("error: stage 'teacher' ran out of memory") and "Traceback" not in err_text
+
+
+def test_other_runtime_errors_are_not_taken_for_memory() -> None:
+    assert memory.is_out_of_memory(MemoryError())
+    assert memory.is_out_of_memory(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB"))
+    assert not memory.is_out_of_memory(RuntimeError("shape '[2, 3]' is invalid for input of size 5"))
+    assert memory._cause(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB (GPU 0)")) == \
+        "an allocation of 2.00 GiB on the GPU failed"
+
+
+@pytest.mark.slow
+def test_the_full_grid_estimate_brackets_the_measured_peak() -> None:
+    """A recipe at SemanticKITTI's full grid: measured at 64x64x8 and 128x128x16, the range holds the peak of a
+    real step at 256x256x32 (batch 1)."""
+    recipe = tiny_recipe(steps=1)
+    recipe["data"]["params"].update(scale=1)
+    res = resolve(recipe_from_dict(recipe), "full")
+    est = memory.estimate_stage(res, "teacher")
+    assert est is not None and est.size == "a 256x256x32 grid" and est.low < est.high
+    _, truth = memory.measure_step(res, "teacher", res.data_params.model_copy(update={"num_train": 1}))
+    assert 0.9 * est.low <= truth <= 1.1 * est.high
+
+
+@pytest.mark.slow
+def test_a_real_out_of_memory_under_a_memory_limit_is_one_line(tmp_path: Path) -> None:
+    """SCPNet with 64 channels on a 128x128x16 grid, in a process limited to 4 GiB of address space."""
+    import resource
+    import subprocess
+    import sys
+
+    recipe = tiny_recipe(steps=2, distill=False)
+    recipe["data"]["params"].update(scale=2)
+    recipe["stages"]["teacher"]["model"]["params"].update(channels=64)
+    recipe["stages"]["teacher"]["train"]["batch_size"] = 2
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
+
+    done = subprocess.run([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "runs"), "-q"],
+                          capture_output=True, text=True, preexec_fn=limit, timeout=600)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert done.stderr.startswith("error: stage 'teacher' ran out of memory") and "Traceback" not in done.stderr
+    assert done.stderr.count("\n") == 1
