@@ -295,7 +295,7 @@ def sampler_cases(device: torch.device, quick: bool) -> list[Case]:
     from distilkit.recipe import recipe_from_dict
 
     cases = []
-    for scan in ((256,) if quick else (256, 1024)):
+    for scan in ((64,) if quick else (256, 1024)):
         recipe = {"name": "bench", "data": {"dataset": "synthetic-scenes",
                                             "params": {"scan_points": scan, "scene_points": 10 * scan}},
                   "stages": {"m": {"model": {"adapter": "lidiff", "params": {"channels": 32, "blocks": 2,
@@ -314,9 +314,50 @@ def sampler_cases(device: torch.device, quick: bool) -> list[Case]:
     return cases
 
 
+def determinism_cases(device: torch.device, quick: bool) -> list[Case]:
+    """The cost of bitwise-repeatable runs (:mod:`distilkit.repro`): one training step of the quickstart's SCPNet
+    student and of recipes/js3cnet_dskd.yaml's JS3C-Net student (batch 2, two scenes of their data), with PyTorch's
+    deterministic algorithms off ('fast') and on ('naive'), alternately on the same trainer. MKL's strict mode
+    (``MKL_CBWR``) is read when the process starts and is not toggled here."""
+    import tempfile
+
+    from distilkit.data.probe import _one_scene
+    from distilkit.engine.probe import probe_trainer
+    from distilkit.engine.resolve import resolve
+    from distilkit.recipe import recipe_from_dict
+
+    data = {"dataset": "synthetic-lidar", "params": {"scale": 8 if quick else 4, "input_frames": 4, "gt_frames": 10,
+                                                     "azimuth_steps": 768}}
+    models = {"SCPNet student": {"adapter": "scpnet", "params": {"frames": 1, "channels": 8, "point_mlp": [32, 64],
+                                                                  "seg_channels": 16}},
+              "JS3C-Net student": {"adapter": "js3cnet", "params": {"frames": 1}}}
+    cases = []
+    for label, model in models.items():
+        recipe = {"name": "bench", "data": data, "stages": {"s": {"model": model, "train": {"batch_size": 2,
+                                                                                              "device": device.type}}}}
+        res = resolve(recipe_from_dict(recipe, "bench"), "bench")
+        params = _one_scene(res.data_params).model_copy(update={"num_train": 2})
+        trainer = probe_trainer(res, "s", params, Path(tempfile.mkdtemp(prefix="distilkit-bench-")), batch_size=2)
+        batch = trainer._batch(0)
+        trainer.student.train()
+
+        def step(on: bool, trainer=trainer, batch=batch) -> Tensor:
+            torch.use_deterministic_algorithms(on, warn_only=True)
+            torch.utils.deterministic.fill_uninitialized_memory = False  # type: ignore[attr-defined]  # as repro does
+            try:
+                return torch.tensor(trainer.train_step(batch, 0)["loss"])
+            finally:
+                torch.use_deterministic_algorithms(False)
+
+        size = f"train step, batch 2, {'x'.join(map(str, res.data_info.grid.shape))}"
+        cases.append(Case(f"determinism: {label}", size, lambda step=step: step(False), lambda step=step: step(True),
+                          [], same_value=False))
+    return cases
+
+
 BENCHES: dict[str, Callable[[torch.device, bool], list[Case]]] = {
     "dskd": dskd_cases, "pkt": pkt_cases, "rgo2d": rgo2d_cases, "kd": kd_cases, "nst": nst_cases,
-    "structural": structural_cases, "sampler": sampler_cases}
+    "structural": structural_cases, "sampler": sampler_cases, "determinism": determinism_cases}
 
 
 def _fmt_mem(b: int | None) -> str:

@@ -5,6 +5,10 @@ from pathlib import Path
 
 import pytest
 
+if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest -n N: one thread per worker (before torch loads), so the
+    os.environ["OMP_NUM_THREADS"] = "1"  # workers share the cores instead of fighting over them
+    os.environ["MKL_NUM_THREADS"] = "1"
+
 import distilkit  # noqa: F401  first: it sets MKL's reproducibility before any test multiplies a matrix
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -17,6 +21,25 @@ TINY_DATA = {"scale": 8, "num_train": 2, "num_val": 1, "num_test": 1, "input_fra
 @pytest.fixture(autouse=True, scope="session")
 def _cache(tmp_path_factory: pytest.TempPathFactory) -> None:
     os.environ.setdefault("DISTILKIT_CACHE", str(tmp_path_factory.mktemp("cache")))
+
+
+@pytest.fixture(autouse=True)
+def _render_plots_only_where_looked_at(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rendering PNGs is two thirds of a tiny run's time (matplotlib's text layout): a test that does not look at
+    the pictures gets each figure closed and an empty file where the PNG goes (every report path still runs, up to
+    the drawing); tests marked ``plots`` render them for real."""
+    if request.node.get_closest_marker("plots"):
+        return
+    from distilkit.report import plots
+
+    def close_only(fig, path):
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
+        path.write_bytes(b"")
+        return path
+
+    monkeypatch.setattr(plots, "save", close_only)
 
 
 def tiny_recipe(name: str = "tiny", steps: int = 2, distill: bool = True, adapter: str = "scpnet") -> dict:

@@ -290,6 +290,7 @@ def point_recipe(metric: str = "chamfer") -> dict[str, Any]:
                                       "train": {"steps": 6, "batch_size": 2, "eval_every": 2, "metric": metric}}}}
 
 
+@pytest.mark.plots
 def test_point_cloud_adapter_trains_and_is_scored_by_its_metric(tmp_path) -> None:
     (result,) = Pipeline(recipe_from_dict(point_recipe()), tmp_path / "runs", quiet=True).run()
     evals = [json.loads(line)["eval"] for line in (result.run_dir / "metrics.jsonl").read_text().splitlines()

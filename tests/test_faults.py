@@ -88,13 +88,27 @@ def _kill_when(cmd: list[str], ready, timeout: float = 120.0) -> None:
         proc.wait()
 
 
-@pytest.mark.parametrize("moment", ["first checkpoint", "best checkpoint", "sixth log line", "evaluation"])
-def test_a_run_killed_at_any_moment_resumes_to_the_same_final_metrics(tmp_path, moment: str) -> None:
+def _kill_recipe() -> dict:
     recipe = tiny_recipe(steps=8, distill=False)
     recipe["stages"]["teacher"]["train"]["eval_every"] = 4
+    return recipe
+
+
+@pytest.fixture(scope="module")
+def clean_run(tmp_path_factory: pytest.TempPathFactory):
+    """The uninterrupted run every killed one must end equal to (trained once for all kill moments)."""
+    (clean,) = Pipeline(recipe_from_dict(_kill_recipe()), tmp_path_factory.mktemp("clean"), quiet=True).run()
+    return clean
+
+
+@pytest.mark.parametrize("moment", ["first checkpoint", pytest.param("best checkpoint", marks=pytest.mark.slow),
+                                    pytest.param("sixth log line", marks=pytest.mark.slow), "evaluation"])
+def test_a_run_killed_at_any_moment_resumes_to_the_same_final_metrics(tmp_path, moment: str, clean_run) -> None:
+    """Two kill moments by default, all four in the slow run."""
+    recipe = _kill_recipe()
     path = tmp_path / "r.yaml"
     path.write_text(yaml.safe_dump(recipe))
-    (clean,) = Pipeline(recipe_from_dict(recipe), tmp_path / "clean", quiet=True).run()
+    clean = clean_run
     pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
     run_dir = pipe.run_dir("teacher")
     ready = {"first checkpoint": lambda: (run_dir / "checkpoints" / "last.pt").is_file(),

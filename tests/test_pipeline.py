@@ -34,6 +34,7 @@ def poison_terms(monkeypatch, change) -> None:
     monkeypatch.setattr(Trainer, "loss_terms", poisoned)
 
 
+@pytest.mark.plots
 def test_run_then_reuse_every_stage(tmp_path) -> None:
     pipe = pipeline(tmp_path, tiny_recipe())
     first = pipe.run()

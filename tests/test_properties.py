@@ -132,12 +132,9 @@ def _limited() -> None:  # in the child: 4 GiB of address space, so a runaway al
     resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
 
 
-@settings(max_examples=20, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow,
-                                                                 HealthCheck.function_scoped_fixture])
-@given(mutated(RECIPE, under=("stages",)))
-def test_short_runs_of_mutated_recipes_end_in_success_or_a_clear_error(tmp_path: Path, data: Any) -> None:
-    """Mutations of the stages only (the data stays small), one training step (--stop-after 1), in a process of
-    its own with a memory limit: success, or exit status 2 with one "error:" line — never a traceback."""
+def _short_run(tmp_path: Path, data: Any) -> None:
+    """One training step (--stop-after 1) of a mutated recipe in a process of its own with a memory limit: success,
+    or exit status 2 with one "error:" line — never a traceback."""
     import subprocess
     import sys
 
@@ -148,3 +145,21 @@ def test_short_runs_of_mutated_recipes_end_in_success_or_a_clear_error(tmp_path:
     assert done.returncode in (0, 2), f"{yaml.safe_dump(data)}\n{done.stderr[-2000:]}"
     if done.returncode == 2:
         assert done.stderr.startswith("error: ") and "Traceback" not in done.stderr, done.stderr[-2000:]
+
+
+SHORT_RUNS = dict(deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow,
+                                                                         HealthCheck.function_scoped_fixture])
+
+
+@settings(max_examples=4, **SHORT_RUNS)
+@given(mutated(RECIPE, under=("stages",)))
+def test_short_runs_of_mutated_recipes_end_in_success_or_a_clear_error(tmp_path: Path, data: Any) -> None:
+    """Mutations of the stages only (the data stays small): a few here, twenty in the slow run below."""
+    _short_run(tmp_path, data)
+
+
+@pytest.mark.slow
+@settings(max_examples=20, **SHORT_RUNS)
+@given(mutated(RECIPE, under=("stages",)))
+def test_twenty_short_runs_of_mutated_recipes_end_in_success_or_a_clear_error(tmp_path: Path, data: Any) -> None:
+    _short_run(tmp_path, data)

@@ -14,6 +14,8 @@ from distilkit.engine.pipeline import Pipeline
 from distilkit.metrics.bev import top_class
 from distilkit.recipe import recipe_from_dict
 
+pytestmark = pytest.mark.plots  # these tests look at the rendered pictures
+
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory):

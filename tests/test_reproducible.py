@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 import yaml
 
@@ -39,6 +40,7 @@ def _train(recipe: Path, out: Path) -> dict[str, torch.Tensor]:
     return load_checkpoint(run_dir / "checkpoints" / "last.pt")["student"]
 
 
+@pytest.mark.slow
 def test_two_processes_training_the_same_js3cnet_stage_write_identical_checkpoints(tmp_path: Path) -> None:
     recipe = tmp_path / "repro.yaml"
     recipe.write_text(yaml.safe_dump(RECIPE))
@@ -62,3 +64,25 @@ def test_importing_distilkit_sets_the_libraries_reproducibility_before_torch_loa
     mine = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           env={**env, "MKL_CBWR": "AVX2"})  # a user's own setting is kept
     assert mine.stdout.split()[0] == "AVX2"
+
+
+def test_a_stage_makes_the_racy_gather_backward_repeatable() -> None:
+    """What the two-process test (slow) guards, in one process: the backward of a gather with repeated indices,
+    large enough to be split between threads, gives the same gradient every time once a stage has switched
+    PyTorch's deterministic algorithms on (:func:`distilkit.repro.use_deterministic_algorithms`)."""
+    from distilkit.repro import use_deterministic_algorithms
+
+    threads = torch.get_num_threads()
+    was = torch.are_deterministic_algorithms_enabled()
+    try:
+        torch.set_num_threads(2)
+        assert use_deterministic_algorithms() is True and torch.are_deterministic_algorithms_enabled()
+        g = torch.Generator().manual_seed(0)
+        idx = torch.randint(0, 800, (500, 8), generator=g)
+        v = torch.randn(800, 16, generator=g, requires_grad=True)
+        w = torch.randn(500, 8, 16, generator=g)
+        grads = [torch.autograd.grad((w * v[idx]).mean(1).square().sum(), v)[0] for _ in range(12)]
+        assert all(torch.equal(grads[0], other) for other in grads[1:])
+    finally:
+        torch.set_num_threads(threads)
+        torch.use_deterministic_algorithms(was)

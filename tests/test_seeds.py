@@ -115,6 +115,7 @@ def test_seed_tables_follow_the_stage_metric_not_ssc(tmp_path: Path) -> None:
     assert "| test chamfer best |" in text and "Δ test chamfer" in text and "-0.075 ± 0.035" in text and "mIoU" not in text
 
 
+@pytest.mark.plots
 def test_weights_are_chosen_on_validation_never_on_test(tmp_path: Path) -> None:
     """Two weights of DSKD: the one with the better mean validation mIoU is chosen even though the other has the
     better test mIoU; a method tried at one weight is its own choice; the report leads with the chosen rows, says

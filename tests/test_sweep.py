@@ -38,6 +38,7 @@ def summaries(root: Path) -> dict[str, float]:
     return {p.parent.name: p.stat().st_mtime for p in root.glob("*/summary.json")}
 
 
+@pytest.mark.plots
 def test_a_sweep_runs_every_variant_and_seed_shares_teachers_and_resumes(tmp_path: Path, capsys) -> None:
     path = write_sweep(tmp_path)
     out = tmp_path / "runs"

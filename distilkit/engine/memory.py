@@ -13,7 +13,6 @@ It counts PyTorch's tensors, not the Python process around them (about 0.5 GB mo
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import os
 import tempfile
 from dataclasses import dataclass
@@ -136,34 +135,17 @@ def _peak_of_step(step: Any, device: Any) -> int:
 def measure_step(res: Any, stage_name: str, params: Any) -> tuple[float, float]:
     """One training step of ``stage_name`` at batch size 1 on the first training sample of the data ``params``:
     (bytes that do not grow with the data — parameters, gradients, optimizer state —, peak bytes in all)."""
-    import torch
+    from distilkit.engine.probe import probe_trainer
 
-    from distilkit.engine.distributed import SINGLE
-    from distilkit.engine.models import build_model, freeze, pick_device
-    from distilkit.engine.trainer import Trainer
-    from distilkit.registry import DATASETS
-
-    stage = res.stages[stage_name]
-    entry = DATASETS.entry(res.recipe.data.dataset)
-    info = entry.meta["info"](params)
-    train_set = entry.obj(params, "train", None)
-    device = pick_device(stage.spec.train.device)
-    one = stage.spec.model_copy(update={"train": stage.spec.train.model_copy(update={"batch_size": 1})})
-    stage = dataclasses.replace(stage, spec=one)
-    torch.manual_seed(0)
-    teacher = None
-    if stage.teacher is not None and stage.distill:
-        teacher = freeze(build_model(stage.teacher, info, "teacher").to(device))
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = Trainer(stage, info, train_set, train_set, Path(tmp), 0, teacher, collate=entry.meta["collate"],
-                          world=SINGLE)
+        trainer = probe_trainer(res, stage_name, params, Path(tmp))
         batch = trainer._batch(0)
         modules = [trainer.student, trainer.task, trainer.objectives, trainer.connectors,
-                   *([teacher] if teacher is not None else [])]
+                   *([trainer.teacher] if trainer.teacher is not None else [])]
         weights = sum(_tensor_bytes(list(m.parameters())) + _tensor_bytes(list(m.buffers())) for m in modules)
         before = weights + _tensor_bytes(batch.inputs) + _tensor_bytes(batch.targets)
         trainer.student.train()
-        peak = _peak_of_step(lambda: trainer.train_step(batch, 0), device)
+        peak = _peak_of_step(lambda: trainer.train_step(batch, 0), trainer.device)
         fixed = weights + _tensor_bytes([p.grad for p in trainer.trainable if p.grad is not None])
         fixed += sum(_tensor_bytes(list(opt.state.values()))
                      for opt in [trainer.optimizer, *[o for o in trainer.own_optimizers if o is not None]])

@@ -1,0 +1,34 @@
+"""A stage's trainer on a small copy of its data, built without any upstream run (the teacher with random weights:
+the same tensors, other numbers) — what the memory estimate and the training-step benchmark measure."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+
+def probe_trainer(res: Any, stage_name: str, params: Any, run_dir: Path, batch_size: int = 1) -> Any:
+    """A :class:`~distilkit.engine.trainer.Trainer` of ``stage_name`` on the data ``params`` (e.g. one of its
+    dataset's probe plans), at ``batch_size``, writing nothing unless asked to (``run_dir`` for its files)."""
+    import torch
+
+    from distilkit.engine.distributed import SINGLE
+    from distilkit.engine.models import build_model, freeze, pick_device
+    from distilkit.engine.trainer import Trainer
+    from distilkit.registry import DATASETS
+
+    stage = res.stages[stage_name]
+    entry = DATASETS.entry(res.recipe.data.dataset)
+    info = entry.meta["info"](params)
+    train_set = entry.obj(params, "train", None)
+    spec = stage.spec.model_copy(update={"train": stage.spec.train.model_copy(update={"batch_size": batch_size})})
+    stage = dataclasses.replace(stage, spec=spec)
+    torch.manual_seed(0)
+    teacher = None
+    if stage.teacher is not None and stage.distill:
+        teacher = freeze(build_model(stage.teacher, info, "teacher").to(pick_device(spec.train.device)))
+    return Trainer(stage, info, train_set, train_set, run_dir, 0, teacher, collate=entry.meta["collate"], world=SINGLE)
+
+
+__all__ = ["probe_trainer"]
