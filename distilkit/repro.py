@@ -4,7 +4,7 @@ Two things vary between processes on the CPU unless they are pinned:
 
 * PyTorch's CPU backward of advanced indexing (``x[idx]`` with repeated indices, e.g. gathering k nearest
   neighbours) accumulates from several threads in a racy order; ``torch.use_deterministic_algorithms`` makes it
-  (and every other op that has a deterministic variant) deterministic — set when a stage starts;
+  (and every other op that has a deterministic variant) deterministic — on while a stage runs;
 * MKL's reductions may depend on the memory alignment of an operand (a view into a tensor); its strict
   conditional numerical reproducibility (``MKL_CBWR=AUTO,STRICT``) pins them, and cuBLAS needs a fixed workspace
   (``CUBLAS_WORKSPACE_CONFIG``) — both read when the libraries first run, so ``import distilkit`` sets them (the
@@ -17,7 +17,9 @@ Same numbers need the same thread count too (``torch.get_num_threads()``, record
 
 from __future__ import annotations
 
+import contextlib
 import os
+from typing import Iterator
 
 ENV = "DISTILKIT_DETERMINISTIC"
 LIBRARY_ENV = {"MKL_CBWR": "AUTO,STRICT", "CUBLAS_WORKSPACE_CONFIG": ":4096:8"}
@@ -35,14 +37,21 @@ def set_environment() -> None:
             os.environ.setdefault(key, value)
 
 
-def use_deterministic_algorithms() -> bool:
-    """Deterministic variants of PyTorch's ops for the training that follows (a warning, not an error, for an
-    op that has none); returns whether they are on."""
+@contextlib.contextmanager
+def deterministic_algorithms() -> Iterator[bool]:
+    """PyTorch's deterministic variants of its ops while a stage runs (a warning, not an error, for an op that has
+    none), the process's previous setting restored after; yields whether they are on."""
     import torch
 
     on = enabled()
+    was = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
+           torch.utils.deterministic.fill_uninitialized_memory)  # type: ignore[attr-defined]
     torch.use_deterministic_algorithms(on, warn_only=True)
     # a debugging aid that fills every new tensor with NaN in deterministic mode: no result depends on it, and it
     # cost 15 % of an SCPNet step here
     torch.utils.deterministic.fill_uninitialized_memory = False  # type: ignore[attr-defined]
-    return on
+    try:
+        yield on
+    finally:
+        torch.use_deterministic_algorithms(was[0], warn_only=was[1])
+        torch.utils.deterministic.fill_uninitialized_memory = was[2]  # type: ignore[attr-defined]

@@ -92,6 +92,16 @@ def naive_nst(s, t):
     return mk(T, T) + mk(S, S) - 2 * mk(S, T)
 
 
+def naive_centres(ys, yt, labels, i, vox, classes):
+    """Sample i's class centres: the mean student and teacher logits of the voxels ``vox`` of each class."""
+    gs, gt = [], []
+    for c in classes:
+        mem = [idx for idx in vox if int(labels[(i,) + idx]) == c]
+        gs.append(sum(ys[(i, slice(None)) + idx] for idx in mem) / len(mem))
+        gt.append(sum(yt[(i, slice(None)) + idx] for idx in mem) / len(mem))
+    return gs, gt
+
+
 def naive_rgo2d_region(ys, yt, labels, mask, inter=2.625, intra=0.375):
     b = ys.shape[0]
     g_tot, l_tot = 0.0, 0.0
@@ -100,11 +110,7 @@ def naive_rgo2d_region(ys, yt, labels, mask, inter=2.625, intra=0.375):
         classes = sorted({int(labels[(i,) + idx]) for idx in vox} - {0, 255})
         if not classes:
             continue
-        gs, gt = [], []
-        for c in classes:
-            mem = [idx for idx in vox if int(labels[(i,) + idx]) == c]
-            gs.append(sum(ys[(i, slice(None)) + idx] for idx in mem) / len(mem))
-            gt.append(sum(yt[(i, slice(None)) + idx] for idx in mem) / len(mem))
+        gs, gt = naive_centres(ys, yt, labels, i, vox, classes)
         gs, gt = torch.stack(gs), torch.stack(gt)
         ps, pt = gs.softmax(1), gt.softmax(1)
         kc = len(classes)
@@ -261,11 +267,7 @@ def naive_cleaners(ys, yt, labels, T, kd_sc, kd_sa, ignore):
         classes = sorted({int(labels[(i,) + idx]) for idx in vox} - {0})
         if not classes:
             continue
-        gs, gt = [], []
-        for c in classes:
-            mem = [idx for idx in vox if int(labels[(i,) + idx]) == c]
-            gs.append(sum(ys[(i, slice(None)) + idx] for idx in mem) / len(mem))
-            gt.append(sum(yt[(i, slice(None)) + idx] for idx in mem) / len(mem))
+        gs, gt = naive_centres(ys, yt, labels, i, vox, classes)
         kl = 0.0
         for a, b in zip(gs, gt):
             ps, pt = torch.softmax(a / T, 0), torch.softmax(b / T, 0)

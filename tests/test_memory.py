@@ -136,3 +136,21 @@ def test_a_real_out_of_memory_under_a_memory_limit_is_one_line(tmp_path: Path) -
     assert done.returncode == 2, done.stderr[-2000:]
     assert done.stderr.startswith("error: stage 'teacher' ran out of memory") and "Traceback" not in done.stderr
     assert done.stderr.count("\n") == 1
+
+
+@pytest.mark.slow
+def test_the_paper_size_full_grid_recipe_gets_a_memory_warning(tmp_path: Path, capsys, monkeypatch) -> None:
+    """recipes/scpnet_dskd.yaml at SemanticKITTI's full grid with the paper's SCPNet (channels 32, point MLP
+    64-128-256-256, batch 2), validated on a machine with 24 GB: the warning names the figure and what to lower."""
+    recipe = yaml.safe_load((Path(__file__).resolve().parents[1] / "recipes" / "scpnet_dskd.yaml").read_text())
+    recipe["data"]["params"].update(scale=1, num_train=2, num_val=1, num_test=1)
+    recipe["stages"] = {"teacher": recipe["stages"]["teacher"]}
+    recipe["stages"]["teacher"]["model"]["params"].update(channels=32, point_mlp=[64, 128, 256, 256])
+    recipe["stages"]["teacher"]["train"]["batch_size"] = 2
+    path = tmp_path / "full.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    monkeypatch.setattr(memory, "available_memory", lambda device: 24 * GIB)
+    assert main(["validate", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "a 256x256x32 grid; extrapolated from 32,768 and 262,144 voxels" in out
+    assert "warning: stage teacher may need up to" in out and "lower train.batch_size (now 2)" in out

@@ -69,20 +69,21 @@ def test_importing_distilkit_sets_the_libraries_reproducibility_before_torch_loa
 def test_a_stage_makes_the_racy_gather_backward_repeatable() -> None:
     """What the two-process test (slow) guards, in one process: the backward of a gather with repeated indices,
     large enough to be split between threads, gives the same gradient every time once a stage has switched
-    PyTorch's deterministic algorithms on (:func:`distilkit.repro.use_deterministic_algorithms`)."""
-    from distilkit.repro import use_deterministic_algorithms
+    PyTorch's deterministic algorithms on (:func:`distilkit.repro.deterministic_algorithms`)."""
+    from distilkit.repro import deterministic_algorithms
 
     threads = torch.get_num_threads()
     was = torch.are_deterministic_algorithms_enabled()
     try:
         torch.set_num_threads(2)
-        assert use_deterministic_algorithms() is True and torch.are_deterministic_algorithms_enabled()
-        g = torch.Generator().manual_seed(0)
-        idx = torch.randint(0, 800, (500, 8), generator=g)
-        v = torch.randn(800, 16, generator=g, requires_grad=True)
-        w = torch.randn(500, 8, 16, generator=g)
-        grads = [torch.autograd.grad((w * v[idx]).mean(1).square().sum(), v)[0] for _ in range(12)]
-        assert all(torch.equal(grads[0], other) for other in grads[1:])
+        with deterministic_algorithms() as on:
+            assert on is True and torch.are_deterministic_algorithms_enabled()
+            g = torch.Generator().manual_seed(0)
+            idx = torch.randint(0, 800, (500, 8), generator=g)
+            v = torch.randn(800, 16, generator=g, requires_grad=True)
+            w = torch.randn(500, 8, 16, generator=g)
+            grads = [torch.autograd.grad((w * v[idx]).mean(1).square().sum(), v)[0] for _ in range(12)]
+            assert all(torch.equal(grads[0], other) for other in grads[1:])
+        assert torch.are_deterministic_algorithms_enabled() == was  # the process's setting is given back
     finally:
         torch.set_num_threads(threads)
-        torch.use_deterministic_algorithms(was)

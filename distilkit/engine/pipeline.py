@@ -264,6 +264,7 @@ class Pipeline:
     def _run(self, stop_after: int | None, rerun: list[str] | None, names: set[str],
              wait: bool) -> list[StageResult]:
         from distilkit.engine.lock import lock_path, stage_lock
+        from distilkit.repro import deterministic_algorithms
 
         results: list[StageResult] = []
         again = self.rerun_set(rerun)
@@ -279,7 +280,8 @@ class Pipeline:
                 if name in again and run_dir.exists() and self.world.main:
                     self._replace(name, run_dir)
                 self.world.barrier()  # the others look at the stage's folder once it is settled
-                result = self._stage(name, run_dir, stop_after)
+                with deterministic_algorithms():  # bitwise-repeatable (DISTILKIT_DETERMINISTIC=0: off)
+                    result = self._stage(name, run_dir, stop_after)
             if result is None:  # stopped early on request (--stop-after)
                 return results
             results.append(result)
@@ -291,7 +293,6 @@ class Pipeline:
 
         from distilkit.engine.io import seed_everything
         from distilkit.engine.memory import is_out_of_memory, out_of_memory
-        from distilkit.repro import use_deterministic_algorithms
         from distilkit.engine.models import load_teacher, pick_device
         from distilkit.console import stage_progress
         from distilkit.engine.trainer import Trainer, write_summary
@@ -312,7 +313,6 @@ class Pipeline:
                               yaml.safe_dump({"recipe": self.recipe.name, "stage": name, "hash": self.hashes[name],
                                               "distilkit": __version__, **cfg}, sort_keys=False))
         seed_everything(seed)
-        deterministic = use_deterministic_algorithms()
         device = pick_device(stage.spec.train.device)
         teacher = None
         if stage.teacher is not None and stage.distill:
@@ -343,7 +343,7 @@ class Pipeline:
             "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
             "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": seed,
             "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them
-            "deterministic": deterministic,
+            "deterministic": torch.are_deterministic_algorithms_enabled(),
             "classes": {"names": list(self.resolved.data_info.classes.names),
                         "colours": [list(c) for c in self.resolved.data_info.classes.colours]},
             "steps": result.steps, "train_seconds": round(result.seconds, 2),
