@@ -191,12 +191,12 @@ def seeds_table(rows: list[dict[str, Any]], baseline: str | None, what: str = "d
 def power_note(rows: list[dict[str, Any]]) -> str:
     """What the table can resolve: the smallest paired difference its intervals detect 80 % of the time, from the
     seeds it has and the median spread of its paired differences."""
-    stds = sorted(r["delta_std"] for r in rows if r["delta"] and not math.isnan(r["delta_std"]))
-    if not stds:
+    n = max((len(r["delta"]) for r in rows), default=0)  # the compared rows (a shared teacher has one seed)
+    stds = sorted(r["delta_std"] for r in rows if len(r["delta"]) == n and not math.isnan(r["delta_std"]))
+    if n < 2 or not stds:
         return ""
     view = _view(rows)
     assert view is not None
-    n = min(len(r["delta"]) for r in rows if r["delta"])
     std = stds[len(stds) // 2]
     effect = detectable_effect(std, n)
     unit = view.main[2]
