@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Sequence
+from typing import Any, Sequence
 
 
 def _launch(args: argparse.Namespace) -> int:
@@ -101,14 +101,14 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _validate_memory(res: object) -> None:
+def _validate_memory(res: Any) -> None:
     """Each training stage's memory per step (one step at small sizes, scaled), with a warning where it does not
     fit in what the machine has free."""
     from distilkit.console import make_console
     from distilkit.engine.memory import estimate_stage
 
     console = make_console()
-    for name in res.order:  # type: ignore[attr-defined]
+    for name in res.order:
         try:
             with console.status(f"stage {name}: one training step at a small size, to estimate its memory"):
                 estimate = estimate_stage(res, name)
@@ -120,7 +120,7 @@ def _validate_memory(res: object) -> None:
         print(f"  {estimate.line()}")
         warning = estimate.warning()
         if warning:
-            stage = res.stages[name]  # type: ignore[attr-defined]
+            stage = res.stages[name]
             console.print(f"[yellow]warning:[/] {warning}: lower train.batch_size (now {estimate.batch_size}), the "
                           f"grid (data.params.scale) or the size of {stage.student.adapter}'s model", highlight=False,
                           soft_wrap=True)
