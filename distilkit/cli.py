@@ -26,7 +26,7 @@ def _launch(args: argparse.Namespace) -> int:
     rest = [args.recipe, "--output", args.output, *(["--quiet"] if args.quiet else []),
             *(["--no-wait"] if args.no_wait else []), *(["--seed", *map(str, args.seed)] if args.seed else []),
             *(["--baseline", args.baseline] if args.baseline else []), *(["--rerun", *args.rerun] if args.rerun else []),
-            *(["--stage", *args.stage] if args.stage else []),
+            *(["--stage", *args.stage] if args.stage else []), *(["--set", *args.set] if args.set else []),
             *(["--stop-after", str(args.stop_after)] if args.stop_after is not None else [])]
     where = (["--standalone"] if nodes == 1 else
              [f"--nnodes={nodes}", f"--node-rank={args.node_rank}", f"--master-addr={args.master_addr}",
@@ -48,7 +48,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         from distilkit.engine.seeds import run_seeds
 
         run_seeds(args.recipe, args.output, args.seed, baseline=args.baseline, quiet=args.quiet, rerun=args.rerun,
-                  only=args.stage, wait=not args.no_wait)
+                  only=args.stage, wait=not args.no_wait, overrides=_overrides(args))
         return 0
     if args.baseline is not None:
         from distilkit.errors import DistilkitError
@@ -56,9 +56,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
         raise DistilkitError("--baseline compares stages over several seeds: give them, e.g. --seed 0 1 2")
     from distilkit.engine.pipeline import Pipeline
 
-    pipe = Pipeline(args.recipe, args.output, quiet=args.quiet, seed=args.seed[0] if args.seed else None)
+    pipe = Pipeline(args.recipe, args.output, quiet=args.quiet, seed=args.seed[0] if args.seed else None,
+                    overrides=_overrides(args))
     pipe.run(stop_after=args.stop_after, rerun=args.rerun, only=args.stage, wait=not args.no_wait)
     return 0
+
+
+def _overrides(args: argparse.Namespace) -> dict[str, object] | None:
+    """``--set PATH=VALUE ...`` as path -> value (None without any)."""
+    if not args.set:
+        return None
+    from distilkit.recipe import parse_overrides
+
+    return parse_overrides(args.set)
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
@@ -89,8 +99,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from distilkit.engine.resolve import resolve
     from distilkit.recipe import load_recipe
 
+    overrides = _overrides(args)
     for path in args.recipes:
-        res = resolve(load_recipe(path), str(path))
+        res = resolve(load_recipe(path, overrides), str(path))
         stages = ", ".join(
             f"{n} ({s.student.adapter}" + (f" <- {s.teacher_from}" if s.teacher_from else "")
             + (f"; {', '.join(t.name for t in s.distill)}" if s.distill else "") + ")"
@@ -212,6 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "stage without distillation that is nobody's teacher)")
     r.add_argument("--stage", nargs="+", metavar="STAGE", default=None,
                    help="run only these stages and the stages they need (their teacher, their initial weights)")
+    r.add_argument("--set", nargs="+", action="extend", metavar="PATH=VALUE", default=None,
+                   help="override recipe fields by dotted path (as sweep files do), e.g. --set "
+                        "stages.student.optimizer.lr=0.01 (values are read as YAML); validated like the file")
     r.add_argument("--no-wait", action="store_true",
                    help="stop with an error instead of waiting when another distilkit run is training a stage")
     d = r.add_argument_group("multi-process training (PyTorch's torchrun; gloo on the CPU, NCCL on GPUs)")
@@ -246,6 +260,8 @@ def build_parser() -> argparse.ArgumentParser:
     cp.set_defaults(fn=_cmd_compare)
     v = sub.add_parser("validate", help="check recipes without training (exit status 2 on a problem)")
     v.add_argument("recipes", nargs="+")
+    v.add_argument("--set", nargs="+", action="extend", metavar="PATH=VALUE", default=None,
+                   help="override recipe fields by dotted path, e.g. --set stages.student.train.steps=10")
     v.add_argument("--no-memory", action="store_true", help="skip the memory estimate (one training step of each "
                    "stage at a small size)")
     v.set_defaults(fn=_cmd_validate)

@@ -1,12 +1,13 @@
 """The recipe schema (pydantic v2): the single source of truth for configuration.
 
 Recipes are read with ``yaml.safe_load`` only and may name registered components only.
-:func:`load_recipe` parses and validates the structure; :func:`distilkit.engine.resolve.resolve` then builds
+:func:`load_recipe` parses and validates the structure (with ``--set`` overrides applied first); :func:`distilkit.engine.resolve.resolve` then builds
 every parameter model from the registries and checks taps, so that mistakes are found before training.
 """
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import Any, Literal
 
@@ -227,14 +228,65 @@ def recipe_from_dict(data: Any, source: str = "recipe") -> Recipe:
         raise RecipeError(pydantic_problems(err), source) from None
 
 
-def load_recipe(path: str | Path) -> Recipe:
-    """Read and validate the structure of a recipe file (``yaml.safe_load``; nothing is executed)."""
+def set_path(data: dict[str, Any], path: str, value: Any, source: str, where: str) -> None:
+    """Set ``data[a][b][0]...`` from the dotted path ``a.b.0...`` (mappings are created on the way)."""
+    parts = path.split(".")
+    node: Any = data
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise RecipeError([(where, f"{path}: {'.'.join(parts[:i]) or 'the recipe'} is a list of {len(node)}; "
+                                           f"{part!r} is not an index of it")], source)
+            key: Any = int(part)
+        elif isinstance(node, dict):
+            key = part
+        else:
+            raise RecipeError([(where, f"{path}: {'.'.join(parts[:i])} is a {type(node).__name__}, not a mapping or "
+                                       "a list")], source)
+        if last:
+            node[key] = copy.deepcopy(value)
+        else:
+            if isinstance(node, dict) and node.get(key) is None:
+                if parts[:i] == ["stages"]:  # a new stage from a typo would fail later with a vaguer message
+                    import difflib
+
+                    close = difflib.get_close_matches(key, [str(k) for k in node], n=1)
+                    hint = f"; did you mean {close[0]!r}?" if close else ""
+                    raise RecipeError([(where, f"{path}: the recipe has no stage {key!r}{hint} (stages: "
+                                               f"{', '.join(map(str, node)) or 'none'})")], source)
+                node[key] = {}
+            node = node[key]
+
+
+def parse_overrides(items: list[str], source: str = "--set") -> dict[str, Any]:
+    """``PATH=VALUE`` items of the command line (``stages.student.optimizer.lr=0.01``) as path -> value, each value
+    read as YAML (``0.01`` a number, ``[1, 2]`` a list, ``true`` a boolean, anything else a string)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        path, eq, text = item.partition("=")
+        if not eq or not path.strip() or any(not part for part in path.strip().split(".")):
+            raise RecipeError([("--set", f"{item!r}: expected PATH=VALUE with a dotted path, e.g. "
+                                         "stages.student.optimizer.lr=0.01")], source)
+        out[path.strip()] = parse_yaml(text, f"--set {path.strip()}")
+    return out
+
+
+def load_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> Recipe:
+    """Read and validate the structure of a recipe file (``yaml.safe_load``; nothing is executed), with
+    ``overrides`` (dotted path -> value, :func:`parse_overrides`) applied first and validated like the file."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise RecipeError([("", f"cannot read recipe: {exc}")], str(path)) from None
-    return recipe_from_dict(parse_yaml(text, str(path)), str(path))
+    data = parse_yaml(text, str(path))
+    if overrides:
+        if not isinstance(data, dict):
+            raise RecipeError([("", f"a recipe must be a YAML mapping, got {type(data).__name__}")], str(path))
+        for key, value in overrides.items():
+            set_path(data, key, value, str(path), f"--set {key}")
+    return recipe_from_dict(data, str(path))
 
 
 def needed_stages(recipe: Recipe, names: set[str]) -> set[str]:

@@ -187,3 +187,30 @@ def test_bench_sampler_builds_lidiff_through_the_registry_and_times_both_step_co
     (row,) = run_bench(["sampler"], quick=True, repeat=1)
     assert row["fast_ms"] > 0 and row["naive_ms"] > 0 and "rel_err" not in row  # different outputs: no error column
     assert "sampler 8 vs 50 steps" in capsys.readouterr().out
+
+
+def test_set_overrides_recipe_fields_by_dotted_path_and_is_validated_like_the_file(tmp_path: Path, capsys) -> None:
+    from conftest import tiny_recipe
+
+    path = write(tmp_path, tiny_recipe(steps=1))
+    out = tmp_path / "runs"
+    assert main(["run", str(path), "-o", str(out), "-q", "--stage", "teacher", "--no-wait",
+                 "--set", "stages.teacher.optimizer.lr=0.01", "stages.teacher.model.params.point_mlp=[6]"]) == 0
+    (run,) = (out / "tiny").glob("teacher-*")
+    resolved = yaml.safe_load((run / "recipe.resolved.yaml").read_text())
+    assert resolved["optimizer"]["lr"] == 0.01 and resolved["model"]["params"]["point_mlp"] == [6]
+    assert resolved["overrides"] == {"stages.teacher.optimizer.lr": 0.01, "stages.teacher.model.params.point_mlp": [6]}
+    assert main(["run", str(path), "-o", str(out), "-q", "--stage", "teacher"]) == 0  # without: another identity
+    assert len(list((out / "tiny").glob("teacher-*"))) == 2
+    capsys.readouterr()
+    cases = {  # each: one line naming what is wrong
+        "stages.teacher.optimizer.lr=-1": "stages.teacher.optimizer.lr",
+        "stages.teachr.train.steps=3": "no stage 'teachr'; did you mean 'teacher'?",
+        "stages.teacher.train.steps": "expected PATH=VALUE",
+        "stages..steps=3": "expected PATH=VALUE",
+    }
+    for item, message in cases.items():
+        assert main(["validate", str(path), "--no-memory", "--set", item]) == 2, item
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and message in err and "Traceback" not in err, (item, err)
+    assert main(["validate", str(path), "--no-memory", "--set", "stages.student.distill.0.weight=3"]) == 0

@@ -143,9 +143,12 @@ class Pipeline:
     """Runs a recipe: resolves it, builds data lazily, trains or reuses each stage, writes a report."""
 
     def __init__(self, recipe: Recipe | str | Path, output: str | Path = "runs", console: Any = None,
-                 quiet: bool = False, seed: int | None = None) -> None:
+                 quiet: bool = False, seed: int | None = None, overrides: dict[str, Any] | None = None) -> None:
         self.source = str(recipe) if not isinstance(recipe, Recipe) else "recipe"
-        self.recipe = recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
+        if overrides and isinstance(recipe, Recipe):
+            raise ValueError("overrides apply to a recipe file; change a Recipe object with model_copy")
+        self.recipe = recipe if isinstance(recipe, Recipe) else load_recipe(recipe, overrides)
+        self.overrides = dict(overrides or {})  # recorded beside each stage's resolved configuration
         if seed is not None:  # a seed from the command line: a different identity for every stage
             self.recipe = self.recipe.model_copy(update={"seed": seed})
         self.resolved = resolve(self.recipe, self.source)
@@ -311,7 +314,9 @@ class Pipeline:
                 stale.unlink(missing_ok=True)
             atomic_write_text(run_dir / "recipe.resolved.yaml",
                               yaml.safe_dump({"recipe": self.recipe.name, "stage": name, "hash": self.hashes[name],
-                                              "distilkit": __version__, **cfg}, sort_keys=False))
+                                              "distilkit": __version__,
+                                              **({"overrides": self.overrides} if self.overrides else {}), **cfg},
+                                             sort_keys=False))
         seed_everything(seed)
         device = pick_device(stage.spec.train.device)
         teacher = None

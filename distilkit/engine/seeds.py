@@ -313,7 +313,7 @@ def _forest(path: Path, rows: list[dict[str, Any]], baseline: str | None) -> Non
 
 def run_seeds(recipe: str | Path, output: str | Path, seeds: list[int], baseline: str | None = None,
               quiet: bool = False, rerun: list[str] | None = None, only: list[str] | None = None,
-              wait: bool = True) -> list[dict[str, Any]]:
+              wait: bool = True, overrides: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Run the recipe once per seed (finished stages are reused), then report mean ± std over the seeds."""
     from distilkit.engine.pipeline import Pipeline
 
@@ -322,7 +322,7 @@ def run_seeds(recipe: str | Path, output: str | Path, seeds: list[int], baseline
     results: dict[int, list[Any]] = {}
     pipe = None
     for seed in seeds:
-        pipe = Pipeline(recipe, output, quiet=quiet, seed=seed)
+        pipe = Pipeline(recipe, output, quiet=quiet, seed=seed, overrides=overrides)
         if baseline is not None:
             pipe.check_stages("--baseline", [baseline])
         if not quiet:

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from distilkit.errors import RecipeError
 from distilkit.recipe import (LossSpec, Recipe, needed_stages, parse_yaml, pydantic_problems, recipe_from_dict,
-                              stage_order)
+                              set_path, stage_order)
 
 _NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"
 
@@ -95,30 +95,6 @@ class Sweep:
     def upstream_stages(self, variant: str) -> list[str]:
         """The stages a variant's recipe runs before the variant itself (its teacher, ...)."""
         return [n for n in stage_order(self.recipes[variant]) if n != variant]
-
-
-def set_path(data: dict[str, Any], path: str, value: Any, source: str, where: str) -> None:
-    """Set ``data[a][b][0]...`` from the dotted path ``a.b.0...`` (mappings are created on the way)."""
-    parts = path.split(".")
-    node: Any = data
-    for i, part in enumerate(parts):
-        last = i == len(parts) - 1
-        if isinstance(node, list):
-            if not part.isdigit() or int(part) >= len(node):
-                raise RecipeError([(where, f"{path}: {'.'.join(parts[:i]) or 'the recipe'} is a list of {len(node)}; "
-                                           f"{part!r} is not an index of it")], source)
-            key: Any = int(part)
-        elif isinstance(node, dict):
-            key = part
-        else:
-            raise RecipeError([(where, f"{path}: {'.'.join(parts[:i])} is a {type(node).__name__}, not a mapping or "
-                                       "a list")], source)
-        if last:
-            node[key] = copy.deepcopy(value)
-        else:
-            if isinstance(node, dict) and node.get(key) is None:
-                node[key] = {}
-            node = node[key]
 
 
 def variant_data(sweep: Sweep, variant: str) -> dict[str, Any]:
