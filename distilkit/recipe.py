@@ -157,6 +157,12 @@ class StageSpec(_Strict):
             raise ValueError("`distill` objectives need a `teacher`")
         return self
 
+    def edges(self) -> dict[str, str]:
+        """Every upstream edge of the stage, field -> the stage it reads (``teacher``: its frozen model, ``init``:
+        its weights). Ordering, needed stages, ``downstream``, ``--stage`` and identity read only this."""
+        return {field: src.from_ for field, src in (("teacher", self.teacher), ("init", self.init))
+                if src is not None and src.from_ is not None}
+
 
 class DataSpec(_Strict):
     dataset: str = Field("synthetic-lidar", description="registered dataset name")
@@ -290,7 +296,7 @@ def load_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> Re
 
 
 def needed_stages(recipe: Recipe, names: set[str]) -> set[str]:
-    """``names`` and every stage they use as teacher or initial weights, transitively (references checked by
+    """``names`` and every stage they read (:meth:`StageSpec.edges`), transitively (references checked by
     :func:`stage_order`)."""
     out: set[str] = set()
     todo = list(names)
@@ -299,8 +305,7 @@ def needed_stages(recipe: Recipe, names: set[str]) -> set[str]:
         if name in out:
             continue
         out.add(name)
-        stage = recipe.stages[name]
-        todo += [src.from_ for src in (stage.teacher, stage.init) if src is not None and src.from_]
+        todo += list(recipe.stages[name].edges().values())
     return out
 
 
@@ -317,18 +322,15 @@ def stage_order(recipe: Recipe) -> list[str]:
             problems.append((f"stages.{name}", f"cycle of teacher/init stages: {' -> '.join(path + [name])}"))
             return
         state[name] = 1
-        stage = recipe.stages[name]
-        for field_name, src in (("teacher", stage.teacher), ("init", stage.init)):
-            if src is None or src.from_ is None:
-                continue
-            if src.from_ not in recipe.stages:
+        for field_name, upstream in recipe.stages[name].edges().items():
+            if upstream not in recipe.stages:
                 import difflib
 
-                close = difflib.get_close_matches(src.from_, list(recipe.stages), n=1)
+                close = difflib.get_close_matches(upstream, list(recipe.stages), n=1)
                 hint = f"; did you mean {close[0]!r}?" if close else ""
-                problems.append((f"stages.{name}.{field_name}.from", f"no stage named {src.from_!r}{hint}"))
+                problems.append((f"stages.{name}.{field_name}.from", f"no stage named {upstream!r}{hint}"))
             else:
-                visit(src.from_, path + [name])
+                visit(upstream, path + [name])
         state[name] = 2
         order.append(name)
 

@@ -13,6 +13,7 @@ from distilkit.engine.pipeline import Pipeline
 from distilkit.engine.models import load_teacher
 from distilkit.engine.trainer import Trainer
 from distilkit.errors import DataError, NonFiniteLossError, RecipeError, TapError
+from distilkit.engine.resolve import resolve
 from distilkit.recipe import recipe_from_dict
 
 
@@ -317,3 +318,22 @@ def test_recipe_taps_name_a_wrong_module_or_kind(tmp_path) -> None:
     r["stages"]["teacher"]["model"]["taps"] = {"logits": {"module": "net", "kind": "vector"}}
     with pytest.raises(RecipeError, match="(?s)already has a tap 'logits'.*unknown tap kind 'vector'"):
         pipeline(tmp_path / "3", r)
+
+
+def test_a_stage_lists_its_upstream_edges_in_one_place_and_order_needs_and_downstream_read_them() -> None:
+    from distilkit.engine.pipeline import downstream
+    from distilkit.recipe import needed_stages, stage_order
+
+    r = tiny_recipe(steps=1)
+    r["stages"]["finetune"] = {**r["stages"]["teacher"], "init": {"from": "student", "strict": False}}
+    recipe = recipe_from_dict(r)
+    assert recipe.stages["student"].edges() == {"teacher": "teacher"}
+    assert recipe.stages["finetune"].edges() == {"init": "student"} and recipe.stages["teacher"].edges() == {}
+    assert stage_order(recipe) == ["teacher", "student", "finetune"]
+    assert needed_stages(recipe, {"finetune"}) == {"teacher", "student", "finetune"}
+    res = resolve(recipe, "edges")
+    assert downstream(res, {"teacher"}) == {"teacher", "student", "finetune"}
+    assert downstream(res, {"student"}) == {"student", "finetune"}
+    r["stages"]["teacher"]["init"] = {"from": "finetune"}  # a cycle through an init edge
+    with pytest.raises(RecipeError, match="cycle of teacher/init stages"):
+        stage_order(recipe_from_dict(r))

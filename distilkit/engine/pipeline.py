@@ -108,12 +108,10 @@ def code_versions(res: ResolvedRecipe, stage: ResolvedStage) -> dict[str, Any]:
 
 
 def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
-    """``names`` and every stage that uses one of them as its teacher or its initial weights, transitively."""
+    """``names`` and every stage that reads one of them (:meth:`~distilkit.recipe.StageSpec.edges`), transitively."""
     out = set(names)
     for name in res.order:  # dependency order: an upstream stage comes first
-        stage = res.stages[name]
-        init_from = stage.spec.init.from_ if stage.spec.init is not None else None
-        if stage.teacher_from in out or init_from in out:
+        if out & set(res.stages[name].spec.edges().values()):
             out.add(name)
     return out
 
