@@ -25,7 +25,8 @@ from distilkit.data.batch import Batch
 from distilkit.data.info import ClassTable, DataInfo
 from distilkit.data.params import SceneParams
 from distilkit.data.raycast import ray_directions
-from distilkit.data.synthetic import EGO_LANE_Y, SENSOR_HEIGHT, cached_samples, cast_scan, make_scene
+from distilkit.data.cache import cached_samples
+from distilkit.data.synthetic import EGO_LANE_Y, SENSOR_HEIGHT, cast_scan, make_scene
 
 SCENES_VERSION = 1
 SCENE_FIELDS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths"})

@@ -24,15 +24,12 @@ For one sample with current frame 0 (SemanticKITTI conventions, data_metrics.md 
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
+from distilkit.data.cache import cached_samples
 from distilkit.data.classes import IGNORE_INDEX, RAW_IDS, SCRIBBLE_UNLABELLED, remap, seg_lut, ssc_lut
 from distilkit.data.raycast import Primitives, cast, ray_directions
 from distilkit.data.params import SyntheticParams
@@ -397,14 +394,6 @@ def scribble_labels(xyz: np.ndarray, raw: np.ndarray, world_xyz: np.ndarray, vox
     return out.astype(np.uint8)
 
 
-def cache_root() -> Path:
-    return Path(os.environ.get("DISTILKIT_CACHE", Path.home() / ".cache" / "distilkit"))
-
-
-def content_key(obj: Any) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
 _ARRAYS = ("points", "point_frame", "point_label", "point_raw")
 _GRIDS = ("voxel_label", "invalid", "scribble")
 
@@ -420,45 +409,3 @@ def generate_split(p: SyntheticParams, split: str, count: int,
 
     return cached_samples("synthetic-lidar", GENERATOR_VERSION, p, split, count, lambda seed: make_sample(seed, p),
                           stack, progress)
-
-
-def cached_samples(kind: str, version: int, p: Any, split: str, count: int,
-                   make: Callable[[int], dict[str, np.ndarray]],
-                   stack: Callable[[list[dict[str, np.ndarray]]], dict[str, np.ndarray]],
-                   progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
-    """``count`` samples of ``split`` made by ``make(seed)`` (seeds from the data seed and the split) and
-    stacked, cached on disk under ``kind`` by the content of ``p``, ``version`` and the split."""
-    key = content_key({"v": version, "split": split, "count": count, **p.model_dump()})
-    path = cache_root() / kind / f"{split}-{key}.npz"
-    cached = read_cached(path)
-    if cached is not None:
-        return cached
-    salt = {"train": 0, "val": 1, "test": 2}.get(split, 3)
-    samples = []
-    for i in range(count):
-        samples.append(make(int(p.seed) * 1_000_003 + salt * 100_003 + i))
-        if progress:
-            progress(i + 1, count)
-    out = stack(samples)
-    write_cached(path, out)
-    return out
-
-
-def read_cached(path: Path) -> dict[str, np.ndarray] | None:
-    """The arrays of a cache entry, or None when there is none; a corrupt entry is removed (and regenerated)."""
-    if not path.is_file():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except Exception:
-        path.unlink(missing_ok=True)
-        return None
-
-
-def write_cached(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write a cache entry atomically (a temporary file renamed into place)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)

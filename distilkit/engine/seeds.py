@@ -231,7 +231,7 @@ def seeds_markdown(rows: list[dict[str, Any]], baseline: str | None, title: str,
              *(["", *notes] if notes else []), ""]
     if _weighs(rows):
         chosen = [r for r in rows if r.get("chosen")]
-        lines += [f"## Each method at the weight chosen on validation", "",
+        lines += ["## Each method at the weight chosen on validation", "",
                   f"Of a method's weights, the one with the best mean validation {main} over the seeds (◆ below); "
                   f"its {split} scores are reported as they are.", "", *head, *_md_rows(chosen), "",
                   "## Every variant", "", *head, *_md_rows(rows)]
