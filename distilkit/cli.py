@@ -163,7 +163,9 @@ def _cmd_list(args: argparse.Namespace) -> int:
         table.add_column("paper")
         table.add_column(_LIST_COLUMN[kind])
         for e in reg:
-            table.add_row(e.name, e.description, e.paper, _list_cell(kind, e))
+            also = reg.aliases_of(e.name)
+            table.add_row(e.name + (f" (also {', '.join(also)})" if also else ""), e.description, e.paper,
+                          _list_cell(kind, e))
         console.print(table)
     for msg in plugin_errors:
         console.print(f"[yellow]warning:[/] {msg}")

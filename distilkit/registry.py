@@ -39,6 +39,7 @@ class Registry(Generic[T]):
     def __init__(self, kind: str) -> None:
         self.kind = kind
         self._entries: dict[str, Entry[T]] = {}
+        self._aliases: dict[str, tuple[str, bool]] = {}  # other name -> (registered name, deprecated)
 
     def add(
         self,
@@ -58,6 +59,27 @@ class Registry(Generic[T]):
         self._entries[name] = Entry(name, obj, description.strip(), paper, tuple(consumes), dict(meta))
         return obj
 
+    def alias(self, other: str, name: str, deprecated: bool = False) -> None:
+        """Let ``other`` name the component registered as ``name``. Names are part of stage identities, so a
+        recipe that uses an alias resolves (and hashes) to ``name``; a ``deprecated`` alias also warns, so that a
+        component can be renamed without breaking recipes or retraining finished stages."""
+        if other in self._entries:
+            raise ValueError(f"{self.kind} {other!r} is registered itself; it cannot also be an alias")
+        self._aliases[other] = (name, deprecated)
+
+    def canonical(self, name: str) -> str:
+        """The registered name ``name`` stands for (itself, or the target of an alias; a deprecated alias warns)."""
+        if name in self._entries or name not in self._aliases:
+            return name
+        target, deprecated = self._aliases[name]
+        if deprecated:
+            warnings.warn(f"{self.kind} {name!r} is deprecated: use {target!r} (the same component; stages keep "
+                          "their identity)", FutureWarning, stacklevel=3)
+        return target
+
+    def aliases_of(self, name: str) -> list[str]:
+        return sorted(a for a, (target, _) in self._aliases.items() if target == name)
+
     def register(self, name: str, **kwargs: Any) -> Callable[[T], T]:
         """Decorator form of :meth:`add`."""
 
@@ -67,13 +89,15 @@ class Registry(Generic[T]):
         return deco
 
     def remove(self, name: str) -> None:
-        """Unregister ``name`` (tests and notebooks that register temporary components)."""
+        """Unregister ``name`` and its aliases (tests and notebooks that register temporary components)."""
         self._entries.pop(name, None)
+        self._aliases = {a: t for a, t in self._aliases.items() if a != name and t[0] != name}
 
     def entry(self, name: str) -> Entry[T]:
+        """The component registered as ``name`` or as the target of the alias ``name`` (its ``name`` is canonical)."""
         load_plugins()
         try:
-            return self._entries[name]
+            return self._entries[self.canonical(name)]
         except KeyError:
             raise UnknownNameError(self.unknown_message(name)) from None
 
@@ -81,7 +105,7 @@ class Registry(Generic[T]):
         return self.entry(name).obj
 
     def unknown_message(self, name: object) -> str:
-        close = difflib.get_close_matches(str(name), list(self._entries), n=3, cutoff=0.6)
+        close = difflib.get_close_matches(str(name), [*self._entries, *self._aliases], n=3, cutoff=0.6)
         hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
         known = ", ".join(sorted(self._entries)) or "none"
         broken = "".join(f"; {msg}" for msg in plugin_errors)  # the component may live in a plugin that failed
@@ -94,7 +118,7 @@ class Registry(Generic[T]):
 
     def __contains__(self, name: object) -> bool:
         load_plugins()
-        return name in self._entries
+        return name in self._entries or name in self._aliases
 
     def __iter__(self) -> Iterator[Entry[T]]:
         load_plugins()

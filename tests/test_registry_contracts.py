@@ -102,3 +102,39 @@ def test_dataset_contract(name: str) -> None:
 def test_the_builtins_are_registered() -> None:
     assert set(BUILTIN["adapters"]) <= set(names(ADAPTERS)) and set(BUILTIN["metrics"]) <= set(names(METRICS))
     assert len(names(OBJECTIVES)) >= 10
+
+
+def test_an_alias_names_the_same_component_and_a_deprecated_one_warns_without_changing_identities(tmp_path) -> None:
+    """Names are part of stage identities: a renamed component keeps the old name as a deprecated alias, and a
+    recipe using it resolves and hashes as the new name (timm's practice)."""
+    import warnings
+
+    import pytest
+
+    from conftest import tiny_recipe
+    from distilkit.engine.pipeline import Pipeline
+    from distilkit.recipe import recipe_from_dict
+    from distilkit.registry import OBJECTIVES
+
+    OBJECTIVES.alias("dense_to_sparse", "dskd", deprecated=True)
+    OBJECTIVES.alias("scpnet_relational", "dskd")
+    try:
+        plain = Pipeline(recipe_from_dict(tiny_recipe()), tmp_path, quiet=True)
+        with pytest.warns(FutureWarning, match="objective 'dense_to_sparse' is deprecated: use 'dskd'"):
+            old = tiny_recipe()
+            old["stages"]["student"]["distill"][0]["name"] = "dense_to_sparse"
+            renamed = Pipeline(recipe_from_dict(old), tmp_path, quiet=True)
+        assert renamed.hashes == plain.hashes and renamed.resolved.stages["student"].distill[0].key == "dskd"
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # a plain alias does not warn
+            other = tiny_recipe()
+            other["stages"]["student"]["distill"][0]["name"] = "scpnet_relational"
+            assert Pipeline(recipe_from_dict(other), tmp_path, quiet=True).hashes == plain.hashes
+        assert "scpnet_relational" in OBJECTIVES and "scpnet_relational" not in OBJECTIVES.names()
+        assert OBJECTIVES.aliases_of("dskd") == ["dense_to_sparse", "scpnet_relational"]
+        with pytest.raises(ValueError, match="registered itself"):
+            OBJECTIVES.alias("kd", "dskd")
+    finally:
+        OBJECTIVES.remove("dense_to_sparse")
+        OBJECTIVES.remove("scpnet_relational")
+    assert OBJECTIVES.aliases_of("dskd") == []

@@ -65,7 +65,8 @@ def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, st
         "versions": code_versions(res, stage),
         "schema_version": res.recipe.schema_version,
         "seed": stage_seed(res, stage),
-        "data": {"dataset": res.recipe.data.dataset, "params": res.data_params.model_dump(mode="json")},
+        "data": {"dataset": DATASETS.entry(res.recipe.data.dataset).name,
+                 "params": res.data_params.model_dump(mode="json")},
         "model": {"adapter": stage.student.adapter, "params": stage.student.params.model_dump(mode="json"),
                   **({"taps": {n: h.model_dump(mode="json") for n, h in stage.student.hooks.items()}}
                      if stage.student.hooks else {})},

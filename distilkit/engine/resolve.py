@@ -104,7 +104,7 @@ def _model(spec: ModelSpec, path: str, problems: list[tuple[str, str]]) -> Resol
         if hook.kind not in TAP_KINDS:
             problems.append((f"{path}.taps.{name}.kind", f"unknown tap kind {hook.kind!r} (registered: "
                                                          f"{', '.join(TAP_KINDS)})"))
-    return None if params is None else ResolvedModel(spec.adapter, entry.obj, params, dict(spec.taps))
+    return None if params is None else ResolvedModel(entry.name, entry.obj, params, dict(spec.taps))
 
 
 def _resolve_fields(term_path: str, cls: Any, given: dict[str, str], info: Any,
@@ -170,10 +170,10 @@ def _terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: dict[st
         if params is not None:
             if connector not in (None, "none") and not entry.obj.TEACHER_ROLES:
                 problems.append((f"{p}.connector", f"{spec.name} reads no teacher tap: there is nothing to project to"))
-            seen = sum(t.name == spec.name for t in out)
-            out.append(ResolvedTerm(spec.name, entry.obj, params, weight, taps,
+            seen = sum(t.name == entry.name for t in out)
+            out.append(ResolvedTerm(entry.name, entry.obj, params, weight, taps,
                                     None if connector == "none" else connector, fields,
-                                    spec.name if not seen else f"{spec.name}_{seen + 1}"))
+                                    entry.name if not seen else f"{entry.name}_{seen + 1}"))
     return out
 
 
