@@ -163,7 +163,7 @@ def test_a_changed_component_version_retrains_exactly_its_stages(tmp_path, monke
 
 
 def test_generator_and_distilkit_versions_are_part_of_the_identity(tmp_path, monkeypatch) -> None:
-    import distilkit.engine.pipeline as pl
+    import distilkit.engine.identity as pl
     from distilkit.registry import DATASETS
 
     base = pipeline(tmp_path, tiny_recipe()).hashes
@@ -337,3 +337,29 @@ def test_a_stage_lists_its_upstream_edges_in_one_place_and_order_needs_and_downs
     r["stages"]["teacher"]["init"] = {"from": "finetune"}  # a cycle through an init edge
     with pytest.raises(RecipeError, match="cycle of teacher/init stages"):
         stage_order(recipe_from_dict(r))
+
+
+def test_a_moved_data_folder_keeps_its_stages_and_a_changed_file_does_not(tmp_path) -> None:
+    """Identity fingerprints a SemanticKITTI folder by its files (names, sizes, modification times), not its path."""
+    import os
+    import shutil
+
+    from conftest import FIXTURES
+
+    first = tmp_path / "a" / "kitti"
+    shutil.copytree(FIXTURES / "semantickitti-sample", first, copy_function=shutil.copy2)
+
+    def hashes(root) -> dict[str, str]:
+        r = tiny_recipe(steps=1)
+        r["data"] = {"dataset": "semantickitti", "params": {"root": str(root), "scale": 8, "input_frames": 2,
+                                                            "train_sequences": ["00"], "val_sequences": ["00"]}}
+        return pipeline(tmp_path, r).hashes
+
+    before = hashes(first)
+    moved = tmp_path / "b" / "elsewhere"
+    moved.parent.mkdir()
+    os.rename(first, moved)
+    assert hashes(moved) == before
+    scan = moved / "sequences" / "00" / "velodyne" / "000000.bin"
+    scan.write_bytes(scan.read_bytes()[:-16])  # one point fewer
+    assert all(hashes(moved)[k] != before[k] for k in before)

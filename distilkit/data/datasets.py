@@ -136,6 +136,25 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
                 "point_label": np.concatenate(labs).astype(np.uint8), "voxel_label": vl.astype(np.uint8), "invalid": inv}
 
 
+def kitti_fingerprint(params: SemanticKittiParams) -> dict[str, Any]:
+    """What identifies a SemanticKITTI folder in a stage's identity: the parameters but the root, and a digest of
+    the names, sizes and modification times of the files of the sequences it reads (a moved folder keeps its
+    stages; a changed file retrains them)."""
+    import hashlib
+
+    root = Path(params.root).expanduser()
+    lines = []
+    for seq in sorted({*params.train_sequences, *params.val_sequences, *params.test_sequences}):
+        d = root / "sequences" / seq
+        files = [f for sub in ("velodyne", "labels", "voxels") for f in sorted((d / sub).glob("*"))]
+        files += [d / name for name in ("poses.txt", "calib.txt") if (d / name).is_file()]
+        for f in files:
+            st = f.stat()
+            lines.append(f"{f.relative_to(root).as_posix()} {st.st_size} {st.st_mtime_ns}")
+    return {"params": params.model_dump(mode="json", exclude={"root"}, exclude_defaults=True),
+            "files": len(lines), "digest": hashlib.sha256("\n".join(lines).encode()).hexdigest()}
+
+
 def _synthetic_factory(params: SyntheticParams, split: str, progress: Any = None) -> ArrayDataset:
     return build_synthetic(params, split, progress)
 
@@ -158,6 +177,7 @@ DATASETS.add(
     params=SemanticKittiParams,
     info=kitti_info, collate=collate_lidar, version=1,
     has_split=lambda p, split: split != "test" or bool(p.test_sequences), probe=grid_plan,
+    fingerprint=kitti_fingerprint,
 )
 
 

@@ -1,9 +1,6 @@
-"""The pipeline: stages in dependency order, each cached by the content hash of its config.
-
-A stage's identity is a hash of its resolved configuration, the data configuration, the seed,
-the identities of its upstream stages and the versions of the code that produces it (distilkit,
-the dataset or synthetic generator, and the ``VERSION`` of its adapter, task losses and
-objectives). ``runs/<recipe>/<stage>-<hash>/summary.json`` marks a finished stage, which is
+"""The pipeline: stages in dependency order, each cached by its identity (:mod:`distilkit.engine.identity`: the
+non-default values of its resolved configuration, the data's fingerprint, the seed, the code versions and the
+identities of the stages it reads). ``runs/<recipe>/<stage>-<hash>/summary.json`` marks a finished stage, which is
 reused; an unfinished one resumes from ``last.pt``. ``rerun`` retrains named stages (and the
 stages downstream of them) on purpose; the replaced folder is kept beside the new one.
 """
@@ -11,7 +8,6 @@ stages downstream of them) on purpose; the replaced folder is kept beside the ne
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import time
 from dataclasses import dataclass
@@ -22,7 +18,8 @@ import yaml
 
 from distilkit import __version__
 from distilkit.engine.io import atomic_write_text
-from distilkit.engine.resolve import ResolvedRecipe, ResolvedStage, ResolvedTerm, resolve
+from distilkit.engine.identity import stage_hashes, stage_seed
+from distilkit.engine.resolve import ResolvedRecipe, ResolvedStage, resolve
 from distilkit.errors import RecipeError
 from distilkit.recipe import Recipe, load_recipe, needed_stages
 from distilkit.registry import DATASETS
@@ -36,78 +33,6 @@ class StageResult:
     reused: bool
 
 
-def _file_digest(path: str) -> str:
-    p = Path(path)
-    return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else f"missing:{path}"
-
-
-def stage_config(res: ResolvedRecipe, stage: ResolvedStage, hashes: dict[str, str]) -> dict[str, Any]:
-    spec = stage.spec
-    teacher: dict[str, Any] | None = None
-    if spec.teacher is not None:
-        teacher = spec.teacher.model_dump(mode="json", by_alias=True)
-        for part in (teacher, teacher.get("model") or {}):  # recorded taps count only when there are some
-            if not part.get("taps"):
-                part.pop("taps", None)
-        if spec.teacher.from_ is not None:
-            teacher["upstream_hash"] = hashes[spec.teacher.from_]
-        else:
-            teacher["checkpoint_sha256"] = _file_digest(spec.teacher.checkpoint or "")
-    init: dict[str, Any] = {}
-    if spec.init is not None:  # only when given: stages without one keep their identity
-        init = {"init": spec.init.model_dump(mode="json", by_alias=True)}
-        if spec.init.from_ is not None:
-            init["init"]["upstream_hash"] = hashes[spec.init.from_]
-        else:
-            init["init"]["checkpoint_sha256"] = _file_digest(spec.init.checkpoint or "")
-    return {
-        **init,
-        "versions": code_versions(res, stage),
-        "schema_version": res.recipe.schema_version,
-        "seed": stage_seed(res, stage),
-        "data": {"dataset": DATASETS.entry(res.recipe.data.dataset).name,
-                 "params": res.data_params.model_dump(mode="json")},
-        "model": {"adapter": stage.student.adapter, "params": stage.student.params.model_dump(mode="json"),
-                  **({"taps": {n: h.model_dump(mode="json") for n, h in stage.student.hooks.items()}}
-                     if stage.student.hooks else {})},
-        "teacher": teacher,
-        "task_losses": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps,
-                         **_moved_fields(t)} for t in stage.task_losses],
-        "distill": [{"name": t.name, "weight": t.weight, "params": t.params.model_dump(mode="json"), "taps": t.taps,
-                     **({"connector": t.connector} if t.connector else {}), **_moved_fields(t)} for t in stage.distill],
-        "optimizer": {**spec.optimizer.model_dump(mode="json"), "param_groups": stage.param_groups},
-        # fp32 adds no entry: stages from before `precision` existed keep their identity
-        "train": spec.train.model_dump(mode="json", exclude={"log_every", "checkpoint_every", "device"}
-                                       | ({"precision"} if spec.train.precision == "fp32" else set())),
-    }
-
-
-def stage_seed(res: ResolvedRecipe, stage: ResolvedStage) -> int:
-    """The seed a stage trains with: its own, else the recipe's."""
-    return stage.spec.seed if stage.spec.seed is not None else res.recipe.seed
-
-
-def _moved_fields(term: ResolvedTerm) -> dict[str, Any]:
-    """The batch fields a recipe points a term's roles at, when not the term's defaults (else no entry, so
-    stages keep their identity)."""
-    return {"fields": term.fields} if term.fields != dict(term.cls.BATCH) else {}
-
-
-def code_versions(res: ResolvedRecipe, stage: ResolvedStage) -> dict[str, Any]:
-    """The code versions that produce a stage: a change in any of them retrains exactly its users."""
-    ds = DATASETS.entry(res.recipe.data.dataset)
-    out: dict[str, Any] = {
-        "distilkit": __version__,
-        "dataset": ds.meta.get("version", 1),
-        "adapter": getattr(stage.student.cls, "VERSION", 1),
-        "task_losses": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.task_losses},
-        "distill": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.distill},
-    }
-    if stage.teacher is not None and stage.teacher_from is None:  # a checkpoint teacher: its adapter's code
-        out["teacher_adapter"] = getattr(stage.teacher.cls, "VERSION", 1)
-    return out
-
-
 def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
     """``names`` and every stage that reads one of them (:meth:`~distilkit.recipe.StageSpec.edges`), transitively."""
     out = set(names)
@@ -115,16 +40,6 @@ def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
         if out & set(res.stages[name].spec.edges().values()):
             out.add(name)
     return out
-
-
-def stage_hashes(res: ResolvedRecipe) -> tuple[dict[str, str], dict[str, dict[str, Any]]]:
-    """Each stage's identity (hash of its resolved config and its upstream hashes) and that config."""
-    hashes: dict[str, str] = {}
-    configs: dict[str, dict[str, Any]] = {}
-    for name in res.order:
-        configs[name] = stage_config(res, res.stages[name], hashes)
-        hashes[name] = hashlib.sha256(json.dumps(configs[name], sort_keys=True).encode()).hexdigest()[:10]
-    return hashes, configs
 
 
 def read_summary(run_dir: Path) -> dict[str, Any] | None:

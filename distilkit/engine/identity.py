@@ -1,0 +1,127 @@
+"""A stage's identity: the hash that names its run folder (``<stage>-<hash>``), so a finished stage is reused and a
+changed one retrains.
+
+It hashes what produces the stage and nothing else, without special cases:
+
+* the **non-default values** of its resolved configuration (every pydantic model dumped without its defaults:
+  a field added to the schema later, at its default, leaves every identity as it was) — the resolved terms with
+  their weights, taps and batch fields, the optimizer's parameter groups, the adapter's parameters;
+* the **code versions** that produce it (distilkit's, the dataset's, each component's ``VERSION``);
+* a **fingerprint of the data**, not the path where it lies: a dataset registers ``fingerprint`` (SemanticKITTI:
+  the names, sizes and modification times of its files), else its parameters stand for it (a generator's);
+* the identities of the stages it reads (:meth:`~distilkit.recipe.StageSpec.edges`), and the content of
+  weights files it reads.
+
+What only changes how a run is watched (labels, logging and checkpoint intervals, the device) is left out.
+:func:`stage_config` is the full record written to ``recipe.resolved.yaml``; :func:`stage_identity` is what is
+hashed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel
+
+from distilkit import __version__
+from distilkit.registry import DATASETS
+
+# fields of a stage that do not change what is trained
+NOT_IDENTITY = {"label": True, "seed": True, "train": {"log_every", "checkpoint_every", "device"}}
+
+
+def file_digest(path: str) -> str:
+    """SHA-256 of a file's content (``missing:<path>`` when there is none)."""
+    p = Path(path).expanduser()
+    return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else f"missing:{path}"
+
+
+def _dump(model: BaseModel, full: bool, **kwargs: Any) -> dict[str, Any]:
+    return model.model_dump(mode="json", by_alias=True, exclude_defaults=not full, **kwargs)
+
+
+def stage_seed(res: Any, stage: Any) -> int:
+    """The seed a stage trains with: its own, else the recipe's."""
+    return stage.spec.seed if stage.spec.seed is not None else res.recipe.seed
+
+
+def code_versions(res: Any, stage: Any) -> dict[str, Any]:
+    """The code versions that produce a stage: a change in any of them retrains exactly its users."""
+    ds = DATASETS.entry(res.recipe.data.dataset)
+    out: dict[str, Any] = {
+        "distilkit": __version__,
+        "dataset": ds.meta.get("version", 1),
+        "adapter": getattr(stage.student.cls, "VERSION", 1),
+        "task_losses": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.task_losses},
+        "distill": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.distill},
+    }
+    if stage.teacher is not None and stage.teacher_from is None:  # a checkpoint teacher: its adapter's code
+        out["teacher_adapter"] = getattr(stage.teacher.cls, "VERSION", 1)
+    return out
+
+
+def data_fingerprint(res: Any) -> dict[str, Any]:
+    """What identifies the data: the dataset's registered name and its ``fingerprint(params)`` (a folder's files),
+    or its non-default parameters (a generator's)."""
+    entry = DATASETS.entry(res.recipe.data.dataset)
+    fingerprint = entry.meta.get("fingerprint")
+    return {"dataset": entry.name,
+            **(fingerprint(res.data_params) if fingerprint is not None else {"params": _dump(res.data_params, False)})}
+
+
+def _terms(terms: list[Any], full: bool) -> list[dict[str, Any]]:
+    return [{"name": t.name, "weight": t.weight, "params": _dump(t.params, full), "taps": t.taps, "fields": t.fields,
+             "connector": t.connector} for t in terms]
+
+
+def _files(spec: Any) -> dict[str, str]:
+    """Digests of the weights files a stage reads (a checkpoint teacher, init from a file)."""
+    return {field: file_digest(src.checkpoint) for field, src in (("teacher", spec.teacher), ("init", spec.init))
+            if src is not None and src.checkpoint is not None}
+
+
+def stage_config(res: Any, stage: Any, hashes: dict[str, str], full: bool = True) -> dict[str, Any]:
+    """The stage as it will be trained: its recipe fields, the resolved model and terms, the data, the code
+    versions, the seed and the identities of the stages it reads. ``full=False``: only the non-default values of
+    what changes the trained result (:func:`stage_identity`)."""
+    spec = stage.spec
+    fields = _dump(spec, full, exclude=None if full else NOT_IDENTITY)
+    for key in ("model", "task_losses", "distill"):  # given below as resolved
+        fields.pop(key, None)
+    return {
+        **fields,
+        "versions": code_versions(res, stage),
+        "seed": stage_seed(res, stage),
+        "data": ({"dataset": DATASETS.entry(res.recipe.data.dataset).name, "params": _dump(res.data_params, True)}
+                 if full else data_fingerprint(res)),
+        "model": {"adapter": stage.student.adapter, "params": _dump(stage.student.params, full),
+                  "taps": {n: _dump(h, full) for n, h in stage.student.hooks.items()}},
+        "task_losses": _terms(stage.task_losses, full),
+        "distill": _terms(stage.distill, full),
+        "param_groups": stage.param_groups,
+        "upstream": {field: hashes[name] for field, name in spec.edges().items()},
+        "files": _files(spec),
+    }
+
+
+def stage_identity(res: Any, stage: Any, hashes: dict[str, str]) -> str:
+    """The 10-hex-digit hash of :func:`stage_config` without defaults."""
+    config = stage_config(res, stage, hashes, full=False)
+    return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()[:10]
+
+
+def stage_hashes(res: Any) -> tuple[dict[str, str], dict[str, dict[str, Any]]]:
+    """Each stage's identity (in dependency order, so upstream identities are known) and its full record."""
+    hashes: dict[str, str] = {}
+    configs: dict[str, dict[str, Any]] = {}
+    for name in res.order:
+        hashes[name] = stage_identity(res, res.stages[name], hashes)
+        configs[name] = stage_config(res, res.stages[name], hashes)
+    return hashes, configs
+
+
+__all__ = ["code_versions", "data_fingerprint", "file_digest", "stage_config", "stage_hashes", "stage_identity",
+           "stage_seed"]
