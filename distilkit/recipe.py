@@ -89,6 +89,8 @@ class LossSpec(_Strict):
     connector: Literal["linear", "none"] | None = Field(
         None, description="learnable projection of the student tap to the teacher's channels before the objective "
                           "(default: the objective's own; fitnets: linear)")
+    warmup_steps: int = Field(0, ge=0, description="the weight grows linearly over the first N steps (mdistiller's "
+                                                   "warm-up of the distillation weight); 0: the full weight at once")
 
 
 class ParamGroupSpec(_Strict):
@@ -96,12 +98,21 @@ class ParamGroupSpec(_Strict):
     ``task.<term>.<param>``, ``distill.<objective>.<param>``; a bare name matches its last part)."""
 
     match: str = Field(..., min_length=1, description="glob, e.g. 'task.uncertainty_multitask.log_var' or 'log_var'")
-    lr_scale: float = Field(1.0, gt=0, description="learning rate = optimizer lr x lr_scale")
+    lr_scale: float = Field(1.0, ge=0, description="learning rate = optimizer lr x lr_scale (0: frozen, as `freeze`)")
     weight_decay: float | None = Field(None, ge=0, description="(default: the optimizer's)")
 
 
+class ScheduleSpec(_Strict):
+    """The learning rate over the steps: a registered schedule (`distilkit list schedules`) and a linear warm-up."""
+
+    name: str = Field("constant", description="registered schedule: constant, step, cosine, or a plugin's")
+    params: dict[str, Any] = Field(default_factory=dict, description="the schedule's parameters "
+                                                                     "(step: step_size, gamma; cosine: min_factor)")
+    warmup_steps: int = Field(0, ge=0, description="linear warm-up over the first N steps, times the schedule")
+
+
 class OptimizerSpec(_Strict):
-    name: Literal["adam", "adamw", "sgd"] = "adam"
+    name: str = Field("adam", description="registered optimizer: adam, adamw, sgd, or a plugin's")
     lr: float = Field(1e-3, gt=0)
     weight_decay: float = Field(0.0, ge=0)
     momentum: float = Field(0.9, ge=0, description="SGD only")
@@ -109,6 +120,7 @@ class OptimizerSpec(_Strict):
     param_groups: list[ParamGroupSpec] | None = Field(
         None, description="per-group learning rates, first match wins (default: the groups the stage's terms ask "
                           "for, e.g. JS3C-Net's sigma at 10x; [] for none)")
+    schedule: ScheduleSpec = Field(default_factory=ScheduleSpec, description="learning-rate schedule")
 
 
 class TrainSpec(_Strict):
@@ -147,6 +159,9 @@ class StageSpec(_Strict):
     distill: list[LossSpec] = Field(default_factory=list, description="distillation objectives")
     optimizer: OptimizerSpec = Field(default_factory=OptimizerSpec)
     train: TrainSpec = Field(default_factory=TrainSpec)
+    freeze: list[str] = Field(default_factory=list, description="globs of trainable parameters to keep as they "
+                                                                "are, by qualified name (student.<module path>..., "
+                                                                "as param_groups' match), e.g. 'student.net.encoder.*'")
     label: str | None = Field(None, description="display name in reports")
     seed: int | None = Field(None, description="this stage's training seed (default: the recipe's `seed`, or "
                                                "`--seed`); a sweep fixes a shared teacher's seed this way")

@@ -135,14 +135,18 @@ TASK_LOSSES: Registry[Any] = Registry("task loss")
 DATASETS: Registry[Any] = Registry("dataset")
 METRICS: Registry[Any] = Registry("metric")
 
+OPTIMIZERS: Registry[Any] = Registry("optimizer")
+SCHEDULES: Registry[Any] = Registry("schedule")
+
 ALL_REGISTRIES = {"adapters": ADAPTERS, "objectives": OBJECTIVES, "task losses": TASK_LOSSES,
-                  "datasets": DATASETS, "metrics": METRICS}
+                  "datasets": DATASETS, "metrics": METRICS, "optimizers": OPTIMIZERS, "schedules": SCHEDULES}
 
 _BUILTIN_MODULES = (
     "distilkit.objectives",
     "distilkit.losses.task",
     "distilkit.data.datasets",
     "distilkit.metrics.registered",
+    "distilkit.engine.optim",
 )
 _loaded = False
 _loading = False

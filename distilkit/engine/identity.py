@@ -74,7 +74,7 @@ def data_fingerprint(res: Any) -> dict[str, Any]:
 
 def _terms(terms: list[Any], full: bool) -> list[dict[str, Any]]:
     return [{"name": t.name, "weight": t.weight, "params": _dump(t.params, full), "taps": t.taps, "fields": t.fields,
-             "connector": t.connector} for t in terms]
+             "connector": t.connector, "warmup_steps": t.warmup_steps} for t in terms]
 
 
 def _files(spec: Any) -> dict[str, str]:

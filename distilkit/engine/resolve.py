@@ -10,7 +10,8 @@ from pydantic import BaseModel, ValidationError
 
 from distilkit.errors import RecipeError, UnknownNameError
 from distilkit.recipe import LossSpec, ModelSpec, ParamGroupSpec, Recipe, pydantic_problems, stage_order
-from distilkit.registry import ADAPTERS, DATASETS, METRICS, OBJECTIVES, TASK_LOSSES, Registry
+from distilkit.registry import (ADAPTERS, DATASETS, METRICS, OBJECTIVES, OPTIMIZERS, SCHEDULES, TASK_LOSSES,
+                                Registry)
 from distilkit.taps import TAP_KINDS, kind_fits
 
 
@@ -24,6 +25,7 @@ class ResolvedTerm:
     connector: str | None = None  # projection of the student tap to the teacher's channels
     fields: dict[str, str] = field(default_factory=dict)  # role -> batch field
     key: str = ""  # unique within its list: the name, then name_2, name_3 for repeats (logs, parameter names)
+    warmup_steps: int = 0  # the weight grows linearly over the first N steps
 
     def __post_init__(self) -> None:
         self.key = self.key or self.name
@@ -66,6 +68,7 @@ class ResolvedStage:
     distill: list[ResolvedTerm] = field(default_factory=list)
     param_groups: list[dict[str, Any]] = field(default_factory=list)  # optimizer groups in effect
     metric: ResolvedMetric | None = None
+    schedule: BaseModel | None = None  # the learning-rate schedule's validated parameters
 
 
 @dataclass
@@ -173,7 +176,7 @@ def _terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: dict[st
             seen = sum(t.name == entry.name for t in out)
             out.append(ResolvedTerm(entry.name, entry.obj, params, weight, taps,
                                     None if connector == "none" else connector, fields,
-                                    entry.name if not seen else f"{entry.name}_{seen + 1}"))
+                                    entry.name if not seen else f"{entry.name}_{seen + 1}", spec.warmup_steps))
     return out
 
 
@@ -319,9 +322,14 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
                 if teacher is not None and not callable(getattr(teacher.cls, cap, None)):
                     problems.append((f"{path}.distill[{i}]", f"{term.name} calls the teacher's {cap}(), which adapter "
                                                               f"{teacher.adapter!r} does not provide"))
+        _lookup(OPTIMIZERS, spec.optimizer.name, f"{path}.optimizer.name", problems)
+        schedule_entry = _lookup(SCHEDULES, spec.optimizer.schedule.name, f"{path}.optimizer.schedule.name", problems)
+        schedule = None if schedule_entry is None else _params(schedule_entry.meta["params"], spec.optimizer.schedule.params,
+                                                               f"{path}.optimizer.schedule.params", problems)
         if student is not None:
             groups = param_groups(spec.optimizer.param_groups, task, distill)
-            stages[name] = ResolvedStage(name, spec, student, teacher, teacher_from, task, distill, groups, metric)
+            stages[name] = ResolvedStage(name, spec, student, teacher, teacher_from, task, distill, groups, metric,
+                                         schedule)
     if problems:
         raise RecipeError(problems, source)
     assert data_params is not None

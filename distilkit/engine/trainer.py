@@ -71,6 +71,7 @@ class Trainer:
         self._init_log: dict[str, Any] | None = None
         self._last_taps: dict[int, dict[str, Any]] = {}  # per term, detached, for its update()
         self._saved_step: int | None = None  # the step of last.pt (None: none written yet)
+        self._step = 0  # the step being taken (loss-weight warm-ups read it)
         self.own_optimizers: list[torch.optim.Optimizer | None] = []
         assert stage.metric is not None, "a resolved stage always has its metric"
         self.metric = stage.metric
@@ -96,6 +97,7 @@ class Trainer:
             term.module.prepare(train_set)
         self._setup_terms()
         own = {id(t.module) for t, o in zip(self.terms, self.own_optimizers) if o is not None}  # train themselves
+        self._freeze({id(p) for t in self.terms if id(t.module) in own for p in t.module.parameters()})
         self.trainable = [p for m in (self.student, *[t.module for t in self.terms if id(t.module) not in own],
                                       self.connectors) for p in m.parameters() if p.requires_grad]
         self.optimizer = self._optimizer(self._param_groups())
@@ -128,16 +130,45 @@ class Trainer:
             return contextlib.nullcontext()
         return torch.autocast(self.device.type, dtype=torch.bfloat16 if precision == "bf16" else torch.float16)
 
-    def named_trainables(self) -> list[tuple[str, nn.Parameter]]:
-        """Trainable parameters by qualified name: ``student.*``, ``task.<term>.*``, ``distill.<objective>.*``."""
+    def _named_parameters(self) -> list[tuple[str, nn.Parameter]]:
+        """Every parameter of the student, the terms and the connectors by qualified name: ``student.*``,
+        ``task.<term>.*``, ``distill.<objective>.*``, ``connector.<objective>.*``."""
         named = [(f"student.{n}", p) for n, p in self.student.named_parameters()]
         for prefix, specs, mods in (("task", self.stage.task_losses, self.task),
                                     ("distill", self.stage.distill, self.objectives),
                                     ("connector", self.stage.distill, self.connectors)):
             for spec, mod in zip(specs, mods):
                 named += [(f"{prefix}.{spec.key}.{n}", p) for n, p in mod.named_parameters()]
+        return named
+
+    def named_trainables(self) -> list[tuple[str, nn.Parameter]]:
+        """Trainable parameters by qualified name (see :meth:`_named_parameters`)."""
         mine = {id(p) for p in self.trainable}
-        return [(n, p) for n, p in named if p.requires_grad and id(p) in mine]
+        return [(n, p) for n, p in self._named_parameters() if p.requires_grad and id(p) in mine]
+
+    def _freeze(self, own: set[int]) -> None:
+        """Keep the parameters that ``freeze`` names, or that a parameter group gives ``lr_scale: 0``, as they are
+        (no gradient, no optimizer state). A ``freeze`` glob that matches nothing is an error (a typo would
+        otherwise train what it meant to keep)."""
+        from fnmatch import fnmatchcase
+
+        def matches(pat: str, name: str) -> bool:
+            return fnmatchcase(name, pat) or ("." not in pat and fnmatchcase(name.rsplit(".", 1)[-1], pat))
+
+        named = [(n, p) for n, p in self._named_parameters() if id(p) not in own]
+        for pat in self.stage.spec.freeze:
+            hit = [p for n, p in named if matches(pat, n)]
+            if not hit:
+                raise DistilkitError(f"stage {self.stage.name!r}: freeze {pat!r} matches no parameter (names look "
+                                     f"like {', '.join(n for n, _ in named[:3])})")
+            for p in hit:
+                p.requires_grad_(False)
+        for group in self.stage.param_groups:
+            if group["lr_scale"] == 0:
+                for n, p in named:
+                    first = next((g for g in self.stage.param_groups if matches(g["match"], n)), None)
+                    if first is group:  # first match wins, as for the optimizer's groups
+                        p.requires_grad_(False)
 
     def _param_groups(self) -> list[dict[str, Any]]:
         """Optimizer groups: each parameter joins the first group whose ``match`` fits its name."""
@@ -159,12 +190,24 @@ class Trainer:
         return [g for g in (rest, *groups) if g["params"]]
 
     def _optimizer(self, params: list[dict[str, Any]]) -> torch.optim.Optimizer:
-        o = self.stage.spec.optimizer
-        if o.name == "adam":
-            return torch.optim.Adam(params, lr=o.lr, betas=o.betas, weight_decay=o.weight_decay)
-        if o.name == "adamw":
-            return torch.optim.AdamW(params, lr=o.lr, betas=o.betas, weight_decay=o.weight_decay)
-        return torch.optim.SGD(params, lr=o.lr, momentum=o.momentum, weight_decay=o.weight_decay)
+        """The registered optimizer (``optimizer.name``) over the groups; each group keeps its ``base_lr``, which
+        the schedule scales step by step (:meth:`_set_lr`)."""
+        from distilkit.registry import OPTIMIZERS
+
+        optimizer = OPTIMIZERS.get(self.stage.spec.optimizer.name)(params, self.stage.spec.optimizer)
+        for group in optimizer.param_groups:
+            group["base_lr"] = group["lr"]
+        return optimizer
+
+    def _set_lr(self, step: int) -> float:
+        """Every group's learning rate at 0-based ``step``: its base rate times the schedule's factor."""
+        from distilkit.engine.optim import lr_factor
+
+        schedule = self.stage.spec.optimizer.schedule
+        factor = lr_factor(schedule, self.stage.schedule or _no_params(), step, self.total_steps)
+        for group in self.optimizer.param_groups:
+            group["lr"] = group.get("base_lr", group["lr"]) * factor
+        return self.stage.spec.optimizer.lr * factor
 
     # -- checkpoints -------------------------------------------------------------------------
     @property
@@ -357,13 +400,16 @@ class Trainer:
         self._check_outputs(self.student, s_out, "student")
         t_out = self._teacher_outputs(batch) if len(self.objectives) else {}
         terms: dict[str, Tensor] = {}
+        from distilkit.engine.optim import weight_factor
+
         for i, term in enumerate(self.terms):
             taps = self._roles(term, s_out, t_out, batch)
             if self.stage.spec.train.precision != "fp32":  # terms in float32, outside autocast
                 taps = {role: to_float32(v) for role, v in taps.items()}
             self._last_taps[i] = {role: v.detach() if hasattr(v, "detach") else v for role, v in taps.items()}
             try:
-                terms[term.key] = term.spec.weight * term.module.compute(taps, batch)
+                weight = term.spec.weight * weight_factor(term.spec.warmup_steps, self._step)
+                terms[term.key] = weight * term.module.compute(taps, batch)
             except DistilkitError as exc:  # one line naming where: stage and term
                 where = f"stage {self.stage.name!r}, {term.what} {term.spec.key!r}: {exc}"
                 try:
@@ -429,6 +475,8 @@ class Trainer:
 
     def train_step(self, batch: Batch, step: int) -> dict[str, float]:
         """One optimizer step of the student (then the objectives' own updates); returns the values to log."""
+        self._step = step
+        lr = self._set_lr(step)
         terms = self.loss_terms(batch)
         loss = torch.stack(list(terms.values())).sum()
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
@@ -453,7 +501,7 @@ class Trainer:
         extra: dict[str, float] = {}
         for i, term in enumerate(self.terms):
             extra.update(term.module.update(step, batch, self._last_taps.get(i, {})))
-        return {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}, **extra}
+        return {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}, "lr": lr, **extra}
 
     def evaluate(self, dataset: Any, model: Adapter | None = None) -> dict[str, Any]:
         """Scores of the student (or ``model``) on ``dataset`` with the stage's metric."""
@@ -500,6 +548,12 @@ class Trainer:
                             step=np.array(best[1] if best is not None else self.total_steps))
         os.replace(tmp, path)
         return path
+
+
+def _no_params() -> Any:
+    from distilkit.engine.optim import NoParams
+
+    return NoParams()
 
 
 def write_summary(run_dir: Path, summary: dict[str, Any]) -> None:
