@@ -174,7 +174,7 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
 _LIST_COLUMN = {"adapters": "taps (name: kind)", "objectives": "reads (tap kinds)", "task losses": "reads (tap kinds)",
                 "datasets": "batch fields", "metrics": "scores (tap kind)", "optimizers": "—",
-                "schedules": "parameters"}
+                "schedules": "parameters", "connectors": "—"}
 
 
 def _list_cell(kind: str, entry: object) -> str:
@@ -273,7 +273,7 @@ def build_parser() -> argparse.ArgumentParser:
     ls = sub.add_parser("list", help="registered adapters, objectives, task losses, datasets, metrics, optimizers and "
                                      "schedules")
     ls.add_argument("kind", nargs="?", choices=["adapters", "objectives", "task losses", "datasets", "metrics",
-                                                "optimizers", "schedules"])
+                                                "optimizers", "schedules", "connectors"])
     ls.add_argument("--markdown", action="store_true", help="objectives as Markdown (docs/objectives.md)")
     ls.set_defaults(fn=_cmd_list)
     s = sub.add_parser("schema", help="print the recipe JSON schema (for editor completion)")

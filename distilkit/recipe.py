@@ -86,9 +86,10 @@ class LossSpec(_Strict):
     taps: dict[str, str] = Field(default_factory=dict,
                                  description="role -> tap name, e.g. {student: completion, teacher: completion}; "
                                              "for a batch role, the batch field, e.g. {target: voxel_label}")
-    connector: Literal["linear", "none"] | None = Field(
-        None, description="learnable projection of the student tap to the teacher's channels before the objective "
-                          "(default: the objective's own; fitnets: linear)")
+    connector: str | None = Field(
+        None, description="learnable projection of the student tap to the teacher's channels before the objective: a "
+                          "registered connector (linear, mlp, conv3, or a plugin's; `distilkit list connectors`) or "
+                          "none (default: the objective's own; fitnets: linear)")
     warmup_steps: int = Field(0, ge=0, description="the weight grows linearly over the first N steps (mdistiller's "
                                                    "warm-up of the distillation weight); 0: the full weight at once")
 

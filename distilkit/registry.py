@@ -137,9 +137,11 @@ METRICS: Registry[Any] = Registry("metric")
 
 OPTIMIZERS: Registry[Any] = Registry("optimizer")
 SCHEDULES: Registry[Any] = Registry("schedule")
+CONNECTORS: Registry[Any] = Registry("connector")
 
 ALL_REGISTRIES = {"adapters": ADAPTERS, "objectives": OBJECTIVES, "task losses": TASK_LOSSES,
-                  "datasets": DATASETS, "metrics": METRICS, "optimizers": OPTIMIZERS, "schedules": SCHEDULES}
+                  "datasets": DATASETS, "metrics": METRICS, "optimizers": OPTIMIZERS, "schedules": SCHEDULES,
+                  "connectors": CONNECTORS}
 
 _BUILTIN_MODULES = (
     "distilkit.objectives",

@@ -174,3 +174,28 @@ def test_a_recipe_connector_is_trained_with_the_student(tmp_path) -> None:
     r["stages"]["student"]["distill"] = [{"name": "fitnets"}]
     assert Pipeline(recipe_from_dict(r), tmp_path / "x", quiet=True).resolved.stages["student"].distill[0].connector \
         == "linear"
+
+
+def test_the_registered_connectors_project_maps_rows_and_sparse_voxels() -> None:
+    from distilkit.errors import TapError
+    from distilkit.objectives.connectors import Connector
+    from distilkit.registry import CONNECTORS
+    from distilkit.taps import SparseVoxels
+
+    maps_s, maps_t = torch.randn(2, 3, 4, 4, 2), torch.randn(2, 5, 4, 4, 2)
+    rows_s, rows_t = torch.randn(7, 3), torch.randn(7, 5)
+    coords = torch.tensor([[0, 1, 1, 0], [0, 2, 3, 1]])
+    sparse_s = SparseVoxels(coords, torch.randn(2, 3), (4, 4, 2))
+    sparse_t = SparseVoxels(coords, torch.randn(2, 5), (4, 4, 2))
+    for kind in ("linear", "conv1x1", "mlp"):
+        assert Connector(kind, maps_s, maps_t)(maps_s).shape == maps_t.shape
+        assert Connector(kind, rows_s, rows_t)(rows_s).shape == rows_t.shape
+        assert Connector(kind, sparse_s, sparse_t)(sparse_s).feats.shape == sparse_t.feats.shape
+    assert Connector("conv3", maps_s, maps_t)(maps_s).shape == maps_t.shape
+    with pytest.raises(TapError, match="conv3 needs a dense feature map"):
+        Connector("conv3", rows_s, rows_t)
+    assert CONNECTORS.aliases_of("linear") == ["conv1x1"]
+    r = tiny_recipe()
+    r["stages"]["student"]["distill"] = [{"name": "dskd", "connector": "mpl"}]
+    with pytest.raises(RecipeError, match=r"distill\[0\].connector: unknown connector 'mpl'; did you mean 'mlp'"):
+        Pipeline(recipe_from_dict(r), "unused", quiet=True)

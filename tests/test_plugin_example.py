@@ -93,3 +93,52 @@ def test_builtin_adapters_that_fail_to_load_are_an_error_not_a_warning(monkeypat
         monkeypatch.undo()
         registry.load_plugins(force=True)
     assert "scpnet" in registry.ADAPTERS
+
+
+def test_a_plugin_registers_a_connector_and_a_schedule_and_a_recipe_uses_both(tmp_path, monkeypatch) -> None:
+    """Through a real entry point: a plugin package adds a connector (a gated projection) and a schedule
+    (linear decay); a recipe names both; the connector trains with the student and the rate follows the schedule."""
+    import json
+
+    import torch
+
+    from conftest import tiny_recipe
+    from distilkit.engine.io import load_checkpoint
+
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "my_kd_extras.py").write_text(
+        "import torch\n"
+        "from torch import nn\n"
+        "from distilkit.engine.optim import NoParams\n"
+        "from distilkit.registry import CONNECTORS, SCHEDULES\n\n"
+        "class Gated(nn.Module):\n"
+        "    def __init__(self, cs, ct):\n"
+        "        super().__init__()\n"
+        "        self.lin, self.gate = nn.Linear(cs, ct), nn.Parameter(torch.ones(ct))\n"
+        "    def forward(self, x):\n"
+        "        return self.lin(x) * self.gate\n\n"
+        "def register():\n"
+        "    CONNECTORS.add('gated', lambda cs, ct, dims: Gated(cs, ct), description='gated', paper='plugin')\n"
+        "    SCHEDULES.add('linear_decay', lambda step, total, p: 1 - step / total, description='decay',\n"
+        "                  paper='plugin', params=NoParams)\n")
+    _fake_distribution(site, "my-kd-extras", "extras = my_kd_extras:register")
+    monkeypatch.syspath_prepend(str(site))
+    registry.load_plugins(force=True)
+    try:
+        r = tiny_recipe(steps=4)
+        student = r["stages"]["student"]
+        student["distill"] = [{"name": "dskd", "weight": 10.0, "connector": "gated"}]
+        student["optimizer"] = {"lr": 0.01, "schedule": {"name": "linear_decay"}}
+        teacher_run, student_run = Pipeline(recipe_from_dict(r), tmp_path / "runs", quiet=True).run()
+        ckpt = load_checkpoint(student_run.run_dir / "checkpoints" / "last.pt")
+        gate = next(v for k, v in ckpt["connectors"].items() if k.endswith("gate"))
+        assert not torch.equal(gate, torch.ones_like(gate))  # trained with the student
+        lrs = [json.loads(x)["lr"] for x in (student_run.run_dir / "metrics.jsonl").read_text().splitlines()
+               if "lr" in json.loads(x)]
+        assert lrs == [0.01, 0.0075, 0.005, 0.0025]
+    finally:
+        monkeypatch.undo()
+        registry.load_plugins(force=True)
+        registry.CONNECTORS.remove("gated")
+        registry.SCHEDULES.remove("linear_decay")

@@ -10,8 +10,8 @@ from pydantic import BaseModel, ValidationError
 
 from distilkit.errors import RecipeError, UnknownNameError
 from distilkit.recipe import LossSpec, ModelSpec, ParamGroupSpec, Recipe, pydantic_problems, stage_order
-from distilkit.registry import (ADAPTERS, DATASETS, METRICS, OBJECTIVES, OPTIMIZERS, SCHEDULES, TASK_LOSSES,
-                                Registry)
+from distilkit.registry import (ADAPTERS, CONNECTORS, DATASETS, METRICS, OBJECTIVES, OPTIMIZERS, SCHEDULES,
+                                TASK_LOSSES, Registry)
 from distilkit.taps import TAP_KINDS, kind_fits
 
 
@@ -170,6 +170,9 @@ def _terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: dict[st
         fields = _resolve_fields(p, entry.obj, spec.taps, info, problems)
         weight = spec.weight if spec.weight is not None else float(getattr(entry.obj, "DEFAULT_WEIGHT", 1.0))
         connector = getattr(spec, "connector", None) or getattr(entry.obj, "DEFAULT_CONNECTOR", None)
+        if connector not in (None, "none"):
+            found = _lookup(CONNECTORS, connector, f"{p}.connector", problems)
+            connector = found.name if found is not None else connector
         if params is not None:
             if connector not in (None, "none") and not entry.obj.TEACHER_ROLES:
                 problems.append((f"{p}.connector", f"{spec.name} reads no teacher tap: there is nothing to project to"))

@@ -1,6 +1,7 @@
 """Registered distillation objectives (nn.Module wrappers around :mod:`distilkit.losses`)."""
 
 from distilkit.objectives.base import Objective
+from distilkit.objectives import connectors as _connectors  # noqa: F401  (registers the connectors)
 from distilkit.objectives import dskd as _dskd  # noqa: F401  (registers the objectives)
 from distilkit.objectives import feature as _feature  # noqa: F401
 from distilkit.objectives import logit as _logit  # noqa: F401

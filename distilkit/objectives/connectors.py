@@ -1,9 +1,13 @@
-"""Connectors: learnable projections of a student tap to the teacher tap's channels, generic over kinds.
+"""Connectors: learnable projections of a student tap to the teacher tap's channels, generic over kinds, from the
+``CONNECTORS`` registry (plugins add their own).
 
 Declared per objective in a recipe (``{name: pkt, connector: linear}``) or by an objective's
 ``DEFAULT_CONNECTOR`` (FitNets: its 1x1 regressor is the ``linear`` connector). Sized from the first
-batch, trained with the student, saved with its checkpoints. ``linear`` is a 1x1 convolution on
-(B, C, *S) maps and a linear layer on (N, C) rows or on the features of sparse voxels.
+batch, trained with the student, saved with its checkpoints. A registered connector is
+``build(student_channels, teacher_channels, spatial_dims) -> nn.Module`` acting on (B, C, *S) maps (``dims`` 2
+or 3) or on (N, C) rows (``dims`` 0: rows, and the features of sparse voxels). Built in: ``linear`` (also
+``conv1x1``: a 1x1 convolution on maps, a linear layer on rows), ``mlp`` (two of them with a ReLU between, as wide
+as the wider side) and ``conv3`` (a 3x3(x3) convolution on maps, for spatial context).
 """
 
 from __future__ import annotations
@@ -14,9 +18,8 @@ from torch import Tensor, nn
 
 from distilkit.errors import TapError
 from distilkit.objectives.common import conv1x1
+from distilkit.registry import CONNECTORS
 from distilkit.taps import SparseVoxels
-
-CONNECTOR_TYPES = ("linear",)
 
 
 def _channels(value: Any) -> tuple[int, int]:
@@ -28,15 +31,38 @@ def _channels(value: Any) -> tuple[int, int]:
     raise TapError(f"a connector projects feature maps, (N, C) rows or sparse voxels, got {type(value).__name__}")
 
 
+def _linear(cs: int, ct: int, dims: int) -> nn.Module:
+    return conv1x1(cs, ct, dims) if dims in (2, 3) else nn.Linear(cs, ct)
+
+
+def _mlp(cs: int, ct: int, dims: int) -> nn.Module:
+    hidden = max(cs, ct)
+    return nn.Sequential(_linear(cs, hidden, dims), nn.ReLU(inplace=True), _linear(hidden, ct, dims))
+
+
+def _conv3(cs: int, ct: int, dims: int) -> nn.Module:
+    if dims not in (2, 3):
+        raise TapError("connector conv3 needs a dense feature map (B, C, H, W) or (B, C, X, Y, Z); use linear or mlp "
+                       "for rows and sparse voxels")
+    return (nn.Conv3d if dims == 3 else nn.Conv2d)(cs, ct, 3, padding=1)
+
+
+CONNECTORS.add("linear", _linear, description="1x1 convolution on maps, linear layer on rows and sparse voxels",
+               paper="FitNets' regressor (Romero et al., ICLR 2015)")
+CONNECTORS.alias("conv1x1", "linear")
+CONNECTORS.add("mlp", _mlp, description="two linear layers (1x1 on maps) with a ReLU, as wide as the wider side",
+               paper="—")
+CONNECTORS.add("conv3", _conv3, description="a 3x3 (3-D: 3x3x3) convolution on dense maps", paper="—")
+
+
 class Connector(nn.Module):
-    """``linear``: student channels -> teacher channels, built from one pair of tap values."""
+    """A registered connector (``kind``) from the student's channels to the teacher's, built from one pair of tap
+    values; sparse voxels are projected on their features."""
 
     def __init__(self, kind: str, student: Any, teacher: Any) -> None:
         super().__init__()
-        if kind not in CONNECTOR_TYPES:
-            raise ValueError(f"unknown connector {kind!r} (known: {', '.join(CONNECTOR_TYPES)})")
         (cs, dims), (ct, _) = _channels(student), _channels(teacher)
-        self.proj = conv1x1(cs, ct, dims) if dims in (2, 3) else nn.Linear(cs, ct)
+        self.proj = CONNECTORS.get(kind)(cs, ct, dims)
 
     def forward(self, value: Any) -> Any:
         if isinstance(value, SparseVoxels):
