@@ -290,7 +290,7 @@ def sampler_cases(device: torch.device, quick: bool) -> list[Case]:
     """ScoreLiDAR's claim (Table 4): the distilled student samples in 8 steps what the LiDiff teacher samples in 50 —
     the same denoiser, timed side by side ('fast' = 8 steps, 'naive' = 50). The model is built through the adapter
     registry at recipes/scorelidar.yaml's size (weights random: the time does not depend on them)."""
-    from distilkit.engine.models import build_model
+    from distilkit.engine.runs import build_model
     from distilkit.engine.resolve import resolve
     from distilkit.recipe import recipe_from_dict
 
@@ -338,7 +338,7 @@ def determinism_cases(device: torch.device, quick: bool) -> list[Case]:
         res = resolve(recipe_from_dict(recipe, "bench"), "bench")
         params = _one_scene(res.data_params).model_copy(update={"num_train": 2})
         trainer = probe_trainer(res, "s", params, Path(tempfile.mkdtemp(prefix="distilkit-bench-")), batch_size=2)
-        batch = trainer._batch(0)
+        batch = trainer.first_batch()
         trainer.student.train()
 
         def step(on: bool, trainer=trainer, batch=batch) -> Tensor:

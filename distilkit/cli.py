@@ -174,7 +174,7 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
 _LIST_COLUMN = {"adapters": "taps (name: kind)", "objectives": "reads (tap kinds)", "task losses": "reads (tap kinds)",
                 "datasets": "batch fields", "metrics": "scores (tap kind)", "optimizers": "—",
-                "schedules": "parameters", "connectors": "—"}
+                "schedules": "parameters", "connectors": "—", "hooks": "parameters"}
 
 
 def _list_cell(kind: str, entry: object) -> str:
@@ -189,7 +189,7 @@ def _list_cell(kind: str, entry: object) -> str:
         except Exception:
             return "—"
         return ", ".join(sorted(fields))
-    if kind == "schedules" and "params" in meta:
+    if kind in ("schedules", "hooks") and "params" in meta:
         return ", ".join(meta["params"].model_fields) or "—"
     return ", ".join(getattr(entry, "consumes")) or "—"
 
@@ -270,10 +270,10 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--no-memory", action="store_true", help="skip the memory estimate (one training step of each "
                    "stage at a small size)")
     v.set_defaults(fn=_cmd_validate)
-    ls = sub.add_parser("list", help="registered adapters, objectives, task losses, datasets, metrics, optimizers and "
-                                     "schedules")
+    ls = sub.add_parser("list", help="registered adapters, objectives, task losses, datasets, metrics, optimizers, "
+                                     "schedules, connectors and hooks")
     ls.add_argument("kind", nargs="?", choices=["adapters", "objectives", "task losses", "datasets", "metrics",
-                                                "optimizers", "schedules", "connectors"])
+                                                "optimizers", "schedules", "connectors", "hooks"])
     ls.add_argument("--markdown", action="store_true", help="objectives as Markdown (docs/objectives.md)")
     ls.set_defaults(fn=_cmd_list)
     s = sub.add_parser("schema", help="print the recipe JSON schema (for editor completion)")

@@ -124,6 +124,13 @@ class OptimizerSpec(_Strict):
     schedule: ScheduleSpec = Field(default_factory=ScheduleSpec, description="learning-rate schedule")
 
 
+class HookSpec(_Strict):
+    """A registered lifecycle hook of the training loop (`distilkit list hooks`), e.g. the TensorBoard logger."""
+
+    name: str = Field(..., description="registered hook: tensorboard, or a plugin's")
+    params: dict[str, Any] = Field(default_factory=dict, description="the hook's parameters")
+
+
 class TrainSpec(_Strict):
     epochs: int | None = Field(None, ge=1, description="passes over the training split")
     steps: int | None = Field(None, ge=0, description="optimizer steps (instead of epochs); 0 = evaluate only (a "
@@ -140,6 +147,23 @@ class TrainSpec(_Strict):
     metric: str = Field("miou", description="validation score that selects best.pt: a score of the metric for the "
                                             "adapter's prediction kind ('miou', 'iou', ...), or 'METRIC.SCORE' "
                                             "('ssc.miou'); see `distilkit list metrics`")
+    metrics: list[str] = Field(default_factory=list, description="further registered metrics scored at every "
+                                                                 "evaluation beside `metric`'s (reported as "
+                                                                 "METRIC.SCORE)")
+    workers: int | Literal["auto"] = Field("auto", description="data-loader processes that read and collate batches "
+                                                               "(0: in the stage's process; auto: none on 2 CPUs or "
+                                                               "fewer, else half the CPUs beyond two, at most 4); "
+                                                               "the numbers do not depend on it")
+    hooks: list[HookSpec] = Field(default_factory=list, description="registered lifecycle hooks run after the "
+                                                                    "stage's own (log, progress, evaluation, "
+                                                                    "checkpoint), e.g. {name: tensorboard}")
+
+    @field_validator("workers")
+    @classmethod
+    def _workers(cls, v: int | str) -> int | str:
+        if isinstance(v, int) and v < 0:
+            raise ValueError("workers must be 0 or more, or 'auto'")
+        return v
 
     @model_validator(mode="after")
     def _length(self) -> "TrainSpec":

@@ -138,10 +138,11 @@ METRICS: Registry[Any] = Registry("metric")
 OPTIMIZERS: Registry[Any] = Registry("optimizer")
 SCHEDULES: Registry[Any] = Registry("schedule")
 CONNECTORS: Registry[Any] = Registry("connector")
+HOOKS: Registry[Any] = Registry("hook")
 
 ALL_REGISTRIES = {"adapters": ADAPTERS, "objectives": OBJECTIVES, "task losses": TASK_LOSSES,
                   "datasets": DATASETS, "metrics": METRICS, "optimizers": OPTIMIZERS, "schedules": SCHEDULES,
-                  "connectors": CONNECTORS}
+                  "connectors": CONNECTORS, "hooks": HOOKS}
 
 _BUILTIN_MODULES = (
     "distilkit.objectives",
@@ -149,6 +150,7 @@ _BUILTIN_MODULES = (
     "distilkit.data.datasets",
     "distilkit.metrics.registered",
     "distilkit.engine.optim",
+    "distilkit.engine.tensorboard",
 )
 _loaded = False
 _loading = False

@@ -55,3 +55,19 @@ def tiny_recipe(name: str = "tiny", steps: int = 2, distill: bool = True, adapte
                              "distill": [{"name": "dskd", "weight": 10.0}], "train": train}
     return {"schema_version": 1, "name": name, "seed": 0,
             "data": {"dataset": "synthetic-lidar", "params": dict(TINY_DATA)}, "stages": stages}
+
+
+def make_trainer(pipe, stage_name: str, teacher=None, world=None):
+    """The :class:`~distilkit.engine.trainer.Trainer` of a pipeline's stage at its seed, on the CPU, without a run."""
+    import torch
+
+    from distilkit.engine.distributed import SINGLE
+    from distilkit.engine.loader import BatchPlan
+    from distilkit.engine.trainer import Trainer
+
+    world = world or SINGLE
+    stage = pipe.resolved.stages[stage_name]
+    train_set = pipe.dataset("train")
+    plan = BatchPlan(len(train_set), stage.spec.train.batch_size, 0, world)
+    return Trainer(stage, pipe.resolved.data_info, train_set, plan, torch.device("cpu"), collate=pipe.collate,
+                   teacher=teacher, world=world)

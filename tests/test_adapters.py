@@ -150,14 +150,12 @@ def test_js3cnet_class_weights_follow_the_paper(batch) -> None:
 def test_sigma_trains_at_ten_times_the_learning_rate_unless_the_recipe_says_otherwise(tmp_path) -> None:
     from conftest import tiny_recipe
     from distilkit.engine.pipeline import Pipeline
-    from distilkit.engine.trainer import Trainer
+    from conftest import make_trainer
     from distilkit.recipe import recipe_from_dict
 
     def groups(recipe: dict) -> dict[str, float]:
         pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
-        stage = pipe.resolved.stages["teacher"]
-        tr = Trainer(stage, pipe.resolved.data_info, pipe.dataset("train"), pipe.dataset("val"), tmp_path / "x", 0,
-                     collate=pipe.collate)
+        tr = make_trainer(pipe, "teacher")
         return {g["name"]: (g["lr"], len(g["params"])) for g in tr.optimizer.param_groups}
 
     recipe = tiny_recipe(distill=False, adapter="js3cnet")

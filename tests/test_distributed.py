@@ -15,11 +15,10 @@ import torch
 import torch.multiprocessing as mp
 import yaml
 
-from conftest import tiny_recipe
+from conftest import make_trainer, tiny_recipe
 from distilkit.engine.distributed import World
-from distilkit.engine.models import build_model, freeze
+from distilkit.engine.runs import build_model, freeze
 from distilkit.engine.pipeline import Pipeline
-from distilkit.engine.trainer import Trainer
 from distilkit.errors import DistilkitError
 from distilkit.recipe import recipe_from_dict
 
@@ -55,9 +54,8 @@ def one_step(world: World, folder: Path) -> dict[str, dict[str, torch.Tensor]]:
     stage, info = pipe.resolved.stages["student"], pipe.resolved.data_info
     torch.manual_seed(7)
     teacher = freeze(build_model(stage.teacher, info, "teacher"))
-    trainer = Trainer(stage, info, pipe.dataset("train"), pipe.dataset("val"), folder / f"rank{world.rank}", 0,
-                      teacher, collate=pipe.collate, world=world)
-    batch = trainer._batch(0)
+    trainer = make_trainer(pipe, "student", teacher, world)
+    batch = trainer.first_batch()
     assert batch.size == 4 // world.size  # this process's share of the global batch
     trainer.train_step(batch, 0)
     named = trainer.named_trainables()

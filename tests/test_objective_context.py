@@ -116,16 +116,14 @@ def test_an_objective_trains_its_own_network_and_calls_a_teacher_capability(tmp_
 
 
 def test_the_student_optimizer_leaves_an_objectives_own_parameters_alone(tmp_path) -> None:
-    from distilkit.engine.models import load_teacher
-    from distilkit.engine.trainer import Trainer
+    from conftest import make_trainer
+    from distilkit.engine.runs import load_run
 
     pipe = Pipeline(recipe_from_dict(recipe()), tmp_path / "runs", quiet=True)
     pipe.run()
     stage = pipe.resolved.stages["student"]
-    teacher = load_teacher(stage.teacher, pipe.resolved.data_info, pipe.run_dir("teacher") / "checkpoints" / "best.pt",
-                           torch.device("cpu"))
-    trainer = Trainer(stage, pipe.resolved.data_info, pipe.dataset("train"), pipe.dataset("val"), tmp_path / "t", 0,
-                      teacher, collate=pipe.collate)
+    teacher = load_run(pipe.run_dir("teacher"), model=stage.teacher, info=pipe.resolved.data_info, role="teacher")
+    trainer = make_trainer(pipe, "student", teacher)
     own = {id(p) for p in trainer.objectives[0].aux.parameters()}
     assert own and not own & {id(p) for p in trainer.trainable}
     assert not any(name.startswith("distill.") for name, _ in trainer.named_trainables())

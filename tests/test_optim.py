@@ -74,7 +74,7 @@ def _trainer(tmp_path: Path, stage: dict) -> tuple:
     r["stages"]["teacher"].update(stage)
     res = resolve(recipe_from_dict(r), "r")
     trainer = probe_trainer(res, "teacher", res.data_params, tmp_path)
-    return trainer, trainer._batch(0)
+    return trainer, trainer.first_batch()
 
 
 @pytest.mark.parametrize("how", ["freeze", "lr_scale"])

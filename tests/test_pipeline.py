@@ -7,10 +7,10 @@ import json
 import pytest
 import torch
 
-from conftest import tiny_recipe
+from conftest import make_trainer, tiny_recipe
 from distilkit.engine.io import load_checkpoint
 from distilkit.engine.pipeline import Pipeline
-from distilkit.engine.models import load_teacher
+from distilkit.engine.runs import load_run
 from distilkit.engine.trainer import Trainer
 from distilkit.errors import DataError, NonFiniteLossError, RecipeError, TapError
 from distilkit.engine.resolve import resolve
@@ -77,13 +77,12 @@ def test_teacher_is_frozen_and_unchanged_by_a_step(tmp_path) -> None:
     pipe = pipeline(tmp_path, tiny_recipe(steps=1))
     pipe.run()
     stage = pipe.resolved.stages["student"]
-    teacher = load_teacher(stage.teacher, pipe.resolved.data_info,
-                           pipe.run_dir("teacher") / "checkpoints" / "best.pt", torch.device("cpu"))
+    teacher = load_run(pipe.run_dir("teacher"), model=stage.teacher, info=pipe.resolved.data_info, role="teacher")
     before = {k: v.clone() for k, v in teacher.state_dict().items()}
     assert not teacher.training and not any(p.requires_grad for p in teacher.parameters())
-    trainer = Trainer(stage, pipe.resolved.data_info, pipe.dataset("train"), pipe.dataset("val"), tmp_path / "s", 0,
-                      teacher, collate=pipe.collate)
-    trainer.fit()
+    trainer = make_trainer(pipe, "student", teacher)
+    for step in range(3):
+        trainer.train_step(trainer.plan.batch(trainer.train_set, trainer.collate, step), step)
     after = teacher.state_dict()
     assert all(torch.equal(before[k], after[k]) for k in before)  # weights and BN buffers
     assert not teacher.training
@@ -296,7 +295,7 @@ def test_recipe_taps_record_submodules_and_feed_objectives(tmp_path) -> None:
     _, student = pipe.run()
     assert "kd_fitnets" in (student.run_dir / "metrics.jsonl").read_text()
     # the recorded value is the submodule's output, every forward pass
-    from distilkit.engine.models import build_model
+    from distilkit.engine.runs import build_model
     from distilkit.data.lidar import collate_lidar
 
     model = build_model(pipe.resolved.stages["student"].student, pipe.resolved.data_info).eval()

@@ -8,6 +8,7 @@ import torch.nn.functional as F
 
 from conftest import tiny_recipe
 from distilkit.engine.pipeline import Pipeline
+from conftest import make_trainer
 from distilkit.engine.trainer import Trainer
 from distilkit.errors import RecipeError
 from distilkit.recipe import recipe_from_dict
@@ -15,9 +16,7 @@ from distilkit.recipe import recipe_from_dict
 
 def trainer_for(recipe: dict, tmp_path) -> Trainer:
     pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
-    stage = pipe.resolved.stages["teacher"]
-    return Trainer(stage, pipe.resolved.data_info, pipe.dataset("train"), pipe.dataset("val"), tmp_path / "t", 0,
-                   collate=pipe.collate)
+    return make_trainer(pipe, "teacher")
 
 
 def test_a_recipe_points_a_batch_role_at_another_field_and_repeated_terms_all_count(tmp_path) -> None:
@@ -26,7 +25,7 @@ def test_a_recipe_points_a_batch_role_at_another_field_and_repeated_terms_all_co
                                              {"name": "ce", "weight": 0.5, "taps": {"target": "voxel_label"}}]
     trainer = trainer_for(r, tmp_path)
     assert [t.key for t in trainer.terms] == ["ce", "ce_2"]
-    batch = trainer._batch(0)
+    batch = trainer.first_batch()
     torch.manual_seed(0)
     terms = trainer.loss_terms(batch)
     torch.manual_seed(0)

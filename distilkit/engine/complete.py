@@ -16,11 +16,9 @@ from typing import Any
 
 import numpy as np
 import torch
-import yaml
 
 from distilkit.data.pointfiles import read_points, write_points
 from distilkit.data.scenes import farthest_point_sample, scan_crop, tile_to
-from distilkit.engine.io import load_checkpoint, load_weights
 from distilkit.errors import DataError, DistilkitError
 
 
@@ -34,47 +32,16 @@ class Completion:
     seconds: float
 
 
-def _checkpoint_path(path: Path) -> Path:
-    if path.is_dir():  # a stage's run folder
-        for name in ("best.pt", "last.pt"):
-            if (path / "checkpoints" / name).is_file():
-                return path / "checkpoints" / name
-        raise DataError(f"{path}: no checkpoints/best.pt or checkpoints/last.pt in this run folder")
-    if not path.is_file():
-        raise DataError(f"{path}: no such checkpoint")
-    return path
+def _model(source: Path) -> tuple[Any, dict[str, Any]]:
+    """The run's model (best checkpoint, else last) and the data parameters it was trained with."""
+    from distilkit.engine.runs import checkpoint_path, load_run, run_config
 
-
-def _run_config(ckpt: Path) -> dict[str, Any]:
-    """The stage's resolved recipe beside its checkpoint, when there is one."""
-    resolved = ckpt.parent.parent / "recipe.resolved.yaml"
-    if not resolved.is_file():
-        return {}
-    try:
-        return yaml.safe_load(resolved.read_text(encoding="utf-8")) or {}
-    except yaml.YAMLError as exc:
-        raise DataError(f"{resolved}: not readable YAML ({exc})") from None
-
-
-def _model(ckpt_path: Path, config: dict[str, Any]) -> Any:
-    from distilkit.registry import ADAPTERS, DATASETS, load_plugins
-
-    load_plugins()
-    ckpt = load_checkpoint(ckpt_path)
-    name = ckpt.get("adapter")
-    if name not in ADAPTERS:
-        raise DataError(f"{ckpt_path}: the checkpoint names adapter {name!r}, which is not installed "
-                        f"(installed: {', '.join(ADAPTERS.names())})")
-    cls = ADAPTERS.get(name)
-    params = cls.Params.model_validate(ckpt.get("adapter_params") or {})
-    data = config.get("data") or {"dataset": "synthetic-scenes", "params": {}}
-    entry = DATASETS.entry(data["dataset"])
-    info = entry.meta["info"](entry.meta["params"].model_validate(data.get("params") or {}))
-    model = cls(params, info)
-    load_weights(model, ckpt["student"], True, str(ckpt_path))
+    path = checkpoint_path(source, "any")
+    model = load_run(path)
     if not callable(getattr(model, "sample", None)):
-        raise DistilkitError(f"adapter {name!r} cannot complete a scan: it offers no sample(condition, steps)")
-    return model.eval(), data.get("params") or {}
+        raise DistilkitError(f"adapter {type(model).__name__} cannot complete a scan: it offers no "
+                             "sample(condition, steps)")
+    return model, (run_config(path).get("data") or {}).get("params") or {}
 
 
 def prepare_scan(points: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
@@ -99,8 +66,7 @@ def complete(checkpoint: str | Path, scan: str | Path, out: str | Path, steps: i
              device: str = "cpu", status: Any = None) -> Completion:
     """Complete ``scan`` with the model in ``checkpoint`` (a checkpoint file or a stage's run folder); write ``out``."""
     t0 = time.perf_counter()
-    ckpt = _checkpoint_path(Path(checkpoint).expanduser())
-    model, data_params = _model(ckpt, _run_config(ckpt))
+    model, data_params = _model(Path(checkpoint).expanduser())
     count = scan_points or int(data_params.get("scan_points", 18_000))
     raw = read_points(scan)
     if status:

@@ -1,43 +1,98 @@
-"""The training loop's lifecycle hooks (as in Pointcept): after every step, in this order, logging,
-progress, evaluation on the validation split (choosing ``best.pt``) and checkpointing (``last.pt``).
-The loop itself (:meth:`Trainer.fit`) only draws batches and takes optimizer steps."""
+"""The training loop's lifecycle hooks (as in Pointcept and mmengine) and the public view of the loop they get.
+
+A hook may implement any of ``before_train``, ``before_step``, ``after_step``, ``after_evaluation`` and
+``after_train``; each receives the :class:`Loop` (never the trainer's internals). The stage's own hooks run first,
+in this order, after every step: logging, progress, evaluation on the validation split (choosing ``best.pt``) and
+checkpointing (``last.pt``); then the recipe's registered hooks (``train.hooks``, e.g. ``tensorboard``).
+Plugins register hooks in ``HOOKS`` like any component: ``HOOKS.add(name, factory(params, loop_info), params=...)``.
+"""
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Callable
+from pathlib import Path
+from typing import Any, Callable
 
-if TYPE_CHECKING:
-    from distilkit.engine.trainer import Trainer
+from pydantic import BaseModel
 
 
 @dataclass
-class LoopState:
-    """What the hooks share: the step just finished, its logged values, the best and latest scores."""
+class Loop:
+    """The loop as hooks see it: where it is, what the last step logged, the scores, and what a hook may ask of it
+    (:meth:`log`, :meth:`evaluate`, :meth:`save`)."""
 
-    step: int
-    total: int
-    best: dict[str, Any]
-    values: dict[str, float] = field(default_factory=dict)
+    stage: str
+    run_dir: Path
+    spec: Any  # the stage's train spec (log_every, eval_every, ...)
+    total: int  # steps of the whole run
+    steps_per_epoch: int
+    eval_every: int
+    main: bool  # the process that writes
+    step: int = 0  # finished steps
+    best: dict[str, Any] = field(default_factory=lambda: {"score": -1.0, "step": -1, "scores": None})
+    values: dict[str, float] = field(default_factory=dict)  # what the last step logged (loss terms, lr, ...)
     last_scores: dict[str, Any] | None = None
     evaluated: bool = False  # an evaluation ran at this step
     t0: float = field(default_factory=time.perf_counter)
+    seconds: float = 0.0  # the loop's time, once it has ended
+    # what the stage's run provides
+    _log: Callable[[dict[str, Any]], None] = lambda record: None
+    _evaluate: Callable[[], dict[str, Any]] = lambda: {}
+    _save: Callable[[str], None] = lambda which: None
+    hooks: list["Hook"] = field(default_factory=list)
+
+    @property
+    def epoch(self) -> int:
+        return max(self.step - 1, 0) // self.steps_per_epoch
+
+    def log(self, record: dict[str, Any]) -> None:
+        """A record for ``metrics.jsonl`` (written by the main process only)."""
+        self._log(record)
+
+    def evaluate(self) -> dict[str, Any]:
+        """Scores of the current student on the validation split; every hook's ``after_evaluation`` sees them."""
+        scores = self._evaluate()
+        self.last_scores = scores
+        for hook in self.hooks:
+            hook.after_evaluation(self, scores)
+        return scores
+
+    def save(self, which: str) -> None:
+        """Write ``last.pt`` (everything to resume from) or ``best.pt`` (the student and its scores)."""
+        self._save(which)
+
+    def emit(self, event: str) -> None:
+        """Call ``event`` (``before_train``, ``before_step``, ``after_step``, ``after_train``) on every hook."""
+        for hook in self.hooks:
+            getattr(hook, event)(self)
 
 
 class Hook:
-    def after_step(self, trainer: "Trainer", state: LoopState) -> None:
-        """Called after every optimizer step (``state.step`` counts finished steps)."""
+    """A lifecycle hook: override the moments it acts at."""
+
+    def before_train(self, loop: Loop) -> None:
+        """Once, before the first step of this process's run (a resumed run too)."""
+
+    def before_step(self, loop: Loop) -> None:
+        """Before each optimizer step (``loop.step`` steps are finished)."""
+
+    def after_step(self, loop: Loop) -> None:
+        """After each optimizer step (``loop.step`` counts finished steps; ``loop.values`` what it logged)."""
+
+    def after_evaluation(self, loop: Loop, scores: dict[str, Any]) -> None:
+        """After each evaluation on the validation split."""
+
+    def after_train(self, loop: Loop) -> None:
+        """Once, after the last step (also when a run stops early on request)."""
 
 
 class LogHook(Hook):
     """Training values to ``metrics.jsonl`` every ``log_every`` steps and at the last step."""
 
-    def after_step(self, trainer: "Trainer", state: LoopState) -> None:
-        spec = trainer.stage.spec.train
-        if state.step % spec.log_every == 0 or state.step == state.total:
-            trainer._log({"step": state.step, "epoch": (state.step - 1) // trainer.steps_per_epoch, **state.values,
-                          "lr": trainer.optimizer.param_groups[0]["lr"], "time": time.perf_counter() - state.t0})
+    def after_step(self, loop: Loop) -> None:
+        if loop.step % loop.spec.log_every == 0 or loop.step == loop.total:
+            loop.log({"step": loop.step, "epoch": loop.epoch, **loop.values, "time": time.perf_counter() - loop.t0})
 
 
 class ProgressHook(Hook):
@@ -46,30 +101,39 @@ class ProgressHook(Hook):
     def __init__(self, on_step: Callable[[int, int, dict[str, float]], None]) -> None:
         self.on_step = on_step
 
-    def after_step(self, trainer: "Trainer", state: LoopState) -> None:
-        self.on_step(state.step, state.total, state.values)
+    def after_step(self, loop: Loop) -> None:
+        self.on_step(loop.step, loop.total, loop.values)
 
 
 class EvalHook(Hook):
     """Validation every ``eval_every`` steps and at the end; a better score writes ``best.pt``."""
 
-    def after_step(self, trainer: "Trainer", state: LoopState) -> None:
-        state.evaluated = state.step % trainer.eval_every == 0 or state.step == state.total
-        if not state.evaluated:
-            return
-        scores = trainer.evaluate(trainer.val_set)
-        state.last_scores = scores
-        trainer._log({"step": state.step, "eval": scores})
-        score, metric = scores[trainer.metric.key], trainer.metric
-        best = state.best
-        if best["scores"] is None or (score > best["score"] if metric.higher_is_better else score < best["score"]):
-            state.best = {"score": score, "step": state.step, "scores": scores}
-            trainer._save_best(state.step, scores)
+    def __init__(self, key: str, higher_is_better: bool) -> None:
+        self.key, self.higher = key, higher_is_better
+
+    def after_step(self, loop: Loop) -> None:
+        loop.evaluated = loop.step % loop.eval_every == 0 or loop.step == loop.total
+        if loop.evaluated:
+            loop.evaluate()
+
+    def after_evaluation(self, loop: Loop, scores: dict[str, Any]) -> None:
+        loop.log({"step": loop.step, "eval": scores})
+        score, best = scores[self.key], loop.best
+        if best["scores"] is None or (score > best["score"] if self.higher else score < best["score"]):
+            loop.best = {"score": score, "step": loop.step, "scores": scores}
+            loop.save("best")
 
 
 class CheckpointHook(Hook):
     """``last.pt`` at every evaluation and every ``checkpoint_every`` steps (model, optimizers, RNG, best)."""
 
-    def after_step(self, trainer: "Trainer", state: LoopState) -> None:
-        if state.evaluated or state.step % trainer.stage.spec.train.checkpoint_every == 0:
-            trainer._save_last(state.step, state.best)
+    def after_step(self, loop: Loop) -> None:
+        if loop.evaluated or loop.step % loop.spec.checkpoint_every == 0:
+            loop.save("last")
+
+
+class NoParams(BaseModel):
+    model_config = {"extra": "forbid"}
+
+
+__all__ = ["CheckpointHook", "EvalHook", "Hook", "LogHook", "Loop", "NoParams", "ProgressHook"]

@@ -12,7 +12,8 @@ It hashes what produces the stage and nothing else, without special cases:
 * the identities of the stages it reads (:meth:`~distilkit.recipe.StageSpec.edges`), and the content of
   weights files it reads.
 
-What only changes how a run is watched (labels, logging and checkpoint intervals, the device) is left out.
+What only changes how a run is watched or how fast it goes (labels, logging and checkpoint intervals, hooks, the
+device, loader workers) is left out.
 :func:`stage_config` is the full record written to ``recipe.resolved.yaml``; :func:`stage_identity` is what is
 hashed.
 """
@@ -30,7 +31,7 @@ from distilkit import __version__
 from distilkit.registry import DATASETS
 
 # fields of a stage that do not change what is trained
-NOT_IDENTITY = {"label": True, "seed": True, "train": {"log_every", "checkpoint_every", "device"}}
+NOT_IDENTITY = {"label": True, "seed": True, "train": {"log_every", "checkpoint_every", "device", "workers", "hooks"}}
 
 
 def file_digest(path: str) -> str:

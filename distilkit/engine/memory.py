@@ -139,7 +139,7 @@ def measure_step(res: Any, stage_name: str, params: Any) -> tuple[float, float]:
 
     with tempfile.TemporaryDirectory() as tmp:
         trainer = probe_trainer(res, stage_name, params, Path(tmp))
-        batch = trainer._batch(0)
+        batch = trainer.first_batch()
         modules = [trainer.student, trainer.task, trainer.objectives, trainer.connectors,
                    *([trainer.teacher] if trainer.teacher is not None else [])]
         weights = sum(_tensor_bytes(list(m.parameters())) + _tensor_bytes(list(m.buffers())) for m in modules)
@@ -154,7 +154,7 @@ def measure_step(res: Any, stage_name: str, params: Any) -> tuple[float, float]:
 
 def estimate_stage(res: Any, stage_name: str) -> MemoryEstimate | None:
     """The estimate for one stage (None: the stage does not train, or its data has no probe plan)."""
-    from distilkit.engine.models import pick_device
+    from distilkit.engine.stage import pick_device
     from distilkit.registry import DATASETS
 
     stage = res.stages[stage_name]

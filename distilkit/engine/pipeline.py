@@ -10,27 +10,15 @@ from __future__ import annotations
 import contextlib
 import json
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from distilkit import __version__
-from distilkit.engine.io import atomic_write_text
-from distilkit.engine.identity import stage_hashes, stage_seed
-from distilkit.engine.resolve import ResolvedRecipe, ResolvedStage, resolve
+from distilkit.engine.identity import stage_hashes
+from distilkit.engine.resolve import ResolvedRecipe, resolve
+from distilkit.engine.stage import StageResult, StageRun, read_summary
 from distilkit.errors import RecipeError
 from distilkit.recipe import Recipe, load_recipe, needed_stages
 from distilkit.registry import DATASETS
-
-
-@dataclass
-class StageResult:
-    name: str
-    run_dir: Path
-    summary: dict[str, Any]
-    reused: bool
 
 
 def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
@@ -40,17 +28,6 @@ def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
         if out & set(res.stages[name].spec.edges().values()):
             out.add(name)
     return out
-
-
-def read_summary(run_dir: Path) -> dict[str, Any] | None:
-    path = run_dir / "summary.json"
-    if not path.is_file():
-        return None
-    try:
-        summary = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return summary if summary.get("status") == "finished" else None
 
 
 class Pipeline:
@@ -101,26 +78,10 @@ class Pipeline:
                                               lambda i, n: prog.update(task, completed=i, total=n))
         return self._data[split]
 
-    def _teacher_checkpoint(self, stage: ResolvedStage) -> Path:
-        t = stage.spec.teacher
-        assert t is not None
-        if t.from_ is not None:
-            return self.run_dir(t.from_) / "checkpoints" / f"{t.which}.pt"
-        return Path(t.checkpoint or "").expanduser()
-
     @property
     def collate(self) -> Any:
         """The dataset's registered collate (samples -> :class:`~distilkit.data.batch.Batch`)."""
         return DATASETS.entry(self.recipe.data.dataset).meta["collate"]
-
-    def _init(self, stage: ResolvedStage) -> tuple[Path, bool] | None:
-        """The weights file a stage's student starts from, and whether all must fit."""
-        init = stage.spec.init
-        if init is None:
-            return None
-        if init.from_ is not None:
-            return self.run_dir(init.from_) / "checkpoints" / f"{init.which}.pt", init.strict
-        return Path(init.checkpoint or "").expanduser(), init.strict
 
     def has_split(self, split: str) -> bool:
         entry = DATASETS.entry(self.recipe.data.dataset)
@@ -198,85 +159,8 @@ class Pipeline:
                     self._replace(name, run_dir)
                 self.world.barrier()  # the others look at the stage's folder once it is settled
                 with deterministic_algorithms():  # bitwise-repeatable (DISTILKIT_DETERMINISTIC=0: off)
-                    result = self._stage(name, run_dir, stop_after)
+                    result = StageRun(self, name, run_dir, stop_after).run()
             if result is None:  # stopped early on request (--stop-after)
                 return results
             results.append(result)
         return results
-
-    def _stage(self, name: str, run_dir: Path, stop_after: int | None) -> StageResult | None:
-        """Reuse a finished stage or train and evaluate it (the caller holds its lock)."""
-        import torch
-
-        from distilkit.engine.io import seed_everything
-        from distilkit.engine.memory import is_out_of_memory, out_of_memory
-        from distilkit.engine.models import load_teacher, pick_device
-        from distilkit.console import stage_progress
-        from distilkit.engine.trainer import Trainer, write_summary
-
-        stage = self.resolved.stages[name]
-        done = read_summary(run_dir)
-        if done is not None:
-            self.console.print(f"[green]✓[/] stage [bold]{name}[/] reused from {run_dir}")
-            # the label is cosmetic (not part of the identity): show the recipe's current one
-            return StageResult(name, run_dir, {**done, "label": stage.spec.label or name}, reused=True)
-        cfg = self.configs[name]
-        seed = stage_seed(self.resolved, stage)
-        if self.world.main:
-            run_dir.mkdir(parents=True, exist_ok=True)
-            for stale in [*run_dir.glob(".*"), *run_dir.glob("checkpoints/.*")]:  # a killed writer's temporary files
-                stale.unlink(missing_ok=True)
-            atomic_write_text(run_dir / "recipe.resolved.yaml",
-                              yaml.safe_dump({"recipe": self.recipe.name, "stage": name, "hash": self.hashes[name],
-                                              "distilkit": __version__,
-                                              **({"overrides": self.overrides} if self.overrides else {}), **cfg},
-                                             sort_keys=False))
-        seed_everything(seed)
-        device = pick_device(stage.spec.train.device)
-        teacher = None
-        if stage.teacher is not None and stage.distill:
-            teacher = load_teacher(stage.teacher, self.resolved.data_info, self._teacher_checkpoint(stage), device)
-        train_set, val_set = self.dataset("train"), self.dataset("val")
-        trainer: Trainer | None = None
-        try:
-            with stage_progress(self.console, name) as on_step:
-                trainer = Trainer(stage, self.resolved.data_info, train_set, val_set, run_dir, seed,
-                                  teacher, on_step, stop_after, collate=self.collate, init=self._init(stage),
-                                  world=self.world)
-                result = trainer.fit()
-            if stop_after is not None and result.steps < trainer.total_steps:
-                self.console.print(f"stage {name} stopped after {result.steps} steps (checkpoint kept)")
-                return None
-            split = "test" if self.has_split("test") else "val"
-            best = trainer.best_model()  # read once: scored on the test split, previewed on a validation scene
-            test = trainer.evaluate_checkpoints(self.dataset(split), best)
-            trainer.write_preview(val_set, best)
-        except (RuntimeError, MemoryError) as exc:  # out of memory: one line that says what to lower
-            if not is_out_of_memory(exc):
-                raise
-            kept = trainer.kept() if trainer is not None else "no checkpoint had been written yet"
-            raise out_of_memory(stage, self.resolved.data_info, exc, kept) from None
-        summary = {
-            "status": "finished", "stage": name, "hash": self.hashes[name], "label": stage.spec.label or name,
-            "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),
-            "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
-            "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": seed,
-            "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them
-            "deterministic": torch.are_deterministic_algorithms_enabled(),
-            "classes": {"names": list(self.resolved.data_info.classes.names),
-                        "colours": [list(c) for c in self.resolved.data_info.classes.colours]},
-            "steps": result.steps, "train_seconds": round(result.seconds, 2),
-            "metric": {"name": stage.metric.name, "key": stage.metric.key} if stage.metric else None,
-            "best": result.best, "last": result.last, "report_split": split, "test": test,
-            "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        }
-        if not self.world.main:
-            return StageResult(name, run_dir, summary, reused=False)
-        write_summary(run_dir, summary)
-        try:
-            from distilkit.report.run import write_run_report
-
-            write_run_report(run_dir)
-        except Exception as exc:  # a plotting problem must not lose a finished stage
-            self.console.print(f"[yellow]{run_dir / 'report.md'} not written: {exc}[/]")
-        return StageResult(name, run_dir, summary, reused=False)

@@ -10,11 +10,13 @@ from typing import Any
 
 def probe_trainer(res: Any, stage_name: str, params: Any, run_dir: Path, batch_size: int = 1) -> Any:
     """A :class:`~distilkit.engine.trainer.Trainer` of ``stage_name`` on the data ``params`` (e.g. one of its
-    dataset's probe plans), at ``batch_size``, writing nothing unless asked to (``run_dir`` for its files)."""
+    dataset's probe plans), at ``batch_size``; it writes nothing (``run_dir`` is kept for callers' files)."""
     import torch
 
     from distilkit.engine.distributed import SINGLE
-    from distilkit.engine.models import build_model, freeze, pick_device
+    from distilkit.engine.loader import BatchPlan
+    from distilkit.engine.runs import build_model, freeze
+    from distilkit.engine.stage import pick_device
     from distilkit.engine.trainer import Trainer
     from distilkit.registry import DATASETS
 
@@ -24,11 +26,13 @@ def probe_trainer(res: Any, stage_name: str, params: Any, run_dir: Path, batch_s
     train_set = entry.obj(params, "train", None)
     spec = stage.spec.model_copy(update={"train": stage.spec.train.model_copy(update={"batch_size": batch_size})})
     stage = dataclasses.replace(stage, spec=spec)
+    device = pick_device(spec.train.device)
     torch.manual_seed(0)
     teacher = None
     if stage.teacher is not None and stage.distill:
-        teacher = freeze(build_model(stage.teacher, info, "teacher").to(pick_device(spec.train.device)))
-    return Trainer(stage, info, train_set, train_set, run_dir, 0, teacher, collate=entry.meta["collate"], world=SINGLE)
+        teacher = freeze(build_model(stage.teacher, info, "teacher").to(device))
+    plan = BatchPlan(len(train_set), batch_size, 0, SINGLE)
+    return Trainer(stage, info, train_set, plan, device, collate=entry.meta["collate"], teacher=teacher, world=SINGLE)
 
 
 __all__ = ["probe_trainer"]

@@ -10,8 +10,8 @@ from pydantic import BaseModel, ValidationError
 
 from distilkit.errors import RecipeError, UnknownNameError
 from distilkit.recipe import LossSpec, ModelSpec, ParamGroupSpec, Recipe, pydantic_problems, stage_order
-from distilkit.registry import (ADAPTERS, CONNECTORS, DATASETS, METRICS, OBJECTIVES, OPTIMIZERS, SCHEDULES,
-                                TASK_LOSSES, Registry)
+from distilkit.registry import (ADAPTERS, CONNECTORS, DATASETS, HOOKS, METRICS, OBJECTIVES, OPTIMIZERS,
+                                SCHEDULES, TASK_LOSSES, Registry)
 from distilkit.taps import TAP_KINDS, kind_fits
 
 
@@ -58,6 +58,14 @@ class ResolvedMetric:
 
 
 @dataclass
+class ResolvedHook:
+    """A registered lifecycle hook and its validated parameters."""
+
+    name: str
+    params: BaseModel
+
+
+@dataclass
 class ResolvedStage:
     name: str
     spec: Any
@@ -69,6 +77,8 @@ class ResolvedStage:
     param_groups: list[dict[str, Any]] = field(default_factory=list)  # optimizer groups in effect
     metric: ResolvedMetric | None = None
     schedule: BaseModel | None = None  # the learning-rate schedule's validated parameters
+    metrics: list[ResolvedMetric] = field(default_factory=list)  # every evaluation's: `metric`'s first, then extras
+    hooks: list[ResolvedHook] = field(default_factory=list)  # the recipe's registered hooks (train.hooks)
 
 
 @dataclass
@@ -260,6 +270,44 @@ def resolve_metric(wanted: str, model: ResolvedModel, info: Any, path: str,
     return None
 
 
+def extra_metrics(names: list[str], model: ResolvedModel, info: Any, path: str,
+                  problems: list[tuple[str, str]]) -> list[ResolvedMetric]:
+    """``train.metrics``: registered metrics that score the adapter's prediction kind on this data."""
+    kind = model.cls.TAPS.get(model.cls.PREDICTION_TAP)
+    fields = info.fields if info is not None else None
+    out = []
+    for i, name in enumerate(names):
+        entry = _lookup(METRICS, name, f"{path}.train.metrics[{i}]", problems)
+        if entry is None or kind is None:
+            continue
+        if not kind_fits(kind, entry.obj.SCORES):
+            problems.append((f"{path}.train.metrics[{i}]", f"metric {entry.name!r} scores {entry.obj.SCORES} "
+                                                          f"predictions; adapter {model.adapter!r} predicts {kind}"))
+        elif fields and not entry.obj.TARGETS <= fields:
+            problems.append((f"{path}.train.metrics[{i}]", f"metric {entry.name!r} reads "
+                                                          f"{', '.join(sorted(entry.obj.TARGETS - fields))}, which "
+                                                          "the data does not provide"))
+        else:
+            out.append(ResolvedMetric(entry.name, entry.obj, entry.obj.KEYS[0]))
+    return out
+
+
+def resolve_hooks(specs: list[Any], path: str, problems: list[tuple[str, str]]) -> list[ResolvedHook]:
+    """``train.hooks``: registered hooks with their parameters, and whatever each needs installed."""
+    out = []
+    for i, spec in enumerate(specs):
+        entry = _lookup(HOOKS, spec.name, f"{path}.train.hooks[{i}].name", problems)
+        if entry is None:
+            continue
+        params = _params(entry.meta["params"], spec.params, f"{path}.train.hooks[{i}].params", problems)
+        missing = entry.meta.get("check", lambda: None)()
+        if missing:
+            problems.append((f"{path}.train.hooks[{i}]", missing))
+        if params is not None:
+            out.append(ResolvedHook(entry.name, params))
+    return out
+
+
 def data_problems(model: ResolvedModel, info: Any, path: str) -> list[tuple[str, str]]:
     """The inputs the adapter reads that the data does not provide, and parameters it cannot serve."""
     out = []
@@ -313,6 +361,8 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
                                                       "weights may not fit (set `strict: false` to load the ones "
                                                       "that fit by name and shape)"))
         metric = resolve_metric(spec.train.metric, student, info, path, problems) if student is not None else None
+        extras = extra_metrics(spec.train.metrics, student, info, path, problems) if student is not None else []
+        hooks = resolve_hooks(spec.train.hooks, path, problems)
         if info is not None:
             own_teacher = teacher if teacher_from is None else None  # a teacher stage was checked as a student
             for model, where in ((student, f"{path}.model"), (own_teacher, f"{path}.teacher.model")):
@@ -332,7 +382,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         if student is not None:
             groups = param_groups(spec.optimizer.param_groups, task, distill)
             stages[name] = ResolvedStage(name, spec, student, teacher, teacher_from, task, distill, groups, metric,
-                                         schedule)
+                                         schedule, [*([metric] if metric else []), *extras], hooks)
     if problems:
         raise RecipeError(problems, source)
     assert data_params is not None

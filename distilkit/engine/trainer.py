@@ -1,23 +1,16 @@
-"""The trainer: one stage's student, its frozen teacher, task losses and distillation objectives.
+"""The optimisation of one stage: its student, the frozen teacher it reads, task losses, distillation objectives,
+connectors and the optimizer, and one training step.
 
-Per step (:meth:`Trainer.train_step`): ``s_out = student(batch)``; the teacher's outputs under
-``no_grad`` when a term reads a teacher tap; ``loss = sum_j w_j task_j + sum_i w_i objective_i(taps)``;
-backward, a finite-gradient check, clipping, the optimizer step, then each objective's own ``update``.
-After each step the lifecycle hooks (:mod:`distilkit.engine.hooks`) log, report progress, evaluate
-(``best.pt``) and checkpoint (``last.pt``); a run started again resumes from ``last.pt`` (models,
-optimizers, RNG and data order). Models are built in :mod:`~distilkit.engine.models` and scored in
-:mod:`~distilkit.engine.evaluate`.
+Per step (:meth:`Trainer.train_step`): ``s_out = student(batch)``; the teacher's outputs under ``no_grad`` when a
+term reads a teacher tap; ``loss = sum_j w_j task_j + sum_i w_i objective_i(taps)``; backward, a finite-gradient
+check, clipping, the optimizer step, then each objective's own ``update``. The stage's run (the loop, its hooks,
+evaluation, checkpoints) is :mod:`distilkit.engine.stage`; this class is what it optimises.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
-import math
-import os
-import time
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import torch
@@ -27,12 +20,10 @@ from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.engine.distributed import SINGLE, World, sync_batchnorm
-from distilkit.engine.evaluate import Collate, evaluate, preview
-from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, LoopState, ProgressHook
-from distilkit.engine.io import (atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint,
-                                 load_weights, rng_state, set_rng_state)
-from distilkit.engine.models import build_model, pick_device
+from distilkit.engine.io import load_weights
+from distilkit.engine.loader import BatchPlan, Collate
 from distilkit.engine.resolve import ResolvedStage, ResolvedTerm
+from distilkit.engine.runs import build_model
 from distilkit.errors import DistilkitError, NonFiniteLossError
 from distilkit.objectives.connectors import Connector
 from distilkit.taps import check_tap, to_float32
@@ -51,48 +42,35 @@ class StageTerm:
     connector: nn.Module | None
 
 
-@dataclass
-class TrainResult:
-    best: dict[str, Any]
-    last: dict[str, Any]
-    steps: int
-    seconds: float
-    history: list[dict[str, Any]] = field(default_factory=list)
-
-
 class Trainer:
-    def __init__(self, stage: ResolvedStage, info: DataInfo, train_set: Any, val_set: Any, run_dir: Path, seed: int,
-                 teacher: Adapter | None = None, on_step: Callable[[int, int, dict[str, float]], None] | None = None,
-                 stop_after: int | None = None, *, collate: Collate, init: tuple[Path, bool] | None = None,
-                 world: World = SINGLE) -> None:
-        self.stage, self.info, self.train_set, self.val_set = stage, info, train_set, val_set
+    """Built from the stage's random stream as the caller seeded it: the student first (then ``init_weights`` over
+    it), the terms, their connectors and layers sized from batch 0 of ``plan``, the optimizer."""
+
+    def __init__(self, stage: ResolvedStage, info: DataInfo, train_set: Any, plan: BatchPlan, device: torch.device,
+                 *, collate: Collate, teacher: Adapter | None = None,
+                 init_weights: tuple[dict[str, Any], bool, str] | None = None, world: World = SINGLE) -> None:
+        self.stage, self.info, self.train_set, self.plan = stage, info, train_set, plan
         self.collate = collate  # the dataset's registered collate
         self._checked: set[str] = set()  # roles whose outputs passed the tap checks
-        self._init_log: dict[str, Any] | None = None
+        self.init_left_out: list[str] | None = None  # weights of init_weights that did not fit (strict: false)
         self._last_taps: dict[int, dict[str, Any]] = {}  # per term, detached, for its update()
-        self._saved_step: int | None = None  # the step of last.pt (None: none written yet)
         self._step = 0  # the step being taken (loss-weight warm-ups read it)
+        self.kept: Callable[[], str] = lambda: "no checkpoint had been written yet (a new run starts from step 0)"
         self.own_optimizers: list[torch.optim.Optimizer | None] = []
-        assert stage.metric is not None, "a resolved stage always has its metric"
-        self.metric = stage.metric
-        self.run_dir, self.seed, self.on_step, self.stop_after = run_dir, seed, on_step, stop_after
-        self.world = world  # the processes of a multi-process run (one by default)
+        self.world, self.device = world, device  # the processes of a multi-process run (one by default)
         spec = stage.spec.train
         self._check_world(len(train_set), spec.batch_size)
-        self.device = pick_device(spec.device)
-        torch.manual_seed(seed)
         self.student = build_model(stage.student, info)
-        if init is not None:  # start from other weights (a resumed run then loads last.pt over them)
-            path, strict = init
-            left = load_weights(self.student, stage.student.cls.read_weights(str(path)), strict, f"init {path}")
-            self._init_log = {"event": "init", "from": str(path), "left_out": left}
+        if init_weights is not None:  # start from other weights (a resumed run then loads last.pt over them)
+            weights, strict, source = init_weights
+            self.init_left_out = load_weights(self.student, weights, strict, source)
         self.student = sync_batchnorm(self.student, world, self.device).to(self.device)
         self.task = nn.ModuleList(t.cls(t.params) for t in stage.task_losses).to(self.device)
         self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
         self.teacher = teacher
         # per objective: the projection of its student tap (nn.Identity where it has none)
         self.connectors = nn.ModuleList(nn.Identity() for _ in stage.distill)
-        self.steps_per_epoch = math.ceil(len(train_set) / spec.batch_size)
+        self.steps_per_epoch = plan.steps_per_epoch
         for term in self.terms:
             term.module.prepare(train_set)
         self._setup_terms()
@@ -103,17 +81,46 @@ class Trainer:
         self.optimizer = self._optimizer(self._param_groups())
         self.scaler = torch.amp.GradScaler(self.device.type, enabled=spec.precision == "fp16")
         self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
-        self.eval_every = spec.eval_every or self.steps_per_epoch
-        # the loop's lifecycle, in order: log, progress, evaluate (best.pt), checkpoint (last.pt)
-        self.hooks: list[Hook] = [LogHook(), *([ProgressHook(on_step)] if on_step else []), EvalHook(),
-                                  CheckpointHook()]
-        self._rank_rng(0)
+        self.rank_rng(0)
 
-    def _rank_rng(self, step: int) -> None:
+    def first_batch(self) -> Batch:
+        """Batch 0 of this process, on the device."""
+        return self.plan.batch(self.train_set, self.collate, 0).to(self.device)
+
+    # -- state -------------------------------------------------------------------------------
+    def state(self, full: bool = True) -> dict[str, Any]:
+        """What a checkpoint holds of the optimisation: the student (with the adapter's name and parameters), the
+        terms and connectors, and (``full``: ``last.pt``, to resume) the optimizers and the gradient scaler."""
+        out: dict[str, Any] = {
+            "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
+            "objectives": self.objectives.state_dict(), "connectors": self.connectors.state_dict(),
+            "adapter": self.stage.student.adapter, "adapter_params": self.stage.student.params.model_dump(mode="json"),
+        }
+        if full:
+            out["optimizer"] = self.optimizer.state_dict()
+            out["term_optimizers"] = [o.state_dict() if o is not None else {} for o in self.own_optimizers]
+            if self.scaler.is_enabled():
+                out["scaler"] = self.scaler.state_dict()
+        return out
+
+    def load_state(self, ckpt: dict[str, Any]) -> None:
+        """Everything :meth:`state` saved, back in place (a resumed run)."""
+        self.student.load_state_dict(ckpt["student"])
+        self.task.load_state_dict(ckpt["task_losses"])
+        self.objectives.load_state_dict(ckpt["objectives"])
+        self.connectors.load_state_dict(ckpt.get("connectors", {}))
+        for opt, state in zip(self.own_optimizers, ckpt.get("term_optimizers", [])):
+            if opt is not None and state:
+                opt.load_state_dict(state)
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        if self.scaler.is_enabled() and ckpt.get("scaler"):
+            self.scaler.load_state_dict(ckpt["scaler"])
+
+    def rank_rng(self, step: int) -> None:
         """Multi-process: each process its own random stream from here on (noise levels, dropout), the same ones
         again when the run resumes at ``step`` — models and connectors were built above from the common seed."""
         if self.world.distributed:
-            torch.manual_seed((self.seed * 1_000_003 + step) * 1_009 + self.world.rank)
+            torch.manual_seed((self.plan.seed * 1_000_003 + step) * 1_009 + self.world.rank)
 
     def _check_world(self, n: int, batch_size: int) -> None:
         """Every process gets samples of every global batch (the last one of an epoch included)."""
@@ -209,67 +216,6 @@ class Trainer:
             group["lr"] = group.get("base_lr", group["lr"]) * factor
         return self.stage.spec.optimizer.lr * factor
 
-    # -- checkpoints -------------------------------------------------------------------------
-    @property
-    def ckpt_dir(self) -> Path:
-        return self.run_dir / "checkpoints"
-
-    def _save_last(self, step: int, best: dict[str, Any]) -> None:
-        """``last.pt``; the one it replaces is kept as ``last.prev.pt``, the fallback if ``last.pt`` is ever unreadable."""
-        if not self.world.main:
-            return
-        last = self.ckpt_dir / "last.pt"
-        if last.is_file():
-            os.replace(last, self.ckpt_dir / "last.prev.pt")
-        atomic_torch_save(last, {
-            "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
-            "objectives": self.objectives.state_dict(), "connectors": self.connectors.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "term_optimizers": [o.state_dict() if o is not None else {} for o in self.own_optimizers],
-            **({"scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else {}),
-            "step": step, "best": best, "rng": rng_state(), "adapter": self.stage.student.adapter,
-            "adapter_params": self.stage.student.params.model_dump(mode="json"),
-        })
-        self._saved_step = step
-
-    def kept(self) -> str:
-        """What a stopped run leaves to resume from, as it is: the last checkpoint and its step, or none."""
-        if self._saved_step is None:
-            return "no checkpoint had been written yet (a new run starts from step 0)"
-        return f"the last checkpoint ({self.ckpt_dir / 'last.pt'}, step {self._saved_step}) is kept"
-
-    def _save_best(self, step: int, scores: dict[str, Any]) -> None:
-        if not self.world.main:
-            return
-        atomic_torch_save(self.ckpt_dir / "best.pt", {
-            "student": self.student.state_dict(), "task_losses": self.task.state_dict(),
-            "objectives": self.objectives.state_dict(), "connectors": self.connectors.state_dict(),
-            "step": step, "scores": json.dumps(scores),
-            "adapter": self.stage.student.adapter, "adapter_params": self.stage.student.params.model_dump(mode="json"),
-        })
-
-    def _log(self, record: dict[str, Any]) -> None:
-        if not self.world.main:  # one writer
-            return
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        with open(self.run_dir / "metrics.jsonl", "a", encoding="utf-8") as f:
-            f.write(json.dumps(record) + "\n")
-
-    def _truncate_log(self, step: int) -> None:
-        """Drop log records written after ``step`` (the checkpoint a resume starts from): no duplicates."""
-        path = self.run_dir / "metrics.jsonl"
-        if not path.is_file() or not self.world.main:
-            return
-        keep = []
-        for line in path.read_text(encoding="utf-8").splitlines():
-            try:
-                rec = json.loads(line)
-            except ValueError:  # a line cut by a kill
-                continue
-            if int(rec.get("step", 0)) <= step:
-                keep.append(line)
-        atomic_write_text(path, "".join(f"{line}\n" for line in keep))
-
     # -- gradients ---------------------------------------------------------------------------
     def _grad_norm(self, clip: float | None) -> Tensor:
         """Total gradient norm of the trainables (clipping them to ``clip`` when it is set)."""
@@ -298,15 +244,6 @@ class Trainer:
         if not bad:
             return "no single term's gradient is non-finite on its own; check the learning rate"
         return f"non-finite gradient from term(s) {', '.join(bad)}"
-
-    # -- loop --------------------------------------------------------------------------------
-    def _batch(self, step: int) -> Batch:
-        epoch, i = divmod(step, self.steps_per_epoch)
-        g = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
-        perm = torch.randperm(len(self.train_set), generator=g)
-        bs = self.stage.spec.train.batch_size
-        mine = self.world.shard([int(j) for j in perm[i * bs:(i + 1) * bs]])  # this process's share
-        return self.collate([self.train_set[j] for j in mine]).to(self.device)
 
     @property
     def terms(self) -> list[StageTerm]:
@@ -346,7 +283,7 @@ class Trainer:
         """Size the terms' own layers and connectors from one real batch (before the optimizer exists)."""
         needs_batch = len(self.objectives) > 0 or any(type(t.module).setup is not Term.setup for t in self.terms)
         if needs_batch:
-            batch = self._batch(0)
+            batch = self.first_batch()
             was = self.student.training
             self.student.eval()
             with torch.no_grad():
@@ -419,60 +356,6 @@ class Trainer:
                 raise err from None
         return terms
 
-    def _resume_checkpoint(self) -> dict[str, Any] | None:
-        """The newest readable of ``last.pt`` and ``last.prev.pt`` (an unreadable one is named in the log and on
-        the console), or None to start from the beginning."""
-        from distilkit.errors import DataError
-
-        for name in ("last.pt", "last.prev.pt"):
-            path = self.ckpt_dir / name
-            if not path.is_file():
-                continue
-            try:
-                return load_checkpoint(path)
-            except DataError as exc:
-                self._log({"event": "unreadable_checkpoint", "path": str(path), "error": str(exc)})
-                if self.on_step is None:
-                    continue
-                from distilkit.console import make_console
-
-                make_console().print(f"[yellow]{exc}; trying the previous checkpoint[/]")
-        return None
-
-    def fit(self) -> TrainResult:
-        start_step, best = 0, {"score": -1.0, "step": -1, "scores": None}
-        ckpt = self._resume_checkpoint()
-        if ckpt is not None:
-            self.student.load_state_dict(ckpt["student"])
-            self.task.load_state_dict(ckpt["task_losses"])
-            self.objectives.load_state_dict(ckpt["objectives"])
-            self.connectors.load_state_dict(ckpt.get("connectors", {}))
-            for opt, state in zip(self.own_optimizers, ckpt.get("term_optimizers", [])):
-                if opt is not None and state:
-                    opt.load_state_dict(state)
-            self.optimizer.load_state_dict(ckpt["optimizer"])
-            if self.scaler.is_enabled() and ckpt.get("scaler"):
-                self.scaler.load_state_dict(ckpt["scaler"])
-            set_rng_state(ckpt["rng"])
-            self._rank_rng(int(ckpt["step"]))
-            start_step, best = int(ckpt["step"]), ckpt["best"]
-            self._saved_step = start_step
-            self._truncate_log(start_step)
-            self._log({"event": "resume", "step": start_step})
-        elif self._init_log is not None:
-            self._log(self._init_log)
-        state = LoopState(start_step, self.total_steps, best)
-        self.student.train()
-        while state.step < self.total_steps:
-            state.values = self.train_step(self._batch(state.step), state.step)
-            state.step += 1
-            for hook in self.hooks:
-                hook.after_step(self, state)
-            if self.stop_after is not None and state.step >= self.stop_after:
-                break
-        last_scores = state.last_scores if state.last_scores is not None else self.evaluate(self.val_set)
-        return TrainResult(best=state.best, last=last_scores, steps=state.step, seconds=time.perf_counter() - state.t0)
-
     def train_step(self, batch: Batch, step: int) -> dict[str, float]:
         """One optimizer step of the student (then the objectives' own updates); returns the values to log."""
         self._step = step
@@ -503,58 +386,7 @@ class Trainer:
             extra.update(term.module.update(step, batch, self._last_taps.get(i, {})))
         return {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}, "lr": lr, **extra}
 
-    def evaluate(self, dataset: Any, model: Adapter | None = None) -> dict[str, Any]:
-        """Scores of the student (or ``model``) on ``dataset`` with the stage's metric."""
-        return evaluate(model if model is not None else self.student, dataset, self.stage.spec.train.batch_size,
-                        self.device, self.collate, self.metric.cls)
-
-    def best_model(self) -> tuple[Adapter, int] | None:
-        """The student of ``best.pt`` and its step (None before the first evaluation)."""
-        best_path = self.ckpt_dir / "best.pt"
-        if not best_path.is_file():
-            return None
-        ckpt = load_checkpoint(best_path)
-        model = build_model(self.stage.student, self.info).to(self.device)
-        model.load_state_dict(ckpt["student"])
-        return model, int(ckpt["step"])
-
-    def evaluate_checkpoints(self, dataset: Any, best: tuple[Adapter, int] | None) -> dict[str, Any]:
-        """Scores on ``dataset`` (the test split) of the best-validation checkpoint (``best``, from
-        :meth:`best_model`) and of the last one."""
-        out: dict[str, Any] = {"last": self.evaluate(dataset), "last_step": self.total_steps}
-        if best is not None:
-            out["best"], out["best_step"] = self.evaluate(dataset, best[0]), best[1]
-        else:
-            out["best"], out["best_step"] = out["last"], self.total_steps
-        return out
-
-    def write_preview(self, dataset: Any, best: tuple[Adapter, int] | None) -> Path | None:
-        """``preview.npz``: the metric's bird's-eye view of the best checkpoint (``best``, else the current student)
-        on the first sample of ``dataset`` (a validation scene), with the class names and colours to draw it (arrays
-        only: loaded without pickle)."""
-        import numpy as np
-
-        if not self.world.main:
-            return None
-        view = preview(best[0] if best is not None else self.student, dataset, self.device, self.collate,
-                       self.metric.cls)
-        if view is None:
-            return None
-        classes = self.info.classes
-        path = self.run_dir / "preview.npz"
-        tmp = self.run_dir / ".preview.tmp.npz"
-        np.savez_compressed(tmp, **view, class_names=np.array(classes.names),
-                            class_colours=np.array(classes.colours, dtype=np.uint8),
-                            step=np.array(best[1] if best is not None else self.total_steps))
-        os.replace(tmp, path)
-        return path
-
-
 def _no_params() -> Any:
     from distilkit.engine.optim import NoParams
 
     return NoParams()
-
-
-def write_summary(run_dir: Path, summary: dict[str, Any]) -> None:
-    atomic_write_json(run_dir / "summary.json", summary)

@@ -44,9 +44,35 @@ class Metric(ABC):
     def compute(self) -> dict[str, Any]:
         """Scores over everything accumulated: at least every key of ``KEYS`` (floats)."""
 
+    def merge(self, other: "Metric") -> None:
+        """Add the state another process accumulated over other samples (multi-process evaluation merges in rank
+        order, over contiguous shares: lists concatenate in sample order). The default merges every attribute:
+        tensors and numbers add, lists extend, dicts merge key by key; override it for other state."""
+        for name, value in vars(other).items():
+            if name != "info":
+                setattr(self, name, _merge(getattr(self, name), value, f"{type(self).__name__}.{name}"))
+
     @classmethod
     def preview(cls, prediction: Any, batch: Batch, info: DataInfo) -> dict[str, Any] | None:
         """A bird's-eye view of the batch's first sample for the run report (:mod:`distilkit.report.preview`):
         ``input``, ``prediction`` and ``target`` panels, each a (H, W) class-id image (-1 = nothing there) or an
         (N, 3) point array, and ``extent`` (x0, x1, y0, y1) in metres. None: this metric shows no preview."""
         return None
+
+
+def _merge(mine: Any, other: Any, where: str) -> Any:
+    import torch
+
+    if isinstance(mine, (torch.Tensor, int, float)) and not isinstance(mine, bool):
+        return mine + other
+    if isinstance(mine, list):
+        return mine + list(other)
+    if isinstance(mine, dict):
+        return {k: _merge(mine[k], other[k], f"{where}[{k!r}]") if k in mine else other[k] for k in {**mine, **other}}
+    if hasattr(mine, "__dict__"):  # an accumulator object (e.g. a confusion matrix holder): merge its attributes
+        for name, value in vars(other).items():
+            setattr(mine, name, _merge(getattr(mine, name), value, f"{where}.{name}"))
+        return mine
+    if mine == other:  # a setting (class count, ignore index)
+        return mine
+    raise TypeError(f"{where}: cannot merge {type(mine).__name__} values across processes; override Metric.merge")

@@ -1,0 +1,335 @@
+"""One stage run, with one owner: build → loop → evaluate → publish.
+
+* **build**: the run folder and its resolved configuration, the stage's seed (once), the device, the frozen
+  teacher and the initial weights (both rebuilt from upstream runs by :func:`~distilkit.engine.runs.load_run`),
+  the data loaders, and the :class:`~distilkit.engine.trainer.Trainer` (student, terms, optimizer);
+* **loop**: batches from the loader (:mod:`~distilkit.engine.loader`), one optimizer step each, the lifecycle hooks
+  (:mod:`~distilkit.engine.hooks`) around it; a run started again resumes from ``last.pt`` (models, optimizers, RNG
+  and the batch order);
+* **evaluate**: the best-validation and the last checkpoint on the test split (the validation split where the data
+  has no test split) with the stage's metrics, each process scoring its share;
+* **publish**: ``summary.json`` (which marks the stage finished), ``preview.npz`` and the run report.
+
+The pipeline (:mod:`~distilkit.engine.pipeline`) only orders, hashes and locks stages.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+import yaml
+
+from distilkit import __version__
+from distilkit.engine.checkpoints import Checkpoints
+from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop, ProgressHook
+from distilkit.engine.io import atomic_write_json, atomic_write_text, seed_everything
+from distilkit.engine.loader import BatchPlan, eval_batches, resolve_workers, train_batches
+from distilkit.engine.runs import checkpoint_path, load_run
+
+if TYPE_CHECKING:
+    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.trainer import Trainer
+
+
+@dataclass
+class StageResult:
+    name: str
+    run_dir: Path
+    summary: dict[str, Any]
+    reused: bool
+
+
+def read_summary(run_dir: Path) -> dict[str, Any] | None:
+    """A finished stage's summary (None: not finished)."""
+    path = run_dir / "summary.json"
+    if not path.is_file():
+        return None
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return summary if summary.get("status") == "finished" else None
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+class StageRun:
+    """The run of stage ``name`` of a pipeline's recipe in ``run_dir`` (the caller holds the stage's lock)."""
+
+    def __init__(self, pipeline: "Pipeline", name: str, run_dir: Path, stop_after: int | None = None) -> None:
+        from distilkit.engine.identity import stage_seed
+
+        self.pipeline, self.name, self.run_dir, self.stop_after = pipeline, name, run_dir, stop_after
+        self.stage = pipeline.resolved.stages[name]
+        self.info = pipeline.resolved.data_info
+        self.world = pipeline.world
+        self.seed = stage_seed(pipeline.resolved, self.stage)
+        self.spec = self.stage.spec.train
+        self.workers = resolve_workers(self.spec.workers)
+        self.checkpoints = Checkpoints(run_dir / "checkpoints", self.world.main)
+        self.trainer: Trainer | None = None
+        self.device = pick_device(self.spec.device)
+
+    # -- the whole run -----------------------------------------------------------------------
+    def run(self) -> StageResult | None:
+        """Reuse the finished stage, or build, train, evaluate and publish it (None: stopped early on request)."""
+        from distilkit.console import stage_progress
+        from distilkit.engine.memory import is_out_of_memory, out_of_memory
+
+        done = read_summary(self.run_dir)
+        if done is not None:
+            self.pipeline.console.print(f"[green]✓[/] stage [bold]{self.name}[/] reused from {self.run_dir}")
+            # the label is cosmetic (not part of the identity): show the recipe's current one
+            return StageResult(self.name, self.run_dir, {**done, "label": self.stage.spec.label or self.name}, True)
+        self._prepare_folder()
+        try:
+            with stage_progress(self.pipeline.console, self.name) as on_step:
+                self.build()
+                loop = self.loop(on_step)
+            assert self.trainer is not None
+            if loop.step < self.trainer.total_steps:
+                self.pipeline.console.print(f"stage {self.name} stopped after {loop.step} steps (checkpoint kept)")
+                return None
+            split = "test" if self.pipeline.has_split("test") else "val"
+            best = self.best_model()  # read once: scored on the test split, previewed on a validation scene
+            test = self.score(split, best)
+            self.write_preview(best)
+        except (RuntimeError, MemoryError) as exc:  # out of memory: one line that says what to lower
+            if not is_out_of_memory(exc):
+                raise
+            kept = self.checkpoints.kept() if self.trainer is not None else "no checkpoint had been written yet"
+            raise out_of_memory(self.stage, self.info, exc, kept) from None
+        return self.publish(loop, split, test)
+
+    def _prepare_folder(self) -> None:
+        """The folder, without a killed writer's temporary files, and the stage's resolved configuration."""
+        if not self.world.main:
+            return
+        p = self.pipeline
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        for stale in [*self.run_dir.glob(".*"), *self.run_dir.glob("checkpoints/.*")]:
+            stale.unlink(missing_ok=True)
+        atomic_write_text(self.run_dir / "recipe.resolved.yaml",
+                          yaml.safe_dump({"recipe": p.recipe.name, "stage": self.name, "hash": p.hashes[self.name],
+                                          "distilkit": __version__,
+                                          **({"overrides": p.overrides} if p.overrides else {}),
+                                          **p.configs[self.name]}, sort_keys=False))
+
+    # -- build -------------------------------------------------------------------------------
+    def upstream(self, field: str) -> Path:
+        """The checkpoint an upstream edge (``teacher``, ``init``) reads: a stage's run folder or a file."""
+        src = getattr(self.stage.spec, field)
+        if src.from_ is not None:
+            return checkpoint_path(self.pipeline.run_dir(src.from_), src.which)
+        return Path(src.checkpoint or "").expanduser()
+
+    def build(self) -> "Trainer":
+        """The stage's seed, then the frozen teacher (drawing nothing from the seeded stream), the initial weights
+        and the trainer on this process's batches."""
+        from distilkit.engine.trainer import Trainer
+
+        seed_everything(self.seed)
+        teacher = None
+        if self.stage.teacher is not None and self.stage.distill:
+            teacher = load_run(self.upstream("teacher"), model=self.stage.teacher, info=self.info,
+                               device=self.device, role="teacher")
+        init = None
+        if self.stage.spec.init is not None:
+            path = self.upstream("init")
+            init = (self.stage.student.cls.read_weights(str(path)), self.stage.spec.init.strict, f"init {path}")
+        train_set = self.pipeline.dataset("train")
+        plan = BatchPlan(len(train_set), self.spec.batch_size, self.seed, self.world)
+        self.trainer = Trainer(self.stage, self.info, train_set, plan, self.device, collate=self.pipeline.collate,
+                               teacher=teacher, init_weights=init, world=self.world)
+        self.trainer.kept = self.checkpoints.kept
+        return self.trainer
+
+    def hooks(self, on_step: Any) -> list[Hook]:
+        """The loop's hooks: log, progress, evaluation (best.pt), checkpoint (last.pt), then the recipe's."""
+        from distilkit.registry import HOOKS
+
+        assert self.stage.metric is not None
+        own: list[Hook] = [LogHook(), ProgressHook(on_step), EvalHook(self.stage.metric.key,
+                                                                      self.stage.metric.higher_is_better),
+                           CheckpointHook()]
+        return own + [HOOKS.get(h.name)(h.params) for h in self.stage.hooks]
+
+    # -- loop --------------------------------------------------------------------------------
+    def loop(self, on_step: Any) -> Loop:
+        """Train from the start or from ``last.pt`` to the last step (or ``stop_after``)."""
+        from distilkit.engine.io import set_rng_state
+
+        trainer = self.trainer
+        assert trainer is not None
+        loop = Loop(self.name, self.run_dir, self.spec, trainer.total_steps, trainer.steps_per_epoch,
+                    self.spec.eval_every or trainer.steps_per_epoch, self.world.main,
+                    _log=self.log, _evaluate=lambda: self.evaluate(self.pipeline.dataset("val")),
+                    _save=lambda which: self.save(which, loop))
+        ckpt = self.checkpoints.resume(on_unreadable=lambda exc, path: self._unreadable(exc, path))
+        if ckpt is not None:
+            trainer.load_state(ckpt)
+            set_rng_state(ckpt["rng"])
+            trainer.rank_rng(int(ckpt["step"]))
+            loop.step, loop.best = int(ckpt["step"]), ckpt["best"]
+            self._truncate_log(loop.step)
+            self.log({"event": "resume", "step": loop.step})
+        elif trainer.init_left_out is not None:
+            self.log({"event": "init", "from": str(self.upstream("init")), "left_out": trainer.init_left_out})
+        loop.hooks = self.hooks(on_step)
+        stop = trainer.total_steps if self.stop_after is None else min(trainer.total_steps, self.stop_after)
+        trainer.student.train()
+        loop.emit("before_train")
+        batches = train_batches(trainer.train_set, trainer.plan, trainer.collate, loop.step, stop, self.workers)
+        for batch in batches:
+            loop.emit("before_step")
+            values = trainer.train_step(batch.to(self.device), loop.step)
+            loop.values = {**values, "lr": trainer.optimizer.param_groups[0]["lr"]}
+            loop.step += 1
+            loop.evaluated = False
+            loop.emit("after_step")
+        if loop.last_scores is None:
+            loop.last_scores = self.evaluate(self.pipeline.dataset("val"))
+        loop.seconds = time.perf_counter() - loop.t0
+        loop.emit("after_train")
+        return loop
+
+    def log(self, record: dict[str, Any]) -> None:
+        """A record appended to ``metrics.jsonl`` (the main process writes)."""
+        if not self.world.main:
+            return
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        with open(self.run_dir / "metrics.jsonl", "a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def _truncate_log(self, step: int) -> None:
+        """Drop log records written after ``step`` (the checkpoint a resume starts from): no duplicates."""
+        path = self.run_dir / "metrics.jsonl"
+        if not path.is_file() or not self.world.main:
+            return
+        keep = []
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                rec = json.loads(line)
+            except ValueError:  # a line cut by a kill
+                continue
+            if int(rec.get("step", 0)) <= step:
+                keep.append(line)
+        atomic_write_text(path, "".join(f"{line}\n" for line in keep))
+
+    def _unreadable(self, exc: Exception, path: Path) -> None:
+        self.log({"event": "unreadable_checkpoint", "path": str(path), "error": str(exc)})
+        if not self.pipeline.quiet:
+            self.pipeline.console.print(f"[yellow]{exc}; trying the previous checkpoint[/]")
+
+    def save(self, which: str, loop: Loop) -> None:
+        """``last.pt`` (everything to resume from) or ``best.pt`` (the student and the scores that chose it)."""
+        from distilkit.engine.io import rng_state
+
+        assert self.trainer is not None
+        if which == "last":
+            self.checkpoints.write_last({**self.trainer.state(full=True), "step": loop.step, "best": loop.best,
+                                         "rng": rng_state()}, loop.step)
+        else:
+            self.checkpoints.write_best({**self.trainer.state(full=False), "step": loop.step,
+                                         "scores": json.dumps(loop.best["scores"])})
+
+    # -- evaluate ----------------------------------------------------------------------------
+    def evaluate(self, dataset: Any, model: Any = None) -> dict[str, Any]:
+        """Scores of the student (or ``model``) on ``dataset`` with the stage's metrics, each process scoring its
+        share; a stochastic model draws the same noise at every evaluation (the stage's seed, in a stream of its
+        own that training does not see)."""
+        from distilkit.engine.evaluate import evaluate
+
+        assert self.trainer is not None
+        return evaluate(model if model is not None else self.trainer.student, dataset, self.spec.batch_size,
+                        self.device, self.pipeline.collate, self.stage.metrics, world=self.world,
+                        workers=self.workers, seed=self.seed)
+
+    def best_model(self) -> tuple[Any, int] | None:
+        """The student of ``best.pt`` and its step (None before the first evaluation); every process reads the file
+        the main process wrote, so all score the same models."""
+        self.world.barrier()
+        if not (self.run_dir / "checkpoints" / "best.pt").is_file():
+            return None
+        from distilkit.engine.runs import checkpoint_step
+
+        model = load_run(self.run_dir, "best", model=self.stage.student, info=self.info, device=self.device,
+                         role="student", frozen=False)
+        return model, checkpoint_step(self.run_dir, "best")
+
+    def score(self, split: str, best: tuple[Any, int] | None) -> dict[str, Any]:
+        """Scores on ``split`` of the best-validation checkpoint and of the last one."""
+        assert self.trainer is not None
+        dataset = self.pipeline.dataset(split)
+        out: dict[str, Any] = {"last": self.evaluate(dataset), "last_step": self.trainer.total_steps}
+        if best is not None:
+            out["best"], out["best_step"] = self.evaluate(dataset, best[0]), best[1]
+        else:
+            out["best"], out["best_step"] = out["last"], self.trainer.total_steps
+        return out
+
+    # -- publish -----------------------------------------------------------------------------
+    def write_preview(self, best: tuple[Any, int] | None) -> Path | None:
+        """``preview.npz``: the metric's bird's-eye view of the best checkpoint (else the current student) on the
+        first validation scene, with the class names and colours to draw it (arrays only: loaded without pickle)."""
+        import numpy as np
+
+        from distilkit.engine.evaluate import preview
+
+        assert self.trainer is not None and self.stage.metric is not None
+        if not self.world.main:
+            return None
+        model = best[0] if best is not None else self.trainer.student
+        view = preview(model, self.pipeline.dataset("val"), self.device, self.pipeline.collate,
+                       self.stage.metric.cls, seed=self.seed)
+        if view is None:
+            return None
+        classes = self.info.classes
+        path, tmp = self.run_dir / "preview.npz", self.run_dir / ".preview.tmp.npz"
+        np.savez_compressed(tmp, **view, class_names=np.array(classes.names),
+                            class_colours=np.array(classes.colours, dtype=np.uint8),
+                            step=np.array(best[1] if best is not None else self.trainer.total_steps))
+        os.replace(tmp, path)
+        return path
+
+    def publish(self, loop: Loop, split: str, test: dict[str, Any]) -> StageResult:
+        """``summary.json`` (the stage is finished) and the run report, by the main process."""
+        assert self.trainer is not None and self.stage.metric is not None
+        stage, p = self.stage, self.pipeline
+        summary = {
+            "status": "finished", "stage": self.name, "hash": p.hashes[self.name], "label": stage.spec.label or self.name,
+            "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),
+            "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint if stage.spec.teacher else None),
+            "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": self.seed,
+            "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them
+            "deterministic": torch.are_deterministic_algorithms_enabled(),
+            "classes": {"names": list(self.info.classes.names),
+                        "colours": [list(c) for c in self.info.classes.colours]},
+            "steps": loop.step, "train_seconds": round(loop.seconds, 2),
+            "metric": {"name": stage.metric.name, "key": stage.metric.key},
+            "best": loop.best, "last": loop.last_scores, "report_split": split, "test": test,
+            "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        }
+        if not self.world.main:
+            return StageResult(self.name, self.run_dir, summary, reused=False)
+        atomic_write_json(self.run_dir / "summary.json", summary)
+        try:
+            from distilkit.report.run import write_run_report
+
+            write_run_report(self.run_dir)
+        except Exception as exc:  # a plotting problem must not lose a finished stage
+            p.console.print(f"[yellow]{self.run_dir / 'report.md'} not written: {exc}[/]")
+        return StageResult(self.name, self.run_dir, summary, reused=False)
+
+
+__all__ = ["StageResult", "StageRun", "pick_device", "read_summary"]
