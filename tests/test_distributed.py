@@ -111,3 +111,43 @@ def test_distilkit_run_with_two_processes_trains_with_one_writer(tmp_path: Path)
         steps = [json.loads(x).get("step") for x in (run / "metrics.jsonl").read_text().splitlines()
                  if "loss" in json.loads(x)]
         assert steps == [1, 2, 3]  # each step logged once: one writer
+
+
+def scored(world: World, folder: Path) -> dict[str, Any]:
+    """An SCPNet's SSC confusion over 5 validation scenes, this process's share merged with the others', and the
+    number of scenes each process scored."""
+    from distilkit.engine.evaluate import _merged
+    from distilkit.engine.loader import eval_batches
+    from distilkit.metrics.registered import SSCScore
+
+    recipe = tiny_recipe(steps=1, distill=False)
+    recipe["data"]["params"]["num_val"] = 5
+    pipe = Pipeline(recipe_from_dict(recipe), folder, quiet=True)
+    torch.manual_seed(3)
+    model = build_model(pipe.resolved.stages["teacher"].student, pipe.resolved.data_info).eval()
+    metric, mine = SSCScore(model.info), 0
+    with torch.no_grad():
+        for batch in eval_batches(pipe.dataset("val"), 2, pipe.collate, world):
+            metric.update(model(batch)[model.PREDICTION_TAP], batch)
+            mine += batch.size
+    (merged,), _, total = _merged([metric], 0.0, mine, world)
+    return {"confusion": merged.acc.confusion, "mine": mine, "total": total}
+
+
+def _eval_worker(rank: int, size: int, init_file: str, folder: str) -> None:
+    torch.set_num_threads(1)
+    torch.distributed.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=size)
+    try:
+        torch.save(scored(World(rank, size), Path(folder) / f"rank{rank}"), Path(folder) / f"eval{rank}.pt")
+    finally:
+        torch.distributed.destroy_process_group()
+
+
+def test_two_processes_evaluate_each_scene_once_and_their_merged_confusion_is_one_processs(tmp_path: Path) -> None:
+    single = scored(World(), tmp_path / "single")
+    mp.spawn(_eval_worker, args=(2, str(tmp_path / "init"), str(tmp_path)), nprocs=2, join=True)
+    outs = [torch.load(tmp_path / f"eval{r}.pt", weights_only=True) for r in range(2)]
+    assert [o["mine"] for o in outs] == [2, 3] and all(o["total"] == 5 for o in outs)  # each scene once
+    assert single["confusion"].sum() > 0
+    for out in outs:
+        assert torch.equal(out["confusion"], single["confusion"])
