@@ -54,7 +54,8 @@ class Term(nn.Module, ABC):
     CONSUMES: ClassVar[dict[str, str]] = {}  # role -> tap kind (student's, or the teacher's for TEACHER_ROLES)
     TEACHER_ROLES: ClassVar[frozenset[str]] = frozenset()
     OPTIONAL: ClassVar[frozenset[str]] = frozenset()  # tap roles used only when the recipe names a tap
-    BATCH: ClassVar[dict[str, str]] = {}  # role -> batch field read for it
+    # role -> the batch field read for it, or candidates in order of preference (the first the data provides)
+    BATCH: ClassVar[dict[str, str | tuple[str, ...]]] = {}
     REQUIRES: ClassVar[frozenset[str]] = frozenset()  # teacher capabilities called through the context
     DEFAULT_WEIGHT: ClassVar[float] = 1.0
     DEFAULT_CONNECTOR: ClassVar[str | None] = None  # e.g. "linear": the student tap is projected first
@@ -71,6 +72,19 @@ class Term(nn.Module, ABC):
         """Every role and its source: ``student``, ``teacher`` or ``batch``."""
         out = {role: "teacher" if role in cls.TEACHER_ROLES else "student" for role in cls.CONSUMES}
         return {**out, **{role: "batch" for role in cls.BATCH}}
+
+    @classmethod
+    def default_field(cls, role: str, fields: frozenset[str] | set[str]) -> str:
+        """The batch field a batch role reads unless a recipe names another: the first of its candidates that
+        ``fields`` holds (the first one when none does, or when ``fields`` is unknown)."""
+        default = cls.BATCH[role]
+        candidates = (default,) if isinstance(default, str) else tuple(default)
+        return next((c for c in candidates if c in fields), candidates[0])
+
+    def batch_roles(self, batch: Batch) -> dict[str, Any]:
+        """Every batch role's value from ``batch`` by its default field (calling a term outside a stage)."""
+        present = batch.fields | frozenset(batch.meta)
+        return {role: batch.field(self.default_field(role, present)) for role in self.BATCH}
 
     def prepare(self, train_set: Any) -> None:
         """Statistics of the training split the term needs (e.g. class weights); default: none."""

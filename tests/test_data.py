@@ -267,7 +267,8 @@ def test_scribbles_travel_through_collate_and_reach_rgo2d() -> None:
     s, t = torch.randn(shape, generator=g), torch.randn(shape, generator=g)
     occ = (batch.targets["voxel_target"] != 0) & (batch.targets["voxel_target"] != 255)
     obj = RGO2D(RGO2DParams())
-    value = obj.compute({"student": s, "teacher": t}, batch)
+    value = obj.compute({"student": s, "teacher": t, **obj.batch_roles(batch)}, batch)
+    assert obj.batch_roles(batch)["labels"] is batch.targets["scribble"]  # the first candidate the data has
     assert torch.allclose(value, rgo2d(s, t, batch.targets["scribble"], occ))
     dense = rgo2d(s, t, batch.targets["voxel_target"], occ)
     assert not torch.allclose(value, dense)  # the scribbles, not the dense labels, are used

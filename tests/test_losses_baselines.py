@@ -385,4 +385,4 @@ def test_the_objectives_compute_their_functions_with_the_data_ignore_label(g) ->
         cls = OBJECTIVES.get(name)
         obj = cls(cls.Params())
         obj.bind(TermContext(torch.nn.Identity(), None, torch.device("cpu"), info=info))
-        assert close(obj.compute({"student": s, "teacher": t}, batch), fn()), name
+        assert close(obj.compute({"student": s, "teacher": t, **obj.batch_roles(batch)}, batch), fn()), name

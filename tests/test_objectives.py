@@ -20,9 +20,14 @@ def voxel_objectives() -> list[str]:
     """The objectives an SCPNet pair on LiDAR scenes serves (point-cloud ones run in tests/test_lidiff.py)."""
     from distilkit.registry import ADAPTERS
 
+    from conftest import TINY_DATA
+    from distilkit.data.datasets import synthetic_info
+    from distilkit.data.params import SyntheticParams
+
     kinds = set(ADAPTERS.get("scpnet").TAPS.values()) | {"feature_map"}
-    return [e.name for e in OBJECTIVES if set(e.obj.CONSUMES.values()) <= kinds and not e.obj.BATCH
-            and not e.obj.REQUIRES]
+    fields = synthetic_info(SyntheticParams(**TINY_DATA)).fields
+    return [e.name for e in OBJECTIVES if set(e.obj.CONSUMES.values()) <= kinds and not e.obj.REQUIRES
+            and all(e.obj.default_field(role, fields) in fields for role in e.obj.BATCH)]
 
 
 def sweep_recipe() -> dict:
@@ -84,7 +89,7 @@ def test_pvkd_affinity_equals_grouped_dskd() -> None:
     logits = torch.zeros(1, 2, 16, 16, 4, dtype=torch.float64)
     batch = Batch({}, {"voxel_target": torch.zeros(1, 16, 16, 4, dtype=torch.long)}, {"size": 1})
     taps = {"student": SparseVoxels(coords, fs, (16, 16, 4)), "teacher": SparseVoxels(coords, ft, (16, 16, 4)),
-            "student_logits": logits, "teacher_logits": logits}
+            "student_logits": logits, "teacher_logits": logits, **obj.batch_roles(batch)}
     got = obj.compute(taps, batch)
     from distilkit.losses.pvkd import supervoxel_ids
 

@@ -74,6 +74,12 @@ class World:
         if self.distributed:
             torch.distributed.barrier()
 
+    def finish(self) -> None:
+        """Wait for the others, then close the process group (its threads must not outlive the process's exit)."""
+        if self.distributed and torch.distributed.is_initialized():
+            torch.distributed.barrier()
+            torch.distributed.destroy_process_group()
+
 
 SINGLE = World()
 

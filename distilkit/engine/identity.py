@@ -5,7 +5,8 @@ It hashes what produces the stage and nothing else, without special cases:
 
 * the **non-default values** of its resolved configuration (every pydantic model dumped without its defaults:
   a field added to the schema later, at its default, leaves every identity as it was) — the resolved terms with
-  their weights, taps and batch fields, the optimizer's parameter groups, the adapter's parameters;
+  their weights, taps and the batch fields a recipe points elsewhere than the term's default, the optimizer's
+  parameter groups, the adapter's parameters;
 * the **code versions** that produce it (distilkit's, the dataset's, each component's ``VERSION``);
 * a **fingerprint of the data**, not the path where it lies: a dataset registers ``fingerprint`` (SemanticKITTI:
   the names, sizes and modification times of its files), else its parameters stand for it (a generator's);
@@ -73,9 +74,16 @@ def data_fingerprint(res: Any) -> dict[str, Any]:
             **(fingerprint(res.data_params) if fingerprint is not None else {"params": _dump(res.data_params, False)})}
 
 
-def _terms(terms: list[Any], full: bool) -> list[dict[str, Any]]:
-    return [{"name": t.name, "weight": t.weight, "params": _dump(t.params, full), "taps": t.taps, "fields": t.fields,
-             "connector": t.connector, "warmup_steps": t.warmup_steps} for t in terms]
+def _fields(term: Any, fields: frozenset[str], full: bool) -> dict[str, str]:
+    """A term's batch fields (``full=False``: those a recipe points elsewhere than the term's default)."""
+    return dict(term.fields) if full else {role: name for role, name in term.fields.items()
+                                           if name != term.cls.default_field(role, fields)}
+
+
+def _terms(terms: list[Any], full: bool, fields: frozenset[str]) -> list[dict[str, Any]]:
+    return [{"name": t.name, "weight": t.weight, "params": _dump(t.params, full), "taps": t.taps,
+             "fields": _fields(t, fields, full), "connector": t.connector, "warmup_steps": t.warmup_steps}
+            for t in terms]
 
 
 def _files(spec: Any) -> dict[str, str]:
@@ -100,8 +108,8 @@ def stage_config(res: Any, stage: Any, hashes: dict[str, str], full: bool = True
                  if full else data_fingerprint(res)),
         "model": {"adapter": stage.student.adapter, "params": _dump(stage.student.params, full),
                   "taps": {n: _dump(h, full) for n, h in stage.student.hooks.items()}},
-        "task_losses": _terms(stage.task_losses, full),
-        "distill": _terms(stage.distill, full),
+        "task_losses": _terms(stage.task_losses, full, res.data_info.fields),
+        "distill": _terms(stage.distill, full, res.data_info.fields),
         "param_groups": stage.param_groups,
         "upstream": {field: hashes[name] for field, name in spec.edges().items()},
         "files": _files(spec),

@@ -127,6 +127,7 @@ class Pipeline:
             from distilkit.report.recipe import write_report
 
             write_report(self, results)
+        self.world.finish()
         return results
 
     def _replace(self, name: str, run_dir: Path) -> None:

@@ -123,8 +123,8 @@ def _model(spec: ModelSpec, path: str, problems: list[tuple[str, str]]) -> Resol
 def _resolve_fields(term_path: str, cls: Any, given: dict[str, str], info: Any,
                     problems: list[tuple[str, str]]) -> dict[str, str]:
     """The batch field of each batch role: the recipe's choice or the term's default, checked against the data."""
-    out = {role: given.get(role, default) for role, default in cls.BATCH.items()}
     fields = info.fields if info is not None else frozenset()
+    out = {role: given.get(role, cls.default_field(role, fields)) for role in cls.BATCH}
     for role, name in out.items():
         if fields and name not in fields:
             problems.append((f"{term_path}.taps.{role}" if role in given else term_path,

@@ -32,15 +32,16 @@ class Objective(Term):
 
 
 class MultiTapObjective(Objective):
-    """An objective that reads more roles than ``student``/``teacher``: it implements :meth:`compute`;
-    calling it with two taps is the same as ``compute({"student": ..., "teacher": ...})``."""
+    """An objective that reads more roles than ``student``/``teacher`` (taps or batch fields): it implements
+    :meth:`compute`; calling it with two taps and a batch is ``compute`` with its batch roles read from the batch by
+    their default fields."""
 
     @abstractmethod
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         """The loss from the taps of every role."""
 
     def forward(self, student: Any, teacher: Any, batch: Batch) -> Tensor:
-        return self.compute({"student": student, "teacher": teacher}, batch)
+        return self.compute({"student": student, "teacher": teacher, **self.batch_roles(batch)}, batch)
 
 
 def register_objective(name: str, cls: type[Objective], *, description: str, paper: str, equation: str,

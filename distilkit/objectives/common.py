@@ -8,7 +8,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX
 from distilkit.geometry.voxel import align_across_grids
 from distilkit.taps import SparseVoxels
@@ -16,12 +15,12 @@ from distilkit.taps import SparseVoxels
 MaskName = Literal["all", "valid", "occupied"]
 
 
-def voxel_mask(batch: Batch, which: str, ignore_index: int = IGNORE_INDEX) -> Tensor | None:
-    """(B, X, Y, Z) bool: ``all`` -> None, ``valid`` = observed and labelled (target != ``ignore_index``, the class
-    table's), ``occupied`` = valid and non-empty."""
+def voxel_mask(target: Tensor, which: str, ignore_index: int = IGNORE_INDEX) -> Tensor | None:
+    """(B, X, Y, Z) bool from a (B, X, Y, Z) label grid (a term's ``target`` batch role, ``voxel_target`` by
+    default): ``all`` -> None, ``valid`` = observed and labelled (target != ``ignore_index``, the class table's),
+    ``occupied`` = valid and non-empty."""
     if which == "all":
         return None
-    target = batch.targets["voxel_target"]
     if which == "valid":
         return target != ignore_index
     if which == "occupied":

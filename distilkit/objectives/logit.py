@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
 from distilkit.data.batch import Batch
 from distilkit.losses.logit import dist, kd
-from distilkit.objectives.base import Objective, register_objective
+from distilkit.objectives.base import MultiTapObjective, register_objective
 from distilkit.objectives.common import MaskName, voxel_mask
 
 
@@ -17,7 +19,7 @@ class KDParams(BaseModel):
     voxels: MaskName = Field("valid", description="voxels distilled: all, valid (observed) or occupied")
 
 
-class KD(Objective):
+class KD(MultiTapObjective):
     """Vanilla KD (Hinton et al. 2015) per voxel: T^2 mean KL(p_t || p_s) over the chosen voxels.
 
     Per-voxel mean, so the weight does not depend on the grid size (SCPNet Table 4 baseline).
@@ -25,10 +27,12 @@ class KD(Objective):
 
     Params = KDParams
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
+    BATCH = {"target": "voxel_target"}  # the labels that choose the voxels
     DEFAULT_WEIGHT = 1.0
 
-    def forward(self, student: Tensor, teacher: Tensor, batch: Batch) -> Tensor:
-        return kd(student, teacher, self.params.temperature, voxel_mask(batch, self.params.voxels, self.ignore_index))
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        mask = voxel_mask(taps["target"], self.params.voxels, self.ignore_index)
+        return kd(taps["student"], taps["teacher"], self.params.temperature, mask)
 
 
 class DISTParams(BaseModel):
@@ -39,18 +43,20 @@ class DISTParams(BaseModel):
     voxels: MaskName = "valid"
 
 
-class DIST(Objective):
+class DIST(MultiTapObjective):
     """DIST (Huang et al., NeurIPS 2022) with voxels as the rows (Scribble2Scene Table 5 baseline)."""
 
     Params = DISTParams
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
+    BATCH = {"target": "voxel_target"}  # the labels that choose the voxels
     DEFAULT_WEIGHT = 1.0
 
-    def forward(self, student: Tensor, teacher: Tensor, batch: Batch) -> Tensor:
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        student, teacher = taps["student"], taps["teacher"]
         k = student.shape[1]
         rows_s = student.movedim(1, -1).reshape(-1, k)
         rows_t = teacher.movedim(1, -1).reshape(-1, k)
-        mask = voxel_mask(batch, self.params.voxels, self.ignore_index)
+        mask = voxel_mask(taps["target"], self.params.voxels, self.ignore_index)
         if mask is not None:
             rows_s, rows_t = rows_s[mask.reshape(-1)], rows_t[mask.reshape(-1)]
         p = self.params

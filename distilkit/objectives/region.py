@@ -21,12 +21,11 @@ LOGITS_AND_OPTIONAL_FEATURES = {"student": "voxel_logits", "teacher": "voxel_log
 FEATURE_ROLES = frozenset({"student_features", "teacher_features"})
 
 
-def labels_and_geometry(batch: Batch, ignore_index: int) -> tuple[Tensor, Tensor]:
-    """Scribble labels (``scribble`` if the data has them, else the dense target) and the dense-geometry
-    occupancy mask (target neither empty nor ``ignore_index``), as in the authors' code."""
-    occupied = voxel_mask(batch, "occupied", ignore_index)
+def geometry(target: Tensor, ignore_index: int) -> Tensor:
+    """The dense-geometry occupancy mask (target neither empty nor ``ignore_index``), as in the authors' code."""
+    occupied = voxel_mask(target, "occupied", ignore_index)
     assert occupied is not None
-    return batch.targets.get("scribble", batch.targets["voxel_target"]), occupied
+    return occupied
 
 
 def _feature_term(taps: dict[str, Any]) -> Tensor | None:
@@ -54,12 +53,15 @@ class RGO2D(MultiTapObjective):
     CONSUMES = LOGITS_AND_OPTIONAL_FEATURES
     TEACHER_ROLES = frozenset({"teacher", "teacher_features"})
     OPTIONAL = FEATURE_ROLES
+    # the sparse labels of the class centres (scribbles where the data has them, else the dense target) and the
+    # dense target that gives the geometry
+    BATCH = {"labels": ("scribble", "voxel_target"), "target": "voxel_target"}
     DEFAULT_WEIGHT = 1.0
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         p = self.params
-        labels, geometry = labels_and_geometry(batch, self.ignore_index)
-        loss = rgo2d(taps["student"], taps["teacher"], labels, geometry, p.regions, p.region_weights, p.inter, p.intra,
+        labels, occupied = taps["labels"], geometry(taps["target"], self.ignore_index)
+        loss = rgo2d(taps["student"], taps["teacher"], labels, occupied, p.regions, p.region_weights, p.inter, p.intra,
                      self.ignore_index)
         feat = _feature_term(taps)
         return loss if feat is None else loss + p.feature_weight * feat
@@ -83,6 +85,7 @@ class CleanerS(MultiTapObjective):
     CONSUMES = LOGITS_AND_OPTIONAL_FEATURES
     TEACHER_ROLES = frozenset({"teacher", "teacher_features"})
     OPTIONAL = FEATURE_ROLES
+    BATCH = {"target": "voxel_target"}  # the labels of the class centres
     DEFAULT_WEIGHT = 0.25
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
@@ -90,7 +93,7 @@ class CleanerS(MultiTapObjective):
         sf, tf = taps.get("student_features"), taps.get("teacher_features")
         if sf is not None and tf is not None:
             sf = match_spatial(sf, tuple(tf.shape[2:]))
-        return cleaners(taps["student"], taps["teacher"], batch.targets["voxel_target"], p.temperature, p.kd_sc,
+        return cleaners(taps["student"], taps["teacher"], taps["target"], p.temperature, p.kd_sc,
                         p.kd_sa, self.ignore_index, sf, tf, p.kd_t)
 
 

@@ -80,6 +80,7 @@ class PVKD(MultiTapObjective):
     CONSUMES = {"student": "sparse_features", "teacher": "sparse_features",
                 "student_logits": "voxel_logits", "teacher_logits": "voxel_logits"}
     TEACHER_ROLES = frozenset({"teacher", "teacher_logits"})
+    BATCH = {"target": "voxel_target"}  # the labels that choose the voxels of the output term
     DEFAULT_WEIGHT = 1.0
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
@@ -96,7 +97,7 @@ class PVKD(MultiTapObjective):
                                                                                     include_self=False)
                 chosen = torch.multinomial(weight, p.num_supervoxels, replacement=False)
         return pvkd(fs, ft, groups, taps["student_logits"], taps["teacher_logits"], p.temperature,
-                    voxel_mask(batch, p.voxels, self.ignore_index), p.output_weight, p.affinity_weight, chosen)
+                    voxel_mask(taps["target"], p.voxels, self.ignore_index), p.output_weight, p.affinity_weight, chosen)
 
 
 register_objective("pkt", PKT, description="PKT: KL between cosine-kernel probability distributions over sampled voxels",
