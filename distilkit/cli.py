@@ -103,7 +103,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     for path in args.recipes:
         res = resolve(load_recipe(path, overrides), str(path))
         stages = ", ".join(
-            f"{n} ({s.student.adapter}" + (f" <- {s.teacher_from}" if s.teacher_from else "")
+            f"{n} ({s.student.adapter}" + "".join(f"; {edge} <- {up}" for edge, up in s.spec.edges().items())
             + (f"; {', '.join(t.name for t in s.distill)}" if s.distill else "") + ")"
             for n, s in res.stages.items())
         print(f"{path}: ok — {len(res.stages)} stage(s): {stages}")

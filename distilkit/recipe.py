@@ -77,6 +77,32 @@ class InitSpec(_Strict):
         return self
 
 
+class LabelsSpec(_Strict):
+    """Training labels from an earlier stage's published predictions (Scribble2Scene's student on the
+    Dean-Labeler's pseudo-labels), overlaid on the data by sample id; the data's own labels in ``keep`` win."""
+
+    from_: str = Field(..., alias="from", description="the stage whose best model's predictions are the labels")
+    field: str = Field("voxel_label", description="the sample field the predictions replace")
+    keep: str | None = Field(None, description="a sample field whose labelled values win over the predictions "
+                                               "(e.g. scribble): where it is neither the ignore index nor "
+                                               "`unlabelled`")
+    unlabelled: int | None = Field(254, description="the value of `keep` that means no label (ScribbleSC: 254)")
+    splits: list[Literal["train", "val", "test"]] = Field(["train"], min_length=1,
+                                                          description="the splits whose labels are replaced "
+                                                                      "(evaluation keeps the data's own by default)")
+
+
+class AuxSpec(_Strict):
+    """A frozen auxiliary model from an earlier stage (VoxFormer's query proposals): it runs on every batch before
+    the student, and its taps become batch inputs the student's adapter reads."""
+
+    from_: str = Field(..., alias="from", description="the stage whose model is used, frozen")
+    which: Literal["best", "last"] = Field("best", description="its checkpoint")
+    inputs: dict[str, str] = Field(default_factory=dict, description="its tap -> the batch input it becomes "
+                                                                     "(default: its prediction tap -> this aux "
+                                                                     "model's name)")
+
+
 class LossSpec(_Strict):
     """A weighted term: a task loss or a distillation objective."""
 
@@ -187,6 +213,12 @@ class StageSpec(_Strict):
     freeze: list[str] = Field(default_factory=list, description="globs of trainable parameters to keep as they "
                                                                 "are, by qualified name (student.<module path>..., "
                                                                 "as param_groups' match), e.g. 'student.net.encoder.*'")
+    labels: LabelsSpec | None = Field(None, description="training labels from an earlier stage's predictions")
+    aux: dict[str, AuxSpec] = Field(default_factory=dict, description="frozen auxiliary models from earlier stages, "
+                                                                      "by name; their taps become batch inputs")
+    publish: list[Literal["train", "val", "test"]] = Field(
+        default_factory=list, description="splits whose predictions the stage's best model publishes by sample id "
+                                          "(a stage that a later stage reads labels from publishes what it needs)")
     label: str | None = Field(None, description="display name in reports")
     seed: int | None = Field(None, description="this stage's training seed (default: the recipe's `seed`, or "
                                                "`--seed`); a sweep fixes a shared teacher's seed this way")
@@ -199,9 +231,12 @@ class StageSpec(_Strict):
 
     def edges(self) -> dict[str, str]:
         """Every upstream edge of the stage, field -> the stage it reads (``teacher``: its frozen model, ``init``:
-        its weights). Ordering, needed stages, ``downstream``, ``--stage`` and identity read only this."""
-        return {field: src.from_ for field, src in (("teacher", self.teacher), ("init", self.init))
-                if src is not None and src.from_ is not None}
+        its weights, ``labels``: its published predictions, ``aux.NAME``: its frozen model as an auxiliary
+        network). Ordering, needed stages, ``downstream``, ``--stage``, resolution and identity read only this."""
+        out = {field: src.from_ for field, src in (("teacher", self.teacher), ("init", self.init),
+                                                   ("labels", self.labels))
+               if src is not None and src.from_ is not None}
+        return {**out, **{f"aux.{name}": aux.from_ for name, aux in self.aux.items()}}
 
 
 class DataSpec(_Strict):

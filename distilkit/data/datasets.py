@@ -105,6 +105,11 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.items)
 
+    def sample_id(self, i: int) -> str:
+        """``<sequence>/<frame>``, as SemanticKITTI names its files (published predictions are stored by it)."""
+        d, frame, _ = self.items[i]
+        return f"{d.name}/{frame:06d}"
+
     def _pose(self, d: Path) -> np.ndarray:
         if d not in self._poses:
             self._poses[d] = skio.read_poses(d / "poses.txt", skio.read_calib(d / "calib.txt"))

@@ -49,7 +49,8 @@ def _merged(metrics: list[Metric], seconds: float, count: int, world: World) -> 
 
 @torch.no_grad()
 def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device, collate: Collate,
-             metrics: list[Any], world: World = SINGLE, workers: int = 0, seed: int = 0) -> dict[str, Any]:
+             metrics: list[Any], world: World = SINGLE, workers: int = 0, seed: int = 0,
+             prepare: Callable[[Batch], Batch] | None = None) -> dict[str, Any]:
     """Scores of the model's prediction tap over ``dataset`` with ``metrics`` (each with its registered ``name``
     and ``cls``): the first one's keys as they are, the others' as ``<name>.<key>``; and ``seconds_per_sample`` of
     the model's forward passes."""
@@ -59,7 +60,7 @@ def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device
     seconds, count = 0.0, 0
     with seeded(seed, device):
         for batch in eval_batches(dataset, batch_size, collate, world, workers):
-            batch = batch.to(device)
+            batch = prepare(batch) if prepare is not None else batch.to(device)
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             t0 = time.perf_counter()
@@ -86,13 +87,15 @@ def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device
 
 @torch.no_grad()
 def preview(model: Adapter, dataset: Any, device: torch.device, collate: Collate,
-            metric: type[Metric], seed: int = 0) -> dict[str, Any] | None:
+            metric: type[Metric], seed: int = 0,
+            prepare: Callable[[Batch], Batch] | None = None) -> dict[str, Any] | None:
     """The metric's bird's-eye preview of the model on the first sample of ``dataset`` (None: none to show)."""
     if len(dataset) == 0:
         return None
     was_training = model.training
     model.eval()
-    batch = collate([dataset[0]]).to(device)
+    batch = collate([dataset[0]])
+    batch = prepare(batch) if prepare is not None else batch.to(device)
     with seeded(seed, device):
         out = model(batch)
     model.train(was_training)

@@ -67,6 +67,9 @@ class Pipeline:
         return self.root / f"{name}-{self.hashes[name]}"
 
     def dataset(self, split: str) -> Any:
+        """The split's samples, each with its ``sample_id`` (generated or read once, shared by the stages)."""
+        from distilkit.data.samples import Split
+
         if split not in self._data:
             entry = DATASETS.entry(self.recipe.data.dataset)
             from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -74,14 +77,26 @@ class Pipeline:
             with Progress(TextColumn(f"[cyan]data[/] {self.recipe.data.dataset}/{split}"), BarColumn(),
                           MofNCompleteColumn(), TimeRemainingColumn(), console=self.console, transient=True) as prog:
                 task = prog.add_task("gen", total=None)
-                self._data[split] = entry.obj(self.resolved.data_params, split,
-                                              lambda i, n: prog.update(task, completed=i, total=n))
+                self._data[split] = Split(entry.obj(self.resolved.data_params, split,
+                                                    lambda i, n: prog.update(task, completed=i, total=n)), split)
         return self._data[split]
 
     @property
     def collate(self) -> Any:
-        """The dataset's registered collate (samples -> :class:`~distilkit.data.batch.Batch`)."""
-        return DATASETS.entry(self.recipe.data.dataset).meta["collate"]
+        """The dataset's registered collate (samples -> :class:`~distilkit.data.batch.Batch`, with the sample ids)."""
+        from distilkit.data.samples import IdCollate
+
+        return IdCollate(DATASETS.entry(self.recipe.data.dataset).meta["collate"])
+
+    def prediction_splits(self, name: str) -> list[str]:
+        """The splits whose predictions stage ``name`` publishes: its own ``publish`` and what the stages that read
+        labels from it need."""
+        wanted = set(self.resolved.stages[name].spec.publish)
+        for stage in self.resolved.stages.values():
+            labels = stage.spec.labels
+            if labels is not None and labels.from_ == name:
+                wanted |= set(labels.splits)
+        return [s for s in ("train", "val", "test") if s in wanted and self.has_split(s)]
 
     def has_split(self, split: str) -> bool:
         entry = DATASETS.entry(self.recipe.data.dataset)

@@ -58,6 +58,17 @@ class ResolvedMetric:
 
 
 @dataclass
+class ResolvedAux:
+    """A frozen auxiliary model: the stage it comes from, its model and the batch inputs its taps become."""
+
+    name: str
+    stage: str
+    which: str
+    model: ResolvedModel
+    inputs: dict[str, str]  # its tap -> batch input
+
+
+@dataclass
 class ResolvedHook:
     """A registered lifecycle hook and its validated parameters."""
 
@@ -79,6 +90,7 @@ class ResolvedStage:
     schedule: BaseModel | None = None  # the learning-rate schedule's validated parameters
     metrics: list[ResolvedMetric] = field(default_factory=list)  # every evaluation's: `metric`'s first, then extras
     hooks: list[ResolvedHook] = field(default_factory=list)  # the recipe's registered hooks (train.hooks)
+    aux: list[ResolvedAux] = field(default_factory=list)  # frozen auxiliary models, run before the student
 
 
 @dataclass
@@ -308,6 +320,44 @@ def resolve_hooks(specs: list[Any], path: str, problems: list[tuple[str, str]]) 
     return out
 
 
+def resolve_aux(spec: Any, stages: dict[str, ResolvedStage], path: str,
+                problems: list[tuple[str, str]]) -> list[ResolvedAux]:
+    """The stage's auxiliary models: each upstream stage's model and the inputs its taps become."""
+    out = []
+    for name, aux in spec.aux.items():
+        up = stages.get(aux.from_)
+        if up is None:  # an unknown stage is named by stage_order
+            continue
+        inputs = aux.inputs or {up.student.cls.PREDICTION_TAP: name}
+        for tap in inputs:
+            if tap not in up.student.taps:
+                problems.append((f"{path}.aux.{name}.inputs", f"stage {aux.from_!r}'s {up.student.adapter!r} has no tap "
+                                                              f"{tap!r} (it has: {', '.join(up.student.taps)})"))
+        out.append(ResolvedAux(name, aux.from_, aux.which, up.student, inputs))
+    return out
+
+
+def labels_problems(spec: Any, stages: dict[str, ResolvedStage], info: Any, path: str) -> list[tuple[str, str]]:
+    """A ``labels`` edge: the upstream stage's predictions can be published, the fields exist; a stage's own
+    ``publish``: its predictions can be."""
+    from distilkit.engine.predictions import publishable
+
+    out = []
+    labels = spec.labels
+    if labels is not None and labels.from_ in stages:
+        up = stages[labels.from_].student
+        kind = up.taps.get(up.cls.PREDICTION_TAP)
+        if not publishable(kind):
+            out.append((f"{path}.labels.from", f"stage {labels.from_!r} predicts {kind} ({up.adapter!r}), which cannot "
+                                               "be published as labels (voxel_logits and points can)"))
+        for key in ("field", "keep"):
+            name = getattr(labels, key)
+            if name is not None and info is not None and info.fields and name not in info.fields:
+                out.append((f"{path}.labels.{key}", f"the data has no field {name!r} (it has: "
+                                                    f"{', '.join(sorted(info.fields))})"))
+    return out
+
+
 def data_problems(model: ResolvedModel, info: Any, path: str) -> list[tuple[str, str]]:
     """The inputs the adapter reads that the data does not provide, and parameters it cannot serve."""
     out = []
@@ -335,6 +385,20 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         spec = recipe.stages[name]
         path = f"stages.{name}"
         student = _model(spec.model, f"{path}.model", problems)
+        aux = resolve_aux(spec, stages, path, problems)
+        problems.extend(labels_problems(spec, stages, info, path))
+        if student is not None and spec.publish:
+            from distilkit.engine.predictions import publishable
+
+            kind = student.taps.get(student.cls.PREDICTION_TAP)
+            if not publishable(kind):
+                problems.append((f"{path}.publish", f"{student.adapter!r} predicts {kind}, which cannot be published "
+                                                    "(voxel_logits and points can)"))
+        stage_info = info
+        if info is not None and aux:  # the auxiliary models' inputs are batch fields of this stage
+            import dataclasses
+
+            stage_info = dataclasses.replace(info, fields=info.fields | {f for a in aux for f in a.inputs.values()})
         teacher, teacher_from = None, None
         if spec.teacher is not None:
             if spec.teacher.from_ is not None:
@@ -351,8 +415,8 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         task_specs = spec.task_losses
         if task_specs is None and student is not None:
             task_specs = [LossSpec.model_validate(d) for d in student.cls.DEFAULT_TASK_LOSSES]
-        task = _terms(task_specs or [], TASK_LOSSES, f"{path}.task_losses", models, info, problems)
-        distill = _terms(spec.distill, OBJECTIVES, f"{path}.distill", models, info, problems)
+        task = _terms(task_specs or [], TASK_LOSSES, f"{path}.task_losses", models, stage_info, problems)
+        distill = _terms(spec.distill, OBJECTIVES, f"{path}.distill", models, stage_info, problems)
         if spec.init is not None and spec.init.from_ is not None and student is not None and spec.init.strict:
             up = stages.get(spec.init.from_)
             if up is not None and (up.student.adapter, up.student.params) != (student.adapter, student.params):
@@ -367,7 +431,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
             own_teacher = teacher if teacher_from is None else None  # a teacher stage was checked as a student
             for model, where in ((student, f"{path}.model"), (own_teacher, f"{path}.teacher.model")):
                 if model is not None:
-                    problems.extend(data_problems(model, info, where))
+                    problems.extend(data_problems(model, stage_info, where))
         if info is not None:
             problems.extend(alignment_problems(distill, models, info, f"{path}.distill"))
         for i, term in enumerate(distill):  # teacher capabilities the objective calls
@@ -382,7 +446,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         if student is not None:
             groups = param_groups(spec.optimizer.param_groups, task, distill)
             stages[name] = ResolvedStage(name, spec, student, teacher, teacher_from, task, distill, groups, metric,
-                                         schedule, [*([metric] if metric else []), *extras], hooks)
+                                         schedule, [*([metric] if metric else []), *extras], hooks, aux)
     if problems:
         raise RecipeError(problems, source)
     assert data_params is not None

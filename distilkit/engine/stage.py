@@ -78,6 +78,7 @@ class StageRun:
         self.workers = resolve_workers(self.spec.workers)
         self.checkpoints = Checkpoints(run_dir / "checkpoints", self.world.main)
         self.trainer: Trainer | None = None
+        self.aux: list[tuple[Any, Any]] = []  # (resolved aux, its frozen model)
         self.device = pick_device(self.spec.device)
 
     # -- the whole run -----------------------------------------------------------------------
@@ -89,6 +90,7 @@ class StageRun:
         done = read_summary(self.run_dir)
         if done is not None:
             self.pipeline.console.print(f"[green]✓[/] stage [bold]{self.name}[/] reused from {self.run_dir}")
+            self.publish_predictions()  # what a later stage now asks of it
             # the label is cosmetic (not part of the identity): show the recipe's current one
             return StageResult(self.name, self.run_dir, {**done, "label": self.stage.spec.label or self.name}, True)
         self._prepare_folder()
@@ -104,6 +106,7 @@ class StageRun:
             best = self.best_model()  # read once: scored on the test split, previewed on a validation scene
             test = self.score(split, best)
             self.write_preview(best)
+            self.publish_predictions(best[0] if best is not None else None)
         except (RuntimeError, MemoryError) as exc:  # out of memory: one line that says what to lower
             if not is_out_of_memory(exc):
                 raise
@@ -133,12 +136,39 @@ class StageRun:
             return checkpoint_path(self.pipeline.run_dir(src.from_), src.which)
         return Path(src.checkpoint or "").expanduser()
 
+    def split(self, name: str) -> Any:
+        """The stage's samples of split ``name``: the data's, with labels from a stage's predictions where the
+        recipe asks (``labels``)."""
+        from distilkit.engine.predictions import LabelOverlay, PredictionStore
+
+        data = self.pipeline.dataset(name)
+        labels = self.stage.spec.labels
+        if labels is None or name not in labels.splits:
+            return data
+        store = PredictionStore(self.pipeline.run_dir(labels.from_) / "predictions" / name)
+        return LabelOverlay(data, store, labels.field, labels.keep, self.info.classes.ignore_index, labels.unlabelled)
+
+    def prepare(self, batch: Any) -> Any:
+        """A batch on the device, with the inputs the auxiliary models give (their taps, under no_grad)."""
+        batch = batch.to(self.device)
+        if not self.aux:
+            return batch
+        added: dict[str, Any] = {}
+        with torch.no_grad():
+            for aux, model in self.aux:
+                out = model(batch)
+                added.update({field: out[tap] for tap, field in aux.inputs.items()})
+        return batch.with_inputs(**added)
+
     def build(self) -> "Trainer":
-        """The stage's seed, then the frozen teacher (drawing nothing from the seeded stream), the initial weights
-        and the trainer on this process's batches."""
+        """The stage's seed, then the frozen teacher and auxiliary models (drawing nothing from the seeded stream),
+        the initial weights and the trainer on this process's batches."""
         from distilkit.engine.trainer import Trainer
 
         seed_everything(self.seed)
+        self.aux = [(aux, load_run(checkpoint_path(self.pipeline.run_dir(aux.stage), aux.which), model=aux.model,
+                                   info=self.info, device=self.device, role=f"aux model {aux.name!r}"))
+                    for aux in self.stage.aux]
         teacher = None
         if self.stage.teacher is not None and self.stage.distill:
             teacher = load_run(self.upstream("teacher"), model=self.stage.teacher, info=self.info,
@@ -147,10 +177,10 @@ class StageRun:
         if self.stage.spec.init is not None:
             path = self.upstream("init")
             init = (self.stage.student.cls.read_weights(str(path)), self.stage.spec.init.strict, f"init {path}")
-        train_set = self.pipeline.dataset("train")
+        train_set = self.split("train")
         plan = BatchPlan(len(train_set), self.spec.batch_size, self.seed, self.world)
         self.trainer = Trainer(self.stage, self.info, train_set, plan, self.device, collate=self.pipeline.collate,
-                               teacher=teacher, init_weights=init, world=self.world)
+                               teacher=teacher, init_weights=init, world=self.world, prepare=self.prepare)
         self.trainer.kept = self.checkpoints.kept
         return self.trainer
 
@@ -173,7 +203,7 @@ class StageRun:
         assert trainer is not None
         loop = Loop(self.name, self.run_dir, self.spec, trainer.total_steps, trainer.steps_per_epoch,
                     self.spec.eval_every or trainer.steps_per_epoch, self.world.main,
-                    _log=self.log, _evaluate=lambda: self.evaluate(self.pipeline.dataset("val")),
+                    _log=self.log, _evaluate=lambda: self.evaluate(self.split("val")),
                     _save=lambda which: self.save(which, loop))
         ckpt = self.checkpoints.resume(on_unreadable=lambda exc, path: self._unreadable(exc, path))
         if ckpt is not None:
@@ -192,13 +222,13 @@ class StageRun:
         batches = train_batches(trainer.train_set, trainer.plan, trainer.collate, loop.step, stop, self.workers)
         for batch in batches:
             loop.emit("before_step")
-            values = trainer.train_step(batch.to(self.device), loop.step)
+            values = trainer.train_step(self.prepare(batch), loop.step)
             loop.values = {**values, "lr": trainer.optimizer.param_groups[0]["lr"]}
             loop.step += 1
             loop.evaluated = False
             loop.emit("after_step")
         if loop.last_scores is None:
-            loop.last_scores = self.evaluate(self.pipeline.dataset("val"))
+            loop.last_scores = self.evaluate(self.split("val"))
         loop.seconds = time.perf_counter() - loop.t0
         loop.emit("after_train")
         return loop
@@ -253,7 +283,7 @@ class StageRun:
         assert self.trainer is not None
         return evaluate(model if model is not None else self.trainer.student, dataset, self.spec.batch_size,
                         self.device, self.pipeline.collate, self.stage.metrics, world=self.world,
-                        workers=self.workers, seed=self.seed)
+                        workers=self.workers, seed=self.seed, prepare=self.prepare)
 
     def best_model(self) -> tuple[Any, int] | None:
         """The student of ``best.pt`` and its step (None before the first evaluation); every process reads the file
@@ -270,7 +300,7 @@ class StageRun:
     def score(self, split: str, best: tuple[Any, int] | None) -> dict[str, Any]:
         """Scores on ``split`` of the best-validation checkpoint and of the last one."""
         assert self.trainer is not None
-        dataset = self.pipeline.dataset(split)
+        dataset = self.split(split)
         out: dict[str, Any] = {"last": self.evaluate(dataset), "last_step": self.trainer.total_steps}
         if best is not None:
             out["best"], out["best_step"] = self.evaluate(dataset, best[0]), best[1]
@@ -290,8 +320,8 @@ class StageRun:
         if not self.world.main:
             return None
         model = best[0] if best is not None else self.trainer.student
-        view = preview(model, self.pipeline.dataset("val"), self.device, self.pipeline.collate,
-                       self.stage.metric.cls, seed=self.seed)
+        view = preview(model, self.split("val"), self.device, self.pipeline.collate, self.stage.metric.cls,
+                       seed=self.seed, prepare=self.prepare)
         if view is None:
             return None
         classes = self.info.classes
@@ -301,6 +331,31 @@ class StageRun:
                             step=np.array(best[1] if best is not None else self.trainer.total_steps))
         os.replace(tmp, path)
         return path
+
+    def publish_predictions(self, model: Any = None) -> list[str]:
+        """Publish the best model's predictions of the splits later stages (or the recipe's ``publish``) ask for
+        and that are not published yet; the splits written."""
+        from distilkit.engine.predictions import is_published, publish
+
+        wanted = [s for s in self.pipeline.prediction_splits(self.name)
+                  if not is_published(self.run_dir / "predictions" / s)]
+        if not wanted or not self.world.main:
+            self.world.barrier()
+            return []
+        if model is None:
+            if not self.aux and self.stage.aux:  # a reused stage: its auxiliary models too
+                self.aux = [(aux, load_run(checkpoint_path(self.pipeline.run_dir(aux.stage), aux.which),
+                                           model=aux.model, info=self.info, device=self.device))
+                            for aux in self.stage.aux]
+            model = load_run(self.run_dir, "any", model=self.stage.student, info=self.info, device=self.device)
+        kind = self.stage.student.taps[self.stage.student.cls.PREDICTION_TAP]
+        for split in wanted:
+            with self.pipeline.console.status(f"stage {self.name}: publishing its predictions of {split}"):
+                batches = eval_batches(self.pipeline.dataset(split), self.spec.batch_size, self.pipeline.collate,
+                                       workers=self.workers)
+                publish(model, batches, self.run_dir / "predictions" / split, kind, self.prepare)
+        self.world.barrier()
+        return wanted
 
     def publish(self, loop: Loop, split: str, test: dict[str, Any]) -> StageResult:
         """``summary.json`` (the stage is finished) and the run report, by the main process."""

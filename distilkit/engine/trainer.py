@@ -48,8 +48,11 @@ class Trainer:
 
     def __init__(self, stage: ResolvedStage, info: DataInfo, train_set: Any, plan: BatchPlan, device: torch.device,
                  *, collate: Collate, teacher: Adapter | None = None,
-                 init_weights: tuple[dict[str, Any], bool, str] | None = None, world: World = SINGLE) -> None:
+                 init_weights: tuple[dict[str, Any], bool, str] | None = None, world: World = SINGLE,
+                 prepare: Callable[[Batch], Batch] | None = None) -> None:
         self.stage, self.info, self.train_set, self.plan = stage, info, train_set, plan
+        # a batch on the device with what the stage adds (its auxiliary models' inputs)
+        self.prepare: Callable[[Batch], Batch] = prepare or (lambda batch: batch.to(self.device))
         self.collate = collate  # the dataset's registered collate
         self._checked: set[str] = set()  # roles whose outputs passed the tap checks
         self.init_left_out: list[str] | None = None  # weights of init_weights that did not fit (strict: false)
@@ -84,8 +87,8 @@ class Trainer:
         self.rank_rng(0)
 
     def first_batch(self) -> Batch:
-        """Batch 0 of this process, on the device."""
-        return self.plan.batch(self.train_set, self.collate, 0).to(self.device)
+        """Batch 0 of this process, on the device, prepared as every batch is."""
+        return self.prepare(self.plan.batch(self.train_set, self.collate, 0))
 
     # -- state -------------------------------------------------------------------------------
     def state(self, full: bool = True) -> dict[str, Any]:
