@@ -355,9 +355,43 @@ def determinism_cases(device: torch.device, quick: bool) -> list[Case]:
     return cases
 
 
+def loader_cases(device: torch.device, quick: bool) -> list[Case]:
+    """Training steps of the quickstart's teacher (a 4-frame SCPNet, batch 2, recipes/quickstart.yaml's data) through
+    the stage's loader with 2 worker processes ('fast') and with none ('naive'): the batches are read and collated
+    in the workers while the step runs. Each timing covers the loader's start and one epoch of steps (6; the quick
+    mode: 2 steps on an 8-times smaller grid)."""
+    import tempfile
+
+    from distilkit.engine.loader import BatchPlan, train_batches
+    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.trainer import Trainer
+    from distilkit.recipe import recipe_from_dict
+
+    data = {"scale": 8 if quick else 4, "num_train": 4 if quick else 12, "num_val": 1, "num_test": 1,
+            "input_frames": 4, "gt_frames": 10, "azimuth_steps": 768}
+    model = {"adapter": "scpnet", "params": {"frames": 4, "channels": 8, "point_mlp": [32, 64], "seg_channels": 16}}
+    recipe = {"name": "bench", "data": {"dataset": "synthetic-lidar", "params": data},
+              "stages": {"s": {"model": model, "train": {"batch_size": 2, "grad_clip": 10, "device": device.type}}}}
+    pipe = Pipeline(recipe_from_dict(recipe, "bench"), Path(tempfile.mkdtemp(prefix="distilkit-bench-")), quiet=True)
+    stage, train_set = pipe.resolved.stages["s"], pipe.dataset("train")
+    plan = BatchPlan(len(train_set), 2, 0)
+    torch.manual_seed(0)
+    trainer = Trainer(stage, pipe.resolved.data_info, train_set, plan, device, collate=pipe.collate)
+    steps = 2 if quick else plan.steps_per_epoch
+
+    def run(workers: int) -> Tensor:
+        losses = [trainer.train_step(batch.to(device), i)["loss"]
+                  for i, batch in enumerate(train_batches(train_set, plan, pipe.collate, 0, steps, workers))]
+        return torch.tensor(sum(losses) / len(losses))
+
+    size = f"{steps} train steps, batch 2, {'x'.join(map(str, pipe.resolved.data_info.grid.shape))}"
+    return [Case("loader: 2 workers vs none", size, lambda: run(2), lambda: run(0), [], same_value=False)]
+
+
 BENCHES: dict[str, Callable[[torch.device, bool], list[Case]]] = {
     "dskd": dskd_cases, "pkt": pkt_cases, "rgo2d": rgo2d_cases, "kd": kd_cases, "nst": nst_cases,
-    "structural": structural_cases, "sampler": sampler_cases, "determinism": determinism_cases}
+    "structural": structural_cases, "sampler": sampler_cases, "determinism": determinism_cases,
+    "loader": loader_cases}
 
 
 def _fmt_mem(b: int | None) -> str:

@@ -174,7 +174,8 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
 _LIST_COLUMN = {"adapters": "taps (name: kind)", "objectives": "reads (tap kinds)", "task losses": "reads (tap kinds)",
                 "datasets": "batch fields", "metrics": "scores (tap kind)", "optimizers": "—",
-                "schedules": "parameters", "connectors": "—", "hooks": "parameters"}
+                "schedules": "parameters", "connectors": "—", "hooks": "parameters",
+                "recorders": "—"}
 
 
 def _list_cell(kind: str, entry: object) -> str:
@@ -271,9 +272,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "stage at a small size)")
     v.set_defaults(fn=_cmd_validate)
     ls = sub.add_parser("list", help="registered adapters, objectives, task losses, datasets, metrics, optimizers, "
-                                     "schedules, connectors and hooks")
+                                     "schedules, connectors, hooks and recorders")
     ls.add_argument("kind", nargs="?", choices=["adapters", "objectives", "task losses", "datasets", "metrics",
-                                                "optimizers", "schedules", "connectors", "hooks"])
+                                                "optimizers", "schedules", "connectors", "hooks", "recorders"])
     ls.add_argument("--markdown", action="store_true", help="objectives as Markdown (docs/objectives.md)")
     ls.set_defaults(fn=_cmd_list)
     s = sub.add_parser("schema", help="print the recipe JSON schema (for editor completion)")

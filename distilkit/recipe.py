@@ -28,7 +28,10 @@ class HookTapSpec(_Strict):
 
     module: str = Field(..., description="dotted path of the submodule, as in `model.named_modules()`")
     kind: str = Field(..., description="tap kind of the recorded value (e.g. volume_features)")
-    at: Literal["output", "input"] = Field("output", description="record the submodule's output or its first input")
+    at: str = Field("output", description="what is recorded: a registered recorder (`distilkit list recorders`): "
+                                         "output, input (its first), method (the return value of `method`)")
+    method: str | None = Field(None, description="with `at: method`: the submodule's method whose return value is "
+                                                 "recorded (e.g. encode)")
 
 
 class ModelSpec(_Strict):

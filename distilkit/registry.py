@@ -139,10 +139,11 @@ OPTIMIZERS: Registry[Any] = Registry("optimizer")
 SCHEDULES: Registry[Any] = Registry("schedule")
 CONNECTORS: Registry[Any] = Registry("connector")
 HOOKS: Registry[Any] = Registry("hook")
+RECORDERS: Registry[Any] = Registry("recorder")
 
 ALL_REGISTRIES = {"adapters": ADAPTERS, "objectives": OBJECTIVES, "task losses": TASK_LOSSES,
                   "datasets": DATASETS, "metrics": METRICS, "optimizers": OPTIMIZERS, "schedules": SCHEDULES,
-                  "connectors": CONNECTORS, "hooks": HOOKS}
+                  "connectors": CONNECTORS, "hooks": HOOKS, "recorders": RECORDERS}
 
 _BUILTIN_MODULES = (
     "distilkit.objectives",
@@ -151,6 +152,7 @@ _BUILTIN_MODULES = (
     "distilkit.metrics.registered",
     "distilkit.engine.optim",
     "distilkit.engine.tensorboard",
+    "distilkit.engine.recorders",
 )
 _loaded = False
 _loading = False

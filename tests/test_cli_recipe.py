@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import json
 import subprocess
 import sys
@@ -214,3 +215,11 @@ def test_set_overrides_recipe_fields_by_dotted_path_and_is_validated_like_the_fi
         err = capsys.readouterr().err
         assert err.startswith("error: ") and message in err and "Traceback" not in err, (item, err)
     assert main(["validate", str(path), "--no-memory", "--set", "stages.student.distill.0.weight=3"]) == 0
+
+
+def test_bench_loader_times_the_same_steps_with_and_without_workers(capsys) -> None:
+    from distilkit.bench import run_bench
+
+    (row,) = run_bench(["loader"], quick=True, repeat=1)
+    assert "loader: 2 workers vs none" in capsys.readouterr().out
+    assert row["fast_ms"] > 0 and row["naive_ms"] > 0 and math.isfinite(row["value"])

@@ -306,6 +306,43 @@ def test_recipe_taps_record_submodules_and_feed_objectives(tmp_path) -> None:
     assert torch.equal(out["upper"], seen[0]) and out["upper"].dim() == 5
 
 
+def test_recorders_of_every_registered_kind_and_a_plugins(tmp_path) -> None:
+    """output, input and method (MMRazor's kinds) record what they say; a plugin's recorder plugs in by name."""
+    from distilkit.data.lidar import collate_lidar
+    from distilkit.engine.recorders import attach_recorders
+    from distilkit.engine.runs import build_model
+    from distilkit.recipe import HookTapSpec
+    from distilkit.registry import RECORDERS
+
+    pipe = pipeline(tmp_path, tiny_recipe(steps=1, distill=False))
+    stage = pipe.resolved.stages["teacher"]
+    torch.manual_seed(0)
+    model = build_model(stage.student, pipe.resolved.data_info).eval()
+    seen: dict[str, list] = {"in": [], "out": []}
+    model.net.completion.upper.register_forward_hook(lambda m, a, out: seen["in"].append(a[0]) or
+                                                     seen["out"].append(out))  # returns None: output unchanged
+    RECORDERS.add("doubled", lambda sub, spec, record: sub.register_forward_hook(lambda m, a, out: record(2 * out)),
+                  description="test")  # record() returns None: the hook leaves the output as it is
+    try:
+        attach_recorders(model, {name: HookTapSpec(module="net.completion.upper", kind="feature_map", **kw)
+                                 for name, kw in (("o", {}), ("i", {"at": "input"}),
+                                                  ("m", {"at": "method", "method": "forward"}),
+                                                  ("d", {"at": "doubled"}))})
+        with torch.no_grad():
+            out = model(collate_lidar([pipe.dataset("train")[0]]))
+    finally:
+        RECORDERS.remove("doubled")
+    assert torch.equal(out["o"], seen["out"][0]) and torch.equal(out["i"], seen["in"][0])
+    assert torch.equal(out["m"], seen["out"][0]) and torch.equal(out["d"], 2 * seen["out"][0])
+    r = tiny_recipe(steps=1, distill=False)
+    r["stages"]["teacher"]["model"]["taps"] = {"x": {"module": "net", "kind": "feature_map", "at": "outptu"},
+                                               "y": {"module": "net", "kind": "feature_map", "at": "method"}}
+    with pytest.raises(RecipeError) as err:
+        pipeline(tmp_path / "bad", r)
+    assert "stages.teacher.model.taps.x.at: unknown recorder 'outptu'; did you mean 'output'" in str(err.value)
+    assert "stages.teacher.model.taps.y.method: `at: method` needs the method's name" in str(err.value)
+
+
 def test_recipe_taps_name_a_wrong_module_or_kind(tmp_path) -> None:
     r = tiny_recipe(steps=1, distill=False)
     r["stages"]["teacher"]["model"]["taps"] = {"x": {"module": "net.completion.uper", "kind": "feature_map"}}

@@ -1,23 +1,60 @@
-"""Taps without adapter code: record any submodule's output (or input) by its dotted path.
+"""Taps without adapter code: record a submodule's output, its input, or the value one of its methods returns, by
+its dotted path — MMRazor's recorder kinds, from the ``RECORDERS`` registry (plugins add their own).
 
-A recipe declares ``model: {..., taps: {mid: {module: net.completion.blocks.1, kind: volume_features}}}``;
-a forward hook on that submodule records its value on every forward pass, and the adapter's output
-dict gains the tap ``mid`` (as OpenMMLab MMRazor's recorders do). The recorded tap is checked against its
-declared kind on the first batch like every other tap.
+A recipe declares ``model: {..., taps: {mid: {module: net.completion.blocks.1, kind: volume_features}}}`` (``at:
+output`` by default; ``at: input``; ``at: method, method: encode``); the recorded value joins the adapter's output
+dict as the tap ``mid`` on every forward pass and is checked against its declared kind on the first batch like
+every other tap. A registered recorder is ``install(submodule, spec, record) -> None``: it arranges for
+``record(value)`` to be called whenever the submodule produces the value it records.
 """
 
 from __future__ import annotations
 
 import difflib
-from typing import Any
+import functools
+from typing import Any, Callable
 
 from torch import nn
 
 from distilkit.errors import TapError
+from distilkit.registry import RECORDERS
+
+Record = Callable[[Any], None]
+
+
+def _output(sub: nn.Module, spec: Any, record: Record) -> None:
+    sub.register_forward_hook(lambda _m, _args, output: record(output))
+
+
+def _input(sub: nn.Module, spec: Any, record: Record) -> None:
+    sub.register_forward_hook(lambda _m, args, _output: record(args[0] if args else None))
+
+
+def _method(sub: nn.Module, spec: Any, record: Record) -> None:
+    name = getattr(spec, "method", None)
+    original = getattr(sub, name, None) if name else None
+    if not callable(original):
+        raise TapError(f"recorder 'method' needs `method:` naming a method of {type(sub).__name__} (got {name!r})")
+
+    @functools.wraps(original)
+    def wrapped(*args: Any, **kwargs: Any) -> Any:
+        value = original(*args, **kwargs)
+        record(value)
+        return value
+
+    setattr(sub, name, wrapped)  # an instance attribute: this model only
+
+
+RECORDERS.add("output", _output, description="the submodule's output (a forward hook)", paper="MMRazor's ModuleOutputs")
+RECORDERS.add("input", _input, description="the submodule's first input (a forward hook)",
+              paper="MMRazor's ModuleInputs")
+RECORDERS.add("method", _method, description="the return value of a method of the submodule (`method:`)",
+              paper="MMRazor's MethodOutputs")
 
 
 def attach_recorders(model: nn.Module, hooks: dict[str, Any], role: str = "model") -> None:
-    """Record each ``hooks[name]`` (a spec with ``module``, ``kind``, ``at``) into the model's outputs."""
+    """Record each ``hooks[name]`` (a spec with ``module``, ``kind``, ``at`` and ``method``) into the model's
+    outputs."""
     if not hooks:
         return
     modules = dict(model.named_modules())
@@ -28,11 +65,7 @@ def attach_recorders(model: nn.Module, hooks: dict[str, Any], role: str = "model
             close = difflib.get_close_matches(spec.module, [m for m in modules if m], n=3, cutoff=0.5)
             hint = f"; did you mean {' or '.join(map(repr, close))}?" if close else ""
             raise TapError(f"{role} tap {name!r}: {type(model).__name__} has no submodule {spec.module!r}{hint}")
-
-        def record(_mod: nn.Module, args: tuple[Any, ...], output: Any, name: str = name, at: str = spec.at) -> None:
-            recorded[name] = (args[0] if args else None) if at == "input" else output
-
-        sub.register_forward_hook(record)
+        RECORDERS.get(spec.at)(sub, spec, lambda value, name=name: recorded.__setitem__(name, value))
 
     def merge(_mod: nn.Module, _args: tuple[Any, ...], outputs: dict[str, Any]) -> dict[str, Any]:
         out = {**outputs, **recorded}

@@ -11,7 +11,7 @@ from pydantic import BaseModel, ValidationError
 from distilkit.errors import RecipeError, UnknownNameError
 from distilkit.recipe import LossSpec, ModelSpec, ParamGroupSpec, Recipe, pydantic_problems, stage_order
 from distilkit.registry import (ADAPTERS, CONNECTORS, DATASETS, HOOKS, METRICS, OBJECTIVES, OPTIMIZERS,
-                                SCHEDULES, TASK_LOSSES, Registry)
+                                RECORDERS, SCHEDULES, TASK_LOSSES, Registry)
 from distilkit.taps import TAP_KINDS, kind_fits
 
 
@@ -129,6 +129,9 @@ def _model(spec: ModelSpec, path: str, problems: list[tuple[str, str]]) -> Resol
         if hook.kind not in TAP_KINDS:
             problems.append((f"{path}.taps.{name}.kind", f"unknown tap kind {hook.kind!r} (registered: "
                                                          f"{', '.join(TAP_KINDS)})"))
+        recorder = _lookup(RECORDERS, hook.at, f"{path}.taps.{name}.at", problems)
+        if recorder is not None and recorder.name == "method" and not hook.method:
+            problems.append((f"{path}.taps.{name}.method", "`at: method` needs the method's name"))
     return None if params is None else ResolvedModel(entry.name, entry.obj, params, dict(spec.taps))
 
 
