@@ -27,7 +27,7 @@ from torch import nn
 
 from distilkit.data.batch import Batch
 from distilkit.data.info import Camera, DataInfo
-from distilkit.geometry.voxel import VoxelGrid
+from distilkit.structures import VoxelGrid
 
 
 class NoParams(BaseModel):

@@ -25,84 +25,12 @@ a kind with :func:`register_tap_kind`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
 
-if TYPE_CHECKING:
-    from distilkit.geometry.voxel import VoxelGrid
-
-
-@dataclass
-class SparseVoxels:
-    """Sparse voxel features: ``coords`` (N,4) int64 rows (batch, x, y, z), ``feats`` (N,C).
-
-    ``spatial_shape`` is the (X, Y, Z) grid the coordinates index into; ``grid``, where the model knows
-    it, is that grid's geometry (origin, voxel size), which cross-grid alignment then checks.
-    """
-
-    coords: Tensor
-    feats: Tensor
-    spatial_shape: tuple[int, int, int]
-    grid: "VoxelGrid | None" = None
-
-    def __post_init__(self) -> None:
-        if self.coords.dim() != 2 or self.coords.shape[1] != 4:
-            raise ValueError(f"SparseVoxels.coords must be (N, 4) (batch, x, y, z), got {tuple(self.coords.shape)}")
-        if self.feats.dim() != 2 or self.feats.shape[0] != self.coords.shape[0]:
-            raise ValueError(
-                f"SparseVoxels.feats must be (N, C) with N = {self.coords.shape[0]}, got {tuple(self.feats.shape)}"
-            )
-        if self.grid is not None and tuple(self.grid.shape) != tuple(self.spatial_shape):
-            raise ValueError(f"SparseVoxels.grid has shape {tuple(self.grid.shape)} but spatial_shape is "
-                             f"{tuple(self.spatial_shape)}")
-
-    def select_batch(self, b: int) -> "SparseVoxels":
-        keep = self.coords[:, 0] == b
-        return SparseVoxels(self.coords[keep], self.feats[keep], self.spatial_shape, self.grid)
-
-    def with_feats(self, feats: Tensor) -> "SparseVoxels":
-        """The same voxels with other features (N, C')."""
-        return SparseVoxels(self.coords, feats, self.spatial_shape, self.grid)
-
-    def detach(self) -> "SparseVoxels":
-        return self.with_feats(self.feats.detach())
-
-
-@dataclass
-class PointCloud:
-    """A batch of point clouds of different sizes: ``points`` (B, M, D) padded, ``lengths`` (B,) int64
-    (cloud b is ``points[b, :lengths[b]]``; D = 3 for xyz, more for features)."""
-
-    points: Tensor
-    lengths: Tensor
-
-    def __post_init__(self) -> None:
-        if self.points.dim() != 3:
-            raise ValueError(f"PointCloud.points must be (B, M, D), got {tuple(self.points.shape)}")
-        if self.lengths.shape != self.points.shape[:1] or self.lengths.dtype != torch.int64:
-            raise ValueError(f"PointCloud.lengths must be ({self.points.shape[0]},) int64, got "
-                             f"{tuple(self.lengths.shape)} {self.lengths.dtype}")
-        if len(self.lengths) and (int(self.lengths.min()) < 0 or int(self.lengths.max()) > self.points.shape[1]):
-            raise ValueError(f"PointCloud.lengths must lie in 0..{self.points.shape[1]}, got {self.lengths.tolist()}")
-
-    def cloud(self, b: int) -> Tensor:
-        """(lengths[b], D) points of cloud ``b``."""
-        return self.points[b, : int(self.lengths[b])]
-
-    @classmethod
-    def from_list(cls, clouds: list[Tensor]) -> "PointCloud":
-        """Pad a list of (M_b, D) clouds."""
-        m = max((len(c) for c in clouds), default=0)
-        d = clouds[0].shape[1] if clouds else 3
-        points = clouds[0].new_zeros((len(clouds), m, d)) if clouds else torch.zeros(0, 0, 3)
-        for b, c in enumerate(clouds):
-            points[b, : len(c)] = c
-        return cls(points, torch.tensor([len(c) for c in clouds], dtype=torch.int64, device=points.device))
-
-    def detach(self) -> "PointCloud":
-        return PointCloud(self.points.detach(), self.lengths)
+from distilkit.structures import PointCloud, SparseVoxels  # noqa: F401  (the values of two kinds; re-exported)
 
 
 @dataclass(frozen=True)

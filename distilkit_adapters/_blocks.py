@@ -9,7 +9,7 @@ from torch import Tensor, nn
 from distilkit.adapter import Adapter
 from distilkit.data.info import DataInfo
 from distilkit.data.lidar import LIDAR_INPUTS, frames_problems
-from distilkit.geometry.voxel import VoxelGrid
+from distilkit.structures import VoxelGrid
 
 
 class MultiFrameLidarAdapter(Adapter):

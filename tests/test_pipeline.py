@@ -228,7 +228,8 @@ def test_scores_are_reported_on_the_test_split_at_best_and_last(tmp_path) -> Non
 
 def test_cuda_rng_state_round_trips_through_a_checkpoint(tmp_path, monkeypatch) -> None:
     """No GPU here: the CUDA generator functions are replaced by fakes holding two devices' states."""
-    from distilkit.engine.io import atomic_torch_save, rng_state, set_rng_state
+    from distilkit.engine.io import rng_state, set_rng_state
+    from distilkit.files import atomic_torch_save
 
     states = [torch.arange(8, dtype=torch.uint8), torch.arange(8, 16, dtype=torch.uint8)]
     restored: list[list[torch.Tensor]] = []

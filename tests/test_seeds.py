@@ -12,7 +12,7 @@ import yaml
 from conftest import tiny_recipe
 from distilkit.cli import main
 from distilkit.engine.resolve import resolve
-from distilkit.engine.seeds import default_baseline, seed_rows
+from distilkit.report.seeds import default_baseline, seed_rows
 from distilkit.recipe import recipe_from_dict
 
 
@@ -47,7 +47,7 @@ def test_mean_std_and_paired_differences_match_numpy() -> None:
 
 
 def test_t_interval_against_tabulated_quantiles() -> None:
-    from distilkit.engine.seeds import t_interval
+    from distilkit.report.seeds import t_interval
 
     for n, t in ((2, 12.706205), (5, 2.776445), (30, 2.045230)):  # t(0.975, n - 1) from a printed table
         xs = list(np.linspace(-1.0, 2.0, n) ** 2)
@@ -98,7 +98,7 @@ def test_seed_tables_follow_the_stage_metric_not_ssc(tmp_path: Path) -> None:
     """A stage scored by a metric that is not installed now (a plugin's): its own keys, unscaled."""
     from rich.console import Console
 
-    from distilkit.engine.seeds import write_seeds_report
+    from distilkit.report.seeds import write_seeds_report
 
     def point(stage: str, chamfer: float) -> SimpleNamespace:
         summary = {"stage": stage, "label": stage, "adapter": "points", "objectives": [],
@@ -122,7 +122,7 @@ def test_weights_are_chosen_on_validation_never_on_test(tmp_path: Path) -> None:
     what the seeds can resolve and draws the paired differences with their intervals."""
     from rich.console import Console
 
-    from distilkit.engine.seeds import write_seeds_report
+    from distilkit.report.seeds import write_seeds_report
 
     rows_in = {  # stage: (test mIoU per seed, val mIoU per seed, objectives)
         "none": ([0.30, 0.32, 0.31], [0.29, 0.30, 0.30], ()),
@@ -146,7 +146,7 @@ def test_weights_are_chosen_on_validation_never_on_test(tmp_path: Path) -> None:
 
 
 def test_detectable_effect_is_the_normal_theory_approximation() -> None:
-    from distilkit.engine.seeds import detectable_effect
+    from distilkit.report.seeds import detectable_effect
 
     # t(0.975, 7) = 2.364624 and t(0.80, 7) = 0.896030 (a printed t table: 2.365 and 0.896)
     assert detectable_effect(1.5, 8) == pytest.approx((2.364624 + 0.896030) * 1.5 / np.sqrt(8), rel=1e-5)

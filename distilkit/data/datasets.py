@@ -20,7 +20,7 @@ from distilkit.data.probe import cloud_plan, grid_plan
 from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.data import semantickitti as skio
 from distilkit.errors import DataError
-from distilkit.geometry.voxel import VoxelGrid
+from distilkit.structures import VoxelGrid
 from distilkit.registry import DATASETS
 
 

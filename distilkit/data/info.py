@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from typing import Mapping
 
 from distilkit.data.classes import CLASS_COLOURS, CLASS_NAMES, IGNORE_INDEX, LEARNING_MAP
-from distilkit.geometry.voxel import VoxelGrid
+from distilkit.structures import VoxelGrid
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ from distilkit.data.cache import cached_samples
 from distilkit.data.classes import IGNORE_INDEX, RAW_IDS, SCRIBBLE_UNLABELLED, remap, seg_lut, ssc_lut
 from distilkit.data.raycast import Primitives, cast, ray_directions
 from distilkit.data.params import SyntheticParams
-from distilkit.geometry.voxel import VoxelGrid
+from distilkit.structures import VoxelGrid
 
 GENERATOR_VERSION = 2  # 2: ego-safe traffic, all 19 classes, scribbles, test split
 SENSOR_HEIGHT = 1.73

@@ -8,7 +8,8 @@ import os
 from pathlib import Path
 from typing import Any, Callable
 
-from distilkit.engine.io import atomic_torch_save, load_checkpoint
+from distilkit.engine.io import load_checkpoint
+from distilkit.files import atomic_torch_save
 from distilkit.errors import DataError
 
 

@@ -15,7 +15,7 @@ from typing import Any
 
 from distilkit.engine.identity import stage_hashes
 from distilkit.engine.resolve import ResolvedRecipe, resolve
-from distilkit.engine.stage import StageResult, StageRun, read_summary
+from distilkit.engine.stage import StageResult, StageRun
 from distilkit.errors import RecipeError
 from distilkit.recipe import Recipe, load_recipe, needed_stages
 from distilkit.registry import DATASETS

@@ -57,7 +57,7 @@ def publish(model: Any, batches: Any, folder: Path, kind: str, prepare: Callable
             os.replace(tmp, folder / _file(sample_id))
             ids.append(sample_id)
     model.train(was)
-    from distilkit.engine.io import atomic_write_json
+    from distilkit.files import atomic_write_json
 
     atomic_write_json(folder / "index.json", {"ids": ids, "tap": model.PREDICTION_TAP, "kind": kind})
     return len(ids)

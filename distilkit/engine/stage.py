@@ -28,7 +28,8 @@ import yaml
 from distilkit import __version__
 from distilkit.engine.checkpoints import Checkpoints
 from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop, ProgressHook
-from distilkit.engine.io import atomic_write_json, atomic_write_text, seed_everything
+from distilkit.engine.io import seed_everything
+from distilkit.files import atomic_write_json, atomic_write_text
 from distilkit.engine.loader import BatchPlan, eval_batches, resolve_workers, train_batches
 from distilkit.engine.runs import checkpoint_path, load_run
 

@@ -2,47 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor
 
-from distilkit.taps import SparseVoxels
-
-
-@dataclass(frozen=True)
-class VoxelGrid:
-    """An axis-aligned grid: x forward, y left, z up; ``origin`` is the min corner of voxel (0,0,0).
-
-    SemanticKITTI SSC: origin (0, -25.6, -2), 256 x 256 x 32 voxels of 0.2 m. ``scale`` s gives
-    the same volume with s-times coarser voxels (s = 4: 64 x 64 x 8 at 0.8 m).
-    """
-
-    origin: tuple[float, float, float] = (0.0, -25.6, -2.0)
-    shape: tuple[int, int, int] = (256, 256, 32)
-    voxel_size: float = 0.2
-
-    @classmethod
-    def semantickitti(cls, scale: int = 1) -> "VoxelGrid":
-        if scale < 1 or 256 % scale or 32 % scale:
-            raise ValueError(f"grid scale must divide 256 and 32 (1, 2, 4, 8, 16, 32), got {scale}")
-        return cls((0.0, -25.6, -2.0), (256 // scale, 256 // scale, 32 // scale), 0.2 * scale)
-
-    def index(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
-        """Voxel indices (M,3) int64 of points (M,3) and a bool mask of points inside the grid."""
-        origin = torch.tensor(self.origin, dtype=xyz.dtype, device=xyz.device)
-        idx = torch.floor((xyz - origin) / self.voxel_size).long()
-        shape = torch.tensor(self.shape, device=xyz.device)
-        inside = ((idx >= 0) & (idx < shape)).all(dim=1)
-        return idx, inside
-
-    def centers(self, idx: Tensor) -> Tensor:
-        """Voxel centres (M,3) of integer indices (M,3)."""
-        origin = torch.tensor(self.origin, dtype=torch.float32, device=idx.device)
-        return origin + (idx.float() + 0.5) * self.voxel_size
-
-    def coarsen(self, factor: int) -> "VoxelGrid":
-        return VoxelGrid(self.origin, tuple(s // factor for s in self.shape), self.voxel_size * factor)  # type: ignore[arg-type]
+from distilkit.structures import SparseVoxels, VoxelGrid  # noqa: F401  (VoxelGrid re-exported)
 
 
 def voxel_hash(coords: Tensor, spatial_shape: tuple[int, int, int]) -> Tensor:

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from distilkit.geometry.nearest import knn_excluding_self, nearest
-from distilkit.taps import PointCloud
+from distilkit.structures import PointCloud
 
 
 def _points(x: Tensor, what: str) -> None:

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from distilkit.data.classes import IGNORE_INDEX
 from distilkit.geometry.voxel import align_across_grids
-from distilkit.taps import SparseVoxels
+from distilkit.structures import SparseVoxels
 
 MaskName = Literal["all", "valid", "occupied"]
 

@@ -19,7 +19,7 @@ from torch import Tensor, nn
 from distilkit.errors import TapError
 from distilkit.objectives.common import conv1x1
 from distilkit.registry import CONNECTORS
-from distilkit.taps import SparseVoxels
+from distilkit.structures import SparseVoxels
 
 
 def _channels(value: Any) -> tuple[int, int]:

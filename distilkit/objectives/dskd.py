@@ -10,7 +10,7 @@ from distilkit.data.batch import Batch
 from distilkit.objectives.common import aligned_pairs
 from distilkit.losses.dskd import dskd
 from distilkit.objectives.base import Objective, register_objective
-from distilkit.taps import SparseVoxels
+from distilkit.structures import SparseVoxels
 
 
 class DSKDParams(BaseModel):

@@ -13,7 +13,7 @@ from distilkit.losses.feature import pkt
 from distilkit.losses.pvkd import pvkd, supervoxel_ids
 from distilkit.objectives.base import MultiTapObjective, Objective, register_objective
 from distilkit.objectives.common import MaskName, aligned_pairs, voxel_mask
-from distilkit.taps import SparseVoxels
+from distilkit.structures import SparseVoxels
 
 
 class PKTParams(BaseModel):

@@ -12,7 +12,7 @@ from torch import Tensor
 from distilkit.data.batch import Batch
 from distilkit.losses.structural import point_wise, scene_wise, select_keypoints
 from distilkit.objectives.base import MultiTapObjective, register_objective
-from distilkit.taps import PointCloud
+from distilkit.structures import PointCloud
 
 
 class StructuralParams(BaseModel):

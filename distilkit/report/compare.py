@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from distilkit.engine.io import atomic_write_text
-from distilkit.engine.scores import ScoreView, stage_row
+from distilkit.files import atomic_write_text
+from distilkit.report.scores import ScoreView, stage_row
 from distilkit.errors import DistilkitError
 from distilkit.report import plots
 from distilkit.report.run import class_table, read_run

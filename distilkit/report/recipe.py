@@ -6,8 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from distilkit.engine.io import atomic_write_text
-from distilkit.engine.scores import ScoreView, header, stage_row
+from distilkit.files import atomic_write_text
+from distilkit.report.scores import ScoreView, header, stage_row
 
 
 def _groups(rows: list[dict[str, Any]]) -> list[tuple[ScoreView, list[int]]]:

@@ -14,8 +14,8 @@ from typing import Any
 
 import yaml
 
-from distilkit.engine.io import atomic_write_text
-from distilkit.engine.scores import ScoreView, stage_row
+from distilkit.files import atomic_write_text
+from distilkit.report.scores import ScoreView, stage_row
 from distilkit.errors import DistilkitError
 from distilkit.report import plots
 

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from distilkit.engine.io import atomic_write_text
-from distilkit.engine.scores import stage_row
-from distilkit.engine.seeds import seed_rows, write_seeds_report
+from distilkit.files import atomic_write_text
+from distilkit.report.scores import stage_row
+from distilkit.report.seeds import seed_rows, write_seeds_report
 
 
 @dataclass
@@ -27,7 +27,7 @@ class RunRecord:
 
 
 def sweep_rows(records: list[RunRecord], baseline: str | None, order: list[str]) -> list[dict[str, Any]]:
-    """Rows of :func:`~distilkit.engine.seeds.seed_rows` in ``order`` (variants first, then upstream stages)."""
+    """Rows of :func:`~distilkit.report.seeds.seed_rows` in ``order`` (variants first, then upstream stages)."""
     by_seed: dict[int, list[RunRecord]] = {}
     for r in records:
         by_seed.setdefault(r.seed, []).append(r)

@@ -21,8 +21,9 @@ from typing import Any
 import yaml
 
 from distilkit.engine.cpus import usable_cpus
-from distilkit.engine.io import atomic_write_text
-from distilkit.engine.pipeline import Pipeline, read_summary
+from distilkit.files import atomic_write_text
+from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.stage import read_summary
 from distilkit.errors import DistilkitError, RecipeError
 from distilkit.sweep.results import RunRecord, write_results
 from distilkit.sweep.spec import Sweep, load_sweep

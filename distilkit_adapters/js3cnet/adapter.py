@@ -10,9 +10,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.data.lidar import select_frames
-from distilkit.geometry.voxel import VoxelGrid
+from distilkit.structures import VoxelGrid
 from distilkit.registry import ADAPTERS
-from distilkit.taps import SparseVoxels
+from distilkit.structures import SparseVoxels
 from distilkit_adapters._blocks import MultiFrameLidarAdapter, channels_last
 from distilkit_adapters.js3cnet.model import JS3CNet
 

@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from distilkit.geometry.knn import knn
-from distilkit.geometry.voxel import VoxelGrid
+from distilkit.structures import VoxelGrid
 from distilkit_adapters._blocks import DenseUNet3d, conv_bn, point_features, point_voxel_index
 
 

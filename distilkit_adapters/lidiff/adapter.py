@@ -13,7 +13,7 @@ from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.registry import ADAPTERS
-from distilkit.taps import PointCloud
+from distilkit.structures import PointCloud
 from distilkit_adapters.lidiff.model import PointDenoiser, lidiff_alphas_cumprod
 
 

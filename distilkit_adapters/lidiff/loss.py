@@ -11,7 +11,7 @@ from torch import Tensor
 from distilkit.data.batch import Batch
 from distilkit.losses.task import TaskLoss
 from distilkit.registry import TASK_LOSSES
-from distilkit.taps import PointCloud
+from distilkit.structures import PointCloud
 
 
 class _Params(BaseModel):
