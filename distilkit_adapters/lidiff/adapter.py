@@ -106,6 +106,23 @@ class LiDiffAdapter(Adapter):
             x = self.denoise_step(x, t, ts[i + 1] if i + 1 < len(ts) else None, condition, w)
         return x
 
+    # -- completing a user's scan (``distilkit complete``) ----------------------------------------
+    def complete_scan(self, points: Any, *, scan_points: int | None = None, steps: int | None = None,
+                      guidance: float | None = None, seed: int = 0) -> tuple[Any, int, int]:
+        """A completed scene from a raw scan ((N, 3) numpy), prepared and post-processed as LiDiff does
+        (:mod:`distilkit_adapters.lidiff.complete`); also the scan points it was sampled to and the sampler steps."""
+        from distilkit_adapters.lidiff.complete import DEFAULT_SCAN_POINTS, postprocess, prepare_scan
+
+        count = scan_points or DEFAULT_SCAN_POINTS
+        prepared = prepare_scan(points, count, seed)
+        device = next(self.parameters()).device
+        n_steps = steps or int(self.params.sample_steps)
+        with torch.no_grad():
+            cond = torch.from_numpy(prepared)[None].to(device)
+            scene = self.sample(cond, steps=n_steps, guidance=guidance,
+                                generator=torch.Generator(device=device).manual_seed(seed))
+        return postprocess(scene[0].cpu().numpy(), prepared), count, n_steps
+
     # -- forward -----------------------------------------------------------------------------------
     def forward(self, batch: Batch) -> dict[str, Any]:
         scan = batch.inputs["scan"]
