@@ -102,10 +102,15 @@ def clean_run(tmp_path_factory: pytest.TempPathFactory):
 
 
 @pytest.mark.parametrize("moment", ["first checkpoint", pytest.param("best checkpoint", marks=pytest.mark.slow),
-                                    pytest.param("sixth log line", marks=pytest.mark.slow), "evaluation"])
+                                    pytest.param("sixth log line", marks=pytest.mark.slow), "evaluation",
+                                    "mid-epoch, 2 loader workers"])
 def test_a_run_killed_at_any_moment_resumes_to_the_same_final_metrics(tmp_path, moment: str, clean_run) -> None:
-    """Two kill moments by default, all four in the slow run."""
+    """Three kill moments by default, all five in the slow run. Epochs are 2 steps long: a kill after the third
+    step is in the middle of the second epoch (with 2 loader processes reading ahead; workers are not part of the
+    stage's identity, so the clean run is the same stage)."""
     recipe = _kill_recipe()
+    if moment.startswith("mid-epoch"):
+        recipe["stages"]["teacher"]["train"]["workers"] = 2
     path = tmp_path / "r.yaml"
     path.write_text(yaml.safe_dump(recipe))
     clean = clean_run
@@ -115,7 +120,9 @@ def test_a_run_killed_at_any_moment_resumes_to_the_same_final_metrics(tmp_path, 
              "best checkpoint": lambda: (run_dir / "checkpoints" / "best.pt").is_file(),
              "sixth log line": lambda: (run_dir / "metrics.jsonl").is_file()
              and (run_dir / "metrics.jsonl").read_text().count("\n") >= 6,
-             "evaluation": lambda: any(run_dir.glob("**/.*"))}[moment]  # a temporary file: a write under way
+             "evaluation": lambda: any(run_dir.glob("**/.*")),  # a temporary file: a write under way
+             "mid-epoch, 2 loader workers": lambda: (run_dir / "metrics.jsonl").is_file()
+             and '"step": 3' in (run_dir / "metrics.jsonl").read_text()}[moment]
     _kill_when([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "runs"), "-q"], ready)
     if moment != "evaluation":  # killed mid-run (the last moment may race with the end of the run)
         assert not (run_dir / "summary.json").is_file()
