@@ -108,10 +108,9 @@ class Recorder:
 
 
 def test_a_registered_hook_sees_the_whole_lifecycle_and_leaves_the_identity_alone(tmp_path) -> None:
-    from distilkit.engine.hooks import NoParams
     from distilkit.registry import HOOKS
 
-    HOOKS.add("recorder", Recorder, description="test", params=NoParams)
+    HOOKS.add("recorder", Recorder, description="test")  # no parameters declared: it takes none
     try:
         recipe = tiny_recipe(steps=4, distill=False)
         recipe["stages"]["teacher"]["train"]["eval_every"] = 2
