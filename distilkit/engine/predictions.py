@@ -42,7 +42,7 @@ def publishable(kind: str | None) -> bool:
 @torch.no_grad()
 def publish(model: Any, batches: Any, folder: Path, kind: str, prepare: Callable[[Any], Any] = lambda b: b) -> int:
     """Write ``model``'s prediction of every sample of ``batches`` into ``folder``; the number written."""
-    import os
+    from distilkit.files import atomic_write, atomic_write_json
 
     folder.mkdir(parents=True, exist_ok=True)
     was = model.training
@@ -52,13 +52,10 @@ def publish(model: Any, batches: Any, folder: Path, kind: str, prepare: Callable
         batch = prepare(batch)
         out = model(batch)[model.PREDICTION_TAP]
         for b, sample_id in enumerate(batch.meta["sample_id"]):
-            tmp = folder / f".{_file(sample_id)}.tmp.npy"
-            np.save(tmp, per_sample(out, kind, b), allow_pickle=False)
-            os.replace(tmp, folder / _file(sample_id))
+            value = per_sample(out, kind, b)
+            atomic_write(folder / _file(sample_id), lambda f, value=value: np.save(f, value, allow_pickle=False))
             ids.append(sample_id)
     model.train(was)
-    from distilkit.files import atomic_write_json
-
     atomic_write_json(folder / "index.json", {"ids": ids, "tap": model.PREDICTION_TAP, "kind": kind})
     return len(ids)
 
