@@ -14,7 +14,7 @@ import yaml
 
 from conftest import tiny_recipe
 from distilkit.cli import main
-from distilkit.engine.io import load_checkpoint
+from distilkit.engine.checkpoints import load_checkpoint
 from distilkit.engine.lock import lock_path, stage_lock
 from distilkit.engine.pipeline import Pipeline
 from distilkit.errors import RunLockedError

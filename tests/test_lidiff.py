@@ -92,7 +92,7 @@ def test_a_lidiff_teacher_trains_and_is_scored_by_the_completion_metric(tmp_path
 
 def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -> None:
     """Teacher pre-training, then a 1-step student initialised from it: VSD (LoRA aux, own SGD) + structural."""
-    from distilkit.engine.io import load_checkpoint
+    from distilkit.engine.checkpoints import load_checkpoint
 
     train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd"}
     recipe = {"schema_version": 1, "name": "scorelidar", "seed": 0,

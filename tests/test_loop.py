@@ -11,7 +11,7 @@ import torch
 
 from conftest import tiny_recipe
 from distilkit.engine.distributed import World
-from distilkit.engine.io import load_checkpoint
+from distilkit.engine.checkpoints import load_checkpoint
 from distilkit.engine.loader import BatchPlan, eval_indices, train_batches
 from distilkit.engine.pipeline import Pipeline
 from distilkit.errors import RecipeError

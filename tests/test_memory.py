@@ -11,7 +11,7 @@ import yaml
 from conftest import tiny_recipe
 from distilkit.cli import main
 from distilkit.engine import memory
-from distilkit.engine.io import load_checkpoint
+from distilkit.engine.checkpoints import load_checkpoint
 from distilkit.engine.pipeline import Pipeline
 from distilkit.engine.resolve import resolve
 from distilkit.recipe import recipe_from_dict

@@ -14,7 +14,7 @@ from torch import Tensor, nn
 
 from conftest import tiny_recipe
 from distilkit.data.batch import Batch
-from distilkit.engine.io import load_checkpoint
+from distilkit.engine.checkpoints import load_checkpoint
 from distilkit.engine.pipeline import Pipeline
 from distilkit.errors import RecipeError
 from distilkit.objectives.base import MultiTapObjective, register_objective

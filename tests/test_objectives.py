@@ -9,7 +9,7 @@ import distilkit.losses as L
 
 from conftest import tiny_recipe
 from distilkit.data.batch import Batch
-from distilkit.engine.io import load_checkpoint
+from distilkit.engine.checkpoints import load_checkpoint
 from distilkit.engine.pipeline import Pipeline
 from distilkit.errors import RecipeError
 from distilkit.recipe import recipe_from_dict

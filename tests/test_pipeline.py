@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from conftest import make_trainer, tiny_recipe
-from distilkit.engine.io import load_checkpoint
+from distilkit.engine.checkpoints import load_checkpoint
 from distilkit.engine.pipeline import Pipeline
 from distilkit.engine.runs import load_run
 from distilkit.engine.trainer import Trainer
@@ -228,7 +228,7 @@ def test_scores_are_reported_on_the_test_split_at_best_and_last(tmp_path) -> Non
 
 def test_cuda_rng_state_round_trips_through_a_checkpoint(tmp_path, monkeypatch) -> None:
     """No GPU here: the CUDA generator functions are replaced by fakes holding two devices' states."""
-    from distilkit.engine.io import rng_state, set_rng_state
+    from distilkit.engine.randomness import rng_state, set_rng_state
     from distilkit.files import atomic_torch_save
 
     states = [torch.arange(8, dtype=torch.uint8), torch.arange(8, 16, dtype=torch.uint8)]

@@ -103,7 +103,7 @@ def test_a_plugin_registers_a_connector_and_a_schedule_and_a_recipe_uses_both(tm
     import torch
 
     from conftest import tiny_recipe
-    from distilkit.engine.io import load_checkpoint
+    from distilkit.engine.checkpoints import load_checkpoint
 
     site = tmp_path / "site"
     site.mkdir()

@@ -14,7 +14,7 @@ from typing import Any
 import torch
 
 from distilkit.adapter import Adapter
-from distilkit.engine.io import load_checkpoint, load_weights
+from distilkit.engine.checkpoints import load_checkpoint, load_weights
 from distilkit.errors import DataError
 
 

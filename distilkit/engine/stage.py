@@ -28,7 +28,7 @@ import yaml
 from distilkit import __version__
 from distilkit.engine.checkpoints import Checkpoints
 from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop, ProgressHook
-from distilkit.engine.io import seed_everything
+from distilkit.engine.randomness import seed_everything
 from distilkit.files import atomic_write_json, atomic_write_text
 from distilkit.engine.loader import BatchPlan, eval_batches, resolve_workers, train_batches
 from distilkit.engine.runs import checkpoint_path, load_run
@@ -198,7 +198,7 @@ class StageRun:
     # -- loop --------------------------------------------------------------------------------
     def loop(self, on_step: Any) -> Loop:
         """Train from the start or from ``last.pt`` to the last step (or ``stop_after``)."""
-        from distilkit.engine.io import set_rng_state
+        from distilkit.engine.randomness import set_rng_state
 
         trainer = self.trainer
         assert trainer is not None
@@ -264,7 +264,7 @@ class StageRun:
 
     def save(self, which: str, loop: Loop) -> None:
         """``last.pt`` (everything to resume from) or ``best.pt`` (the student and the scores that chose it)."""
-        from distilkit.engine.io import rng_state
+        from distilkit.engine.randomness import rng_state
 
         assert self.trainer is not None
         if which == "last":

@@ -20,7 +20,7 @@ from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.engine.distributed import SINGLE, World, sync_batchnorm
-from distilkit.engine.io import load_weights
+from distilkit.engine.checkpoints import load_weights
 from distilkit.engine.loader import BatchPlan, Collate
 from distilkit.engine.resolve import ResolvedStage, ResolvedTerm
 from distilkit.engine.runs import build_model
