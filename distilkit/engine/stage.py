@@ -161,15 +161,20 @@ class StageRun:
                 added.update({field: out[tap] for tap, field in aux.inputs.items()})
         return batch.with_inputs(**added)
 
+    def load_aux(self) -> None:
+        """The frozen auxiliary models (``aux``), each from its stage's checkpoint (once)."""
+        if len(self.aux) != len(self.stage.aux):
+            self.aux = [(aux, load_run(checkpoint_path(self.pipeline.run_dir(aux.stage), aux.which), model=aux.model,
+                                       info=self.info, device=self.device, role=f"aux model {aux.name!r}"))
+                        for aux in self.stage.aux]
+
     def build(self) -> "Trainer":
         """The stage's seed, then the frozen teacher and auxiliary models (drawing nothing from the seeded stream),
         the initial weights and the trainer on this process's batches."""
         from distilkit.engine.trainer import Trainer
 
         seed_everything(self.seed)
-        self.aux = [(aux, load_run(checkpoint_path(self.pipeline.run_dir(aux.stage), aux.which), model=aux.model,
-                                   info=self.info, device=self.device, role=f"aux model {aux.name!r}"))
-                    for aux in self.stage.aux]
+        self.load_aux()
         teacher = None
         if self.stage.teacher is not None and self.stage.distill:
             teacher = load_run(self.upstream("teacher"), model=self.stage.teacher, info=self.info,
@@ -344,10 +349,7 @@ class StageRun:
             self.world.barrier()
             return []
         if model is None:
-            if not self.aux and self.stage.aux:  # a reused stage: its auxiliary models too
-                self.aux = [(aux, load_run(checkpoint_path(self.pipeline.run_dir(aux.stage), aux.which),
-                                           model=aux.model, info=self.info, device=self.device))
-                            for aux in self.stage.aux]
+            self.load_aux()  # a reused stage predicts with its auxiliary models too
             model = load_run(self.run_dir, "any", model=self.stage.student, info=self.info, device=self.device)
         kind = self.stage.student.taps[self.stage.student.cls.PREDICTION_TAP]
         for split in wanted:
