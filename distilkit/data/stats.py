@@ -27,8 +27,9 @@ def label_counts(dataset: Any, num_classes: int) -> tuple[Tensor, Tensor]:
         inv = np.asarray(s["invalid"]).ravel().astype(bool)
         keep = ~inv & (vl != IGNORE_INDEX)
         voxel += np.bincount(vl[keep].astype(np.int64), minlength=num_classes)[:num_classes]
-        pl = np.asarray(s["point_label"]).astype(np.int64)
-        point += np.bincount(pl[pl < num_classes], minlength=num_classes)[:num_classes]
+        if "point_label" in s:  # camera data has no points
+            pl = np.asarray(s["point_label"]).astype(np.int64)
+            point += np.bincount(pl[pl < num_classes], minlength=num_classes)[:num_classes]
     out = (torch.from_numpy(voxel), torch.from_numpy(point))
     try:
         dataset._distilkit_label_counts = out

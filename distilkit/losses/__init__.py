@@ -16,9 +16,10 @@ from distilkit.losses.mgd import mgd
 from distilkit.losses.pvkd import pvkd, pvkd_affinity, supervoxel_ids
 from distilkit.losses.rgo2d import rgo2d, rgo2d_region
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
+from distilkit.losses.ssc import geo_scal, log_frequency_weights, partial_ce, sem_scal, weighted_ce
 from distilkit.losses.structural import curvature, point_wise, scene_wise, select_keypoints, structural
 from distilkit.losses.vsd import vsd
 
 __all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "pvkd", "pvkd_affinity", "supervoxel_ids", "mgd", "cleaners",
            "rgo2d_region", "rgo2d", "cross_entropy", "lovasz_softmax", "vsd", "scene_wise", "point_wise", "curvature",
-           "select_keypoints", "structural"]
+           "select_keypoints", "structural", "weighted_ce", "partial_ce", "geo_scal", "sem_scal", "log_frequency_weights"]

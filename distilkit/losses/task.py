@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
@@ -113,6 +113,96 @@ class UncertaintyMultiTask(TaskLoss):
         return 0.5 * torch.exp(-s[0]) * l_seg + 0.5 * s[0] + 0.5 * torch.exp(-s[1]) * l_comp + 0.5 * s[1]
 
 
+class _WeightedParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    class_weights: Literal["none", "log_frequency"] = Field(
+        "log_frequency", description="log_frequency: scale / ln(f_c + 0.001) from the training split's voxel counts "
+                                     "(VoxFormer's, scale 10; a class never seen gets the largest weight); none")
+    scale: float = Field(10.0, gt=0, description="VoxFormer 10, MonoScene 1")
+
+
+class _WeightedCEParams(_WeightedParams):
+    normalize: Literal["valid", "weight"] = Field("valid", description="divide by the valid voxels (VoxFormer) or by "
+                                                                       "the sum of their weights (MonoScene)")
+
+
+class _ClassWeighted(TaskLoss):
+    """A voxel loss with class weights from the training split's voxel counts (computed once, in ``prepare``)."""
+
+    CONSUMES = {"student": "voxel_logits"}
+
+    def __init__(self, params: _WeightedParams) -> None:
+        super().__init__(params)
+        self.register_buffer("weight", torch.ones(NUM_CLASSES))
+
+    def prepare(self, train_set: Any) -> None:
+        if self.params.class_weights == "none":
+            return
+        from distilkit.data.stats import label_counts
+        from distilkit.losses.ssc import log_frequency_weights
+
+        voxel, _ = label_counts(train_set, NUM_CLASSES)
+        present = voxel > 0
+        w = log_frequency_weights(voxel.clamp_min(1), self.params.scale)
+        self.weight.copy_(w.masked_fill(~present, float(w[present].max()) if bool(present.any()) else 1.0))
+
+
+class WeightedCE(_ClassWeighted):
+    """Class-weighted voxel CE (VoxFormer's Σ w_y ℓ / N_valid, or MonoScene's Σ w_y ℓ / Σ w_y)."""
+
+    Params = _WeightedCEParams
+    BATCH = {"target": "voxel_target"}
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        from distilkit.losses.ssc import weighted_ce
+
+        weight = self.weight if self.params.class_weights != "none" else None
+        return weighted_ce(taps["student"], taps["target"], weight, self.params.normalize, self.ignore_index)
+
+
+class PartialCE(_ClassWeighted):
+    """Scribble2Scene's partial CE (the Dean-Labeler's loss): CE over the voxels a scribble labels with a class."""
+
+    Params = _WeightedParams
+    BATCH = {"target": "scribble"}
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        from distilkit.losses.ssc import partial_ce
+
+        weight = self.weight if self.params.class_weights != "none" else None
+        return partial_ce(taps["student"], taps["target"], weight, self.ignore_index)
+
+
+class _NoParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class GeoScal(TaskLoss):
+    """MonoScene's geometry scene-class affinity loss (precision, recall, specificity of occupancy)."""
+
+    Params = _NoParams
+    CONSUMES = {"student": "voxel_logits"}
+    BATCH = {"target": "voxel_target"}
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        from distilkit.losses.ssc import geo_scal
+
+        return geo_scal(taps["student"], taps["target"], self.ignore_index)
+
+
+class SemScal(TaskLoss):
+    """MonoScene's semantic scene-class affinity loss (per present class: precision, recall, specificity)."""
+
+    Params = _NoParams
+    CONSUMES = {"student": "voxel_logits"}
+    BATCH = {"target": "voxel_target"}
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        from distilkit.losses.ssc import sem_scal
+
+        return sem_scal(taps["student"], taps["target"], self.ignore_index)
+
+
 TASK_LOSSES.add("ce", VoxelCE, description="voxel cross entropy, ignore 255 and invalid voxels",
                 paper="SCPNet eq. 4 (L_ce)", consumes=("voxel_logits",))
 TASK_LOSSES.add("lovasz", VoxelLovasz, description="Lovász-softmax over classes present in the batch",
@@ -120,3 +210,13 @@ TASK_LOSSES.add("lovasz", VoxelLovasz, description="Lovász-softmax over classes
 TASK_LOSSES.add("uncertainty_multitask", UncertaintyMultiTask,
                 description="uncertainty-weighted point segmentation + completion CE (log-variance form)",
                 paper="JS3C-Net eq. 2 (Kendall et al. CVPR 2018)", consumes=("voxel_logits", "point_logits", "point_labels"))
+
+TASK_LOSSES.add("weighted_ce", WeightedCE, description="class-weighted voxel CE, normalised by valid voxels or weights",
+                paper="VoxFormer (Li et al. CVPR 2023); MonoScene (Cao & de Charette CVPR 2022)",
+                consumes=("voxel_logits",))
+TASK_LOSSES.add("partial_ce", PartialCE, description="CE over the voxels a scribble labels with a class",
+                paper="Scribble2Scene (Wang et al. IJCAI 2024), Dean-Labeler", consumes=("voxel_logits",))
+TASK_LOSSES.add("geo_scal", GeoScal, description="scene-class affinity loss on geometry (occupancy)",
+                paper="MonoScene (Cao & de Charette CVPR 2022), scene-class affinity loss", consumes=("voxel_logits",))
+TASK_LOSSES.add("sem_scal", SemScal, description="scene-class affinity loss on semantics, per present class",
+                paper="MonoScene (Cao & de Charette CVPR 2022), scene-class affinity loss", consumes=("voxel_logits",))
