@@ -14,7 +14,15 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Generic, Iterator, TypeVar
 
+from pydantic import BaseModel, ConfigDict
+
 from distilkit.errors import PluginError, UnknownNameError
+
+
+class NoParams(BaseModel):
+    """The parameters of a registered component that takes none (a recipe may give ``params: {}`` only)."""
+
+    model_config = ConfigDict(extra="forbid")
 
 T = TypeVar("T")
 

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from pydantic import BaseModel
 
 
 @dataclass
@@ -132,8 +131,4 @@ class CheckpointHook(Hook):
             loop.save("last")
 
 
-class NoParams(BaseModel):
-    model_config = {"extra": "forbid"}
-
-
-__all__ = ["CheckpointHook", "EvalHook", "Hook", "LogHook", "Loop", "NoParams", "ProgressHook"]
+__all__ = ["CheckpointHook", "EvalHook", "Hook", "LogHook", "Loop", "ProgressHook"]

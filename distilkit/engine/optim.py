@@ -16,11 +16,7 @@ from typing import Any
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.registry import OPTIMIZERS, SCHEDULES
-
-
-class NoParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+from distilkit.registry import OPTIMIZERS, SCHEDULES, NoParams
 
 
 def _adam(groups: list[dict[str, Any]], spec: Any) -> torch.optim.Optimizer:

@@ -314,7 +314,7 @@ def resolve_hooks(specs: list[Any], path: str, problems: list[tuple[str, str]]) 
         entry = _lookup(HOOKS, spec.name, f"{path}.train.hooks[{i}].name", problems)
         if entry is None:
             continue
-        from distilkit.engine.hooks import NoParams
+        from distilkit.registry import NoParams
 
         params = _params(entry.meta.get("params", NoParams), spec.params, f"{path}.train.hooks[{i}].params", problems)
         missing = entry.meta.get("check", lambda: None)()

@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
-from distilkit.registry import TASK_LOSSES
+from distilkit.registry import TASK_LOSSES, NoParams
 from distilkit.term import Term
 
 
@@ -173,34 +173,30 @@ class PartialCE(_ClassWeighted):
         return partial_ce(taps["student"], taps["target"], weight, self.ignore_index)
 
 
-class _NoParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class _VoxelLoss(TaskLoss):
+    """A parameterless loss ``FUNCTION(logits, target, ignore_index)`` of :mod:`distilkit.losses.ssc`."""
+
+    Params = NoParams
+    CONSUMES = {"student": "voxel_logits"}
+    BATCH = {"target": "voxel_target"}
+    FUNCTION = ""
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        from distilkit.losses import ssc
+
+        return getattr(ssc, self.FUNCTION)(taps["student"], taps["target"], self.ignore_index)
 
 
-class GeoScal(TaskLoss):
+class GeoScal(_VoxelLoss):
     """MonoScene's geometry scene-class affinity loss (precision, recall, specificity of occupancy)."""
 
-    Params = _NoParams
-    CONSUMES = {"student": "voxel_logits"}
-    BATCH = {"target": "voxel_target"}
-
-    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
-        from distilkit.losses.ssc import geo_scal
-
-        return geo_scal(taps["student"], taps["target"], self.ignore_index)
+    FUNCTION = "geo_scal"
 
 
-class SemScal(TaskLoss):
+class SemScal(_VoxelLoss):
     """MonoScene's semantic scene-class affinity loss (per present class: precision, recall, specificity)."""
 
-    Params = _NoParams
-    CONSUMES = {"student": "voxel_logits"}
-    BATCH = {"target": "voxel_target"}
-
-    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
-        from distilkit.losses.ssc import sem_scal
-
-        return sem_scal(taps["student"], taps["target"], self.ignore_index)
+    FUNCTION = "sem_scal"
 
 
 TASK_LOSSES.add("ce", VoxelCE, description="voxel cross entropy, ignore 255 and invalid voxels",
