@@ -3,7 +3,8 @@
 An adapter is an ``nn.Module`` registered in :data:`distilkit.registry.ADAPTERS`. It declares
 
 * ``Params``: a pydantic model of its constructor parameters (validated when a recipe loads);
-* ``INPUTS``: the batch inputs ``forward`` reads (checked against the dataset's fields by ``validate``);
+* ``INPUTS``: the batch inputs ``forward`` reads (checked against the dataset's fields by ``validate``;
+  ``inputs(params)`` when they depend on the parameters);
 * ``TAPS``: tap name -> tap kind (see :mod:`distilkit.taps`) that ``forward`` returns;
 * ``PREDICTION_TAP``: the tap (of any kind) that evaluation scores, with the metrics registered for its kind;
 * ``DEFAULT_TASK_LOSSES``: task losses used when a recipe stage names none;
@@ -51,6 +52,12 @@ class Adapter(nn.Module, ABC):
     @abstractmethod
     def forward(self, batch: Batch) -> dict[str, Any]:
         """Run the model on a collated batch; return every declared tap."""
+
+    @classmethod
+    def inputs(cls, params: BaseModel) -> frozenset[str]:
+        """The batch fields ``forward`` reads with these parameters (default: ``INPUTS``); ``validate`` checks the
+        data provides them, and a stage's identity follows the versions of the fields it reads."""
+        return cls.INPUTS
 
     @classmethod
     def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> VoxelGrid | None:

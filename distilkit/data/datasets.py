@@ -12,16 +12,22 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from distilkit.data.batch import Batch
+from distilkit.data.camera import CAMERA_FIELDS, add_camera, rig
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES, remap, seg_lut, ssc_lut
-from distilkit.data.info import DataInfo
+from distilkit.data.info import DataInfo, FieldGroup
 from distilkit.data.lidar import LIDAR_INPUTS, LIDAR_TARGETS, collate_lidar
 from distilkit.data.params import SceneParams, SemanticKittiParams, SyntheticParams
 from distilkit.data.probe import cloud_plan, grid_plan
+from distilkit.data.render import CAMERA_VERSION
 from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.data import semantickitti as skio
 from distilkit.errors import DataError
 from distilkit.structures import VoxelGrid
 from distilkit.registry import DATASETS
+
+
+CAMERA_ARRAYS = ("image", "depth", "intrinsics", "lidar_to_camera")  # per sample, stacked on the first axis
 
 
 class ArrayDataset(torch.utils.data.Dataset):
@@ -43,6 +49,7 @@ class ArrayDataset(torch.utils.data.Dataset):
             "voxel_label": self.a["voxel_label"][i],
             "invalid": self.a["invalid"][i],
             **({"scribble": self.a["scribble"][i]} if "scribble" in self.a else {}),
+            **{k: self.a[k][i] for k in CAMERA_ARRAYS if k in self.a},
         }
 
 
@@ -52,12 +59,24 @@ def build_synthetic(params: SyntheticParams, split: str,
 
     count = {"train": params.num_train, "val": params.num_val, "test": params.num_test}[split]
     arrays = generate_split(params, split, count, progress)
+    if params.camera is not None:
+        from distilkit.data.render import generate_camera_split
+
+        arrays = {**arrays, **generate_camera_split(params, split, count, progress)}
     return ArrayDataset(arrays, synthetic_info(params))
 
 
 def synthetic_info(params: SyntheticParams) -> DataInfo:
-    return DataInfo(VoxelGrid.semantickitti(params.scale), fields=LIDAR_INPUTS | LIDAR_TARGETS | {"scribble"},
+    camera = params.camera is not None
+    return DataInfo(VoxelGrid.semantickitti(params.scale),
+                    fields=LIDAR_INPUTS | LIDAR_TARGETS | {"scribble"} | (CAMERA_FIELDS if camera else frozenset()),
+                    cameras=(rig(params.camera, params.ego_speed),) if params.camera is not None else (),
                     input_frames=params.input_frames)
+
+
+def collate_street(samples: list[dict[str, np.ndarray]]) -> Batch:
+    """A synthetic street's batch: the LiDAR fields, and the camera's where the data renders them."""
+    return add_camera(collate_lidar(samples), samples)
 
 
 def kitti_info(params: SemanticKittiParams) -> DataInfo:
@@ -172,8 +191,9 @@ DATASETS.add(
     "synthetic-lidar", _synthetic_factory,
     description="procedural street scenes, ray-cast LiDAR scans, multi-frame input and SSC ground truth (cached on disk)",
     paper="distilkit (SemanticKITTI conventions, Behley et al. ICCV 2019)",
-    params=SyntheticParams, info=synthetic_info, collate=collate_lidar, version=GENERATOR_VERSION,
+    params=SyntheticParams, info=synthetic_info, collate=collate_street, version=GENERATOR_VERSION,
     has_split=lambda p, split: True, probe=grid_plan,
+    field_groups={"camera": FieldGroup(CAMERA_FIELDS, CAMERA_VERSION)},
 )
 DATASETS.add(
     "semantickitti", _kitti_factory,

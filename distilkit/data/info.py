@@ -37,12 +37,25 @@ class ClassTable:
 
 @dataclass(frozen=True)
 class Camera:
-    """A pinhole camera: ``intrinsics`` 3x3 (pixels), ``lidar_to_camera`` 4x4 (metres), image ``size`` (H, W)."""
+    """A pinhole camera: ``intrinsics`` 3x3 (pixels), ``lidar_to_camera`` 4x4 (metres), image ``size`` (H, W), and
+    the ``frames`` of a sample's images (0 = the current one, -3 = three frames earlier; the batch carries each
+    frame's calibration)."""
 
     name: str
     intrinsics: tuple[tuple[float, ...], ...]
     lidar_to_camera: tuple[tuple[float, ...], ...]
     size: tuple[int, int]
+    frames: tuple[int, ...] = (0,)
+
+
+@dataclass(frozen=True)
+class FieldGroup:
+    """Batch fields a generator makes apart from the rest, with their own code ``version`` and parameters (the
+    dataset parameter of the group's name): a stage that reads none of them keeps its identity when they change
+    (registered as a dataset's ``field_groups``; the synthetic streets' ``camera``)."""
+
+    fields: frozenset[str]
+    version: int = 1
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -25,6 +25,27 @@ class _SensorParams(BaseModel):
     ego_speed: float = Field(1.0, ge=0, description="metres per frame (KITTI: about 1 m at 10 Hz)")
 
 
+class CameraParams(BaseModel):
+    """A pinhole camera mounted like KITTI's left colour camera (cam2: 1241 x 376 pixels, f = 718.9 px, about
+    0.27 m ahead of and 0.08 m below the LiDAR), its image scaled to ``width`` x ``height``."""
+
+    model_config = ConfigDict(extra="forbid")
+    height: int = Field(48, ge=8, description="image rows (KITTI: 376)")
+    width: int = Field(160, ge=8, description="image columns (KITTI: 1241); the focal length scales with it")
+    previous: list[Annotated[int, Field(ge=1)]] = Field(
+        default_factory=list, description="earlier frames given with the current image, in frames back "
+                                          "(VoxFormer-T: [12, 9, 6, 3]); empty: the current image only")
+    max_depth: float = Field(80.0, gt=0, description="farther surfaces are sky in the image and 0 in the depth map")
+    noise: float = Field(0.02, ge=0, description="std of Gaussian pixel noise (intensities in 0..1)")
+
+    @field_validator("previous")
+    @classmethod
+    def _distinct(cls, v: list[int]) -> list[int]:
+        if len(set(v)) != len(v):
+            raise ValueError(f"previous frames must be distinct, got {v}")
+        return v
+
+
 class SyntheticParams(_SensorParams):
     """``synthetic-lidar``: procedural street scenes cast with a spinning LiDAR."""
 
@@ -43,6 +64,8 @@ class SyntheticParams(_SensorParams):
     scribble_spacing: float = Field(7.5, gt=0, description="metres between parallel scribble lines")
     scribble_width: float = Field(0.3, gt=0, description="width of a scribble line, metres")
     scribble_fraction: float = Field(0.1, gt=0, le=1, description="share of points labelled with scribble: random")
+    camera: CameraParams | None = Field(None, description="also render camera images of the same streets "
+                                                          "({} for the defaults); none: LiDAR only")
 
     _scale = field_validator("scale")(_check_scale)
 

@@ -123,7 +123,8 @@ def generate_scenes(p: SceneParams, split: str, count: int,
                     progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
     """``count`` samples of ``split`` stacked, from the on-disk cache when generated before (a corrupt cache
     entry is regenerated)."""
-    return cached_samples("synthetic-scenes", SCENES_VERSION, p, split, count, lambda seed: make_scene_sample(seed, p),
+    return cached_samples("synthetic-scenes", SCENES_VERSION, p.model_dump(), split, count,
+                          lambda seed: make_scene_sample(seed, p),
                           lambda samples: {k: np.stack([s[k] for s in samples]) for k in ("scan", "scene")}, progress)
 
 

@@ -243,6 +243,21 @@ class Scan:
     origin: np.ndarray  # (3,) sensor position, world frame
 
 
+def hit_labels(scene: SceneSpec, prims: Primitives, kind: np.ndarray, index: np.ndarray,
+               xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Raw SemanticKITTI label and instance id of each ray's hit (``kind``/``index`` from :func:`cast` over
+    ``prims``; ``xyz`` the hit points, world frame); 0 where nothing is hit."""
+    label = np.zeros(len(kind), np.int64)
+    inst = np.zeros(len(kind), np.int64)
+    for k, lab, ins in ((2, prims.box_label, prims.box_inst), (3, prims.cyl_label, prims.cyl_inst),
+                        (4, prims.sph_label, prims.sph_inst)):
+        sel = kind == k
+        label[sel], inst[sel] = lab[index[sel]], ins[index[sel]]
+    g = kind == 1
+    label[g] = _ground_labels(xyz[g], scene.parking, scene.other_ground)
+    return label, inst
+
+
 def cast_scan(scene: SceneSpec, origin: np.ndarray, frame: int, dirs: np.ndarray, rng: np.random.Generator,
               max_range: float, range_noise: float) -> Scan:
     prims = scene.prims.at_frame(frame).near(origin, max_range + 5.0)
@@ -250,14 +265,7 @@ def cast_scan(scene: SceneSpec, origin: np.ndarray, frame: int, dirs: np.ndarray
     keep = np.isfinite(t) & (t <= max_range) & (t > 1.0)
     t = np.where(keep, t, 0) + rng.normal(0.0, range_noise, t.shape).astype(np.float32)
     xyz = origin[None, :] + dirs * t[:, None]
-    label = np.zeros(len(t), np.int64)
-    inst = np.zeros(len(t), np.int64)
-    for k, lab, ins in ((2, prims.box_label, prims.box_inst), (3, prims.cyl_label, prims.cyl_inst),
-                        (4, prims.sph_label, prims.sph_inst)):
-        sel = kind == k
-        label[sel], inst[sel] = lab[index[sel]], ins[index[sel]]
-    g = kind == 1
-    label[g] = _ground_labels(xyz[g], scene.parking, scene.other_ground)
+    label, inst = hit_labels(scene, prims, kind, index, xyz)
     names = {RAW_IDS[n]: n for n in REFLECTANCE}
     base = np.array([REFLECTANCE.get(names.get(int(l), ""), 0.4) for l in range(300)], np.float32)
     refl = base[np.clip(_static_id(label), 0, 299)]
@@ -323,15 +331,22 @@ def traversed(origins: list[np.ndarray], ends: list[np.ndarray], grid: VoxelGrid
     return seen.reshape(grid.shape)
 
 
-def make_sample(seed: int, p: SyntheticParams) -> dict[str, np.ndarray]:
-    """Generate one sample: fused input points with frame tags, SSC labels and the invalid mask."""
+def street(seed: int, p: SyntheticParams) -> tuple[np.random.Generator, SceneSpec, np.ndarray]:
+    """The street of sample ``seed`` and the ego sensor's position at the current frame (world frame), with the
+    generator that drew them (the LiDAR scans draw on from it; a camera renders the same street)."""
     rng = np.random.default_rng(seed)
-    grid = VoxelGrid.semantickitti(p.scale)
     n_frames = max(p.input_frames, p.gt_frames + 1)
     x0 = rng.uniform(0, 20)
     scene = make_scene(rng, x0 - 20, x0 + p.ego_speed * n_frames + 80, p.ego_speed, x0, n_frames)
+    return rng, scene, np.array([x0, EGO_LANE_Y, SENSOR_HEIGHT], np.float32)
+
+
+def make_sample(seed: int, p: SyntheticParams) -> dict[str, np.ndarray]:
+    """Generate one sample: fused input points with frame tags, SSC labels and the invalid mask."""
+    rng, scene, ego0 = street(seed, p)
+    grid = VoxelGrid.semantickitti(p.scale)
+    n_frames = max(p.input_frames, p.gt_frames + 1)
     dirs = ray_directions(p.beams, p.azimuth_steps, p.fov_up, p.fov_down)
-    ego0 = np.array([x0, EGO_LANE_Y, SENSOR_HEIGHT], np.float32)
     scans = []
     for j in range(n_frames):
         origin = ego0 + np.array([p.ego_speed * j, 0, 0], np.float32)
@@ -407,5 +422,10 @@ def generate_split(p: SyntheticParams, split: str, count: int,
         out.update({k: np.stack([s[k] for s in samples]) for k in _GRIDS})
         return out
 
-    return cached_samples("synthetic-lidar", GENERATOR_VERSION, p, split, count, lambda seed: make_sample(seed, p),
-                          stack, progress)
+    return cached_samples("synthetic-lidar", GENERATOR_VERSION, lidar_params(p), split, count,
+                          lambda seed: make_sample(seed, p), stack, progress)
+
+
+def lidar_params(p: SyntheticParams) -> dict[str, object]:
+    """The parameters that shape the LiDAR arrays (all but the camera's: adding a camera keeps the scans)."""
+    return p.model_dump(exclude={"camera"})

@@ -9,7 +9,9 @@ It hashes what produces the stage and nothing else, without special cases:
   parameter groups, the adapter's parameters;
 * the **code versions** that produce it (distilkit's, the dataset's, each component's ``VERSION``);
 * a **fingerprint of the data**, not the path where it lies: a dataset registers ``fingerprint`` (SemanticKITTI:
-  the names, sizes and modification times of its files), else its parameters stand for it (a generator's);
+  the names, sizes and modification times of its files), else its parameters stand for it (a generator's); a
+  generator's **field groups** (the streets' camera) count only for the stages that read their fields
+  (:func:`stage_reads`): adding a camera, or changing its code, retrains the camera's users and nothing else;
 * the identities of the stages it reads (:meth:`~distilkit.recipe.StageSpec.edges`), and the content of
   weights files it reads.
 
@@ -50,12 +52,36 @@ def stage_seed(res: Any, stage: Any) -> int:
     return stage.spec.seed if stage.spec.seed is not None else res.recipe.seed
 
 
+def stage_reads(res: Any, stage: Any) -> frozenset[str]:
+    """The batch fields a stage reads: its models' inputs (student, teacher, auxiliary models), its terms' batch
+    fields, its metrics' targets and its labels edge."""
+    models = [stage.student, stage.teacher, *(aux.model for aux in stage.aux)]
+    out = {f for m in models if m is not None for f in m.cls.inputs(m.params)}
+    out |= {f for t in (*stage.task_losses, *stage.distill) for f in t.fields.values()}
+    out |= {f for m in stage.metrics for f in m.cls.TARGETS}
+    labels = stage.spec.labels
+    if labels is not None:
+        out |= {f for f in (labels.field, labels.keep) if f is not None}
+    return frozenset(out)
+
+
+def field_groups(res: Any, stage: Any) -> tuple[dict[str, int], set[str]]:
+    """The dataset's field groups (:class:`~distilkit.data.info.FieldGroup`) this stage reads, with their versions,
+    and the names of those it does not read (their parameters are left out of its identity)."""
+    groups = DATASETS.entry(res.recipe.data.dataset).meta.get("field_groups", {})
+    reads = stage_reads(res, stage)
+    used = {name: g.version for name, g in groups.items() if g.fields & reads}
+    return used, set(groups) - set(used)
+
+
 def code_versions(res: Any, stage: Any) -> dict[str, Any]:
-    """The code versions that produce a stage: a change in any of them retrains exactly its users."""
+    """The code versions that produce a stage: a change in any of them retrains exactly its users (a field group's
+    version only the stages that read its fields)."""
     ds = DATASETS.entry(res.recipe.data.dataset)
     out: dict[str, Any] = {
         "distilkit": __version__,
         "dataset": ds.meta.get("version", 1),
+        **({"fields": used} if (used := field_groups(res, stage)[0]) else {}),
         "adapter": getattr(stage.student.cls, "VERSION", 1),
         "task_losses": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.task_losses},
         "distill": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.distill},
@@ -65,13 +91,14 @@ def code_versions(res: Any, stage: Any) -> dict[str, Any]:
     return out
 
 
-def data_fingerprint(res: Any) -> dict[str, Any]:
+def data_fingerprint(res: Any, stage: Any) -> dict[str, Any]:
     """What identifies the data: the dataset's registered name and its ``fingerprint(params)`` (a folder's files),
-    or its non-default parameters (a generator's)."""
+    or its non-default parameters (a generator's) but those of field groups the stage does not read."""
     entry = DATASETS.entry(res.recipe.data.dataset)
     fingerprint = entry.meta.get("fingerprint")
-    return {"dataset": entry.name,
-            **(fingerprint(res.data_params) if fingerprint is not None else {"params": _dump(res.data_params, False)})}
+    if fingerprint is not None:
+        return {"dataset": entry.name, **fingerprint(res.data_params)}
+    return {"dataset": entry.name, "params": _dump(res.data_params, False, exclude=field_groups(res, stage)[1] or None)}
 
 
 def _fields(term: Any, fields: frozenset[str], full: bool) -> dict[str, str]:
@@ -105,7 +132,7 @@ def stage_config(res: Any, stage: Any, hashes: dict[str, str], full: bool = True
         "versions": code_versions(res, stage),
         "seed": stage_seed(res, stage),
         "data": ({"dataset": DATASETS.entry(res.recipe.data.dataset).name, "params": _dump(res.data_params, True)}
-                 if full else data_fingerprint(res)),
+                 if full else data_fingerprint(res, stage)),
         "model": {"adapter": stage.student.adapter, "params": _dump(stage.student.params, full),
                   "taps": {n: _dump(h, full) for n, h in stage.student.hooks.items()}},
         "task_losses": _terms(stage.task_losses, full, res.data_info.fields),
@@ -132,5 +159,5 @@ def stage_hashes(res: Any) -> tuple[dict[str, str], dict[str, dict[str, Any]]]:
     return hashes, configs
 
 
-__all__ = ["code_versions", "data_fingerprint", "file_digest", "stage_config", "stage_hashes", "stage_identity",
-           "stage_seed"]
+__all__ = ["code_versions", "data_fingerprint", "field_groups", "file_digest", "stage_config", "stage_hashes",
+           "stage_identity", "stage_reads", "stage_seed"]

@@ -366,7 +366,7 @@ def labels_problems(spec: Any, stages: dict[str, ResolvedStage], info: Any, path
 def data_problems(model: ResolvedModel, info: Any, path: str) -> list[tuple[str, str]]:
     """The inputs the adapter reads that the data does not provide, and parameters it cannot serve."""
     out = []
-    missing = sorted(model.cls.INPUTS - info.fields) if info.fields else []
+    missing = sorted(model.cls.inputs(model.params) - info.fields) if info.fields else []
     if missing:
         out.append((f"{path}.adapter", f"adapter {model.adapter!r} reads batch input(s) {', '.join(missing)}, which "
                                        f"the data does not provide (it has: {', '.join(sorted(info.fields))})"))
