@@ -10,6 +10,8 @@ tap of the student and the teacher on the first batch, so a wrong shape is one c
 | feature_map       | dense features, either of the two below (what feature objectives read)    |
 | image_features    | (B, C, H, W) features of a camera's image (a ``feature_map``)             |
 | volume_features   | (B, C, X, Y, Z) features on a voxel grid (a ``feature_map``)              |
+| occupancy_logits  | (B, 2, X, Y, Z) empty / occupied scores (VoxFormer's query proposals)     |
+| depth_map         | (B, H, W) metres along a camera's axis, per pixel                         |
 | point_logits      | (M, K) per-point class scores (points of the batch, concatenated)         |
 | point_labels      | (M,) int64 labels of the points behind a ``point_logits`` tap             |
 | points            | :class:`PointCloud`: (B, M, D) padded points and (B,) lengths (PyTorch3D's convention) |
@@ -63,6 +65,12 @@ def _labels(value: Any) -> str | None:
         f" {value.dtype}" if isinstance(value, Tensor) else "")
 
 
+def _two_classes(value: Any) -> str | None:
+    if isinstance(value, Tensor) and value.dim() == 5 and value.shape[1] == 2:
+        return None
+    return f"expected (B, 2, X, Y, Z) empty/occupied scores, got {_shape(value)}"
+
+
 def _instance(cls: type, what: str) -> Callable[[Any], str | None]:
     def check(value: Any) -> str | None:
         return None if isinstance(value, cls) else f"expected {what}, got {_shape(value)}"
@@ -100,6 +108,8 @@ register_tap_kind("image_features", _tensor((4,), "(B, C, H, W) image features")
                   parent="feature_map")
 register_tap_kind("volume_features", _tensor((5,), "(B, C, X, Y, Z) volume features"), "features on a voxel grid",
                   parent="feature_map")
+register_tap_kind("occupancy_logits", _two_classes, "empty / occupied scores per voxel (query proposals)")
+register_tap_kind("depth_map", _tensor((3,), "(B, H, W) depth in metres"), "a depth map of a camera image")
 register_tap_kind("point_logits", _tensor((2,), "(M, K) per-point class scores"), "class scores per point")
 register_tap_kind("point_labels", _labels, "labels of the points a model scored")
 register_tap_kind("points", _instance(PointCloud, "PointCloud(points (B, M, D), lengths (B,))"),

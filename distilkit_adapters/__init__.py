@@ -8,3 +8,4 @@ def register() -> None:
     from distilkit_adapters.lidiff import adapter as _lidiff  # noqa: F401
     from distilkit_adapters.lidiff import loss as _lidiff_loss  # noqa: F401
     from distilkit_adapters.scpnet import adapter as _scp  # noqa: F401
+    from distilkit_adapters.voxformer import adapter as _voxformer  # noqa: F401

@@ -11,15 +11,15 @@ import pytest
 import torch
 
 from conftest import TINY_DATA
-from distilkit.data.datasets import build_synthetic, synthetic_info
-from distilkit.data.lidar import collate_lidar
+from distilkit.data.datasets import build_synthetic, collate_street, synthetic_info
 from distilkit.data.params import SyntheticParams
 from distilkit.metrics.base import Metric
 from distilkit.registry import ADAPTERS, DATASETS, METRICS, OBJECTIVES, TASK_LOSSES
 from distilkit.taps import TAP_KINDS, check_tap
 from distilkit.term import Term
 
-BUILTIN = {"adapters": ["scpnet", "js3cnet"], "metrics": ["ssc"]}
+BUILTIN = {"adapters": ["scpnet", "js3cnet", "voxformer-proposal", "voxformer"], "metrics": ["ssc", "occupancy"]}
+CAMERA = {"height": 24, "width": 80, "previous": [3]}
 
 
 def names(registry) -> list[str]:
@@ -32,24 +32,26 @@ def test_adapter_contract(name: str) -> None:
     assert isinstance(cls.VERSION, int) and cls.VERSION >= 1
     assert cls.PREDICTION_TAP in cls.TAPS, "the prediction tap must be declared"
     assert set(cls.TAPS.values()) <= set(TAP_KINDS), "every tap kind is registered"
-    for loss in cls.DEFAULT_TASK_LOSSES:
-        task = TASK_LOSSES.get(loss["name"])
-        assert set(task.CONSUMES.values()) <= set(cls.TAPS.values()), f"default task loss {loss['name']} fits"
-        if cls.INPUTS <= synthetic_info(SyntheticParams(**TINY_DATA)).fields:
-            assert set(task.BATCH.values()) <= synthetic_info(SyntheticParams(**TINY_DATA)).fields
-    if not cls.INPUTS <= synthetic_info(SyntheticParams(**TINY_DATA)).fields:
-        return  # adapters on other data are run by the tests that define that data (tests/test_contracts.py)
+    data = SyntheticParams(**TINY_DATA, camera=CAMERA)  # the streets with their camera: LiDAR and camera fields
+    info = synthetic_info(data)
     params = cls.Params()
     if "frames" in type(params).model_fields:
         params = params.model_copy(update={"frames": 2})
-    info = synthetic_info(SyntheticParams(**TINY_DATA))
+    reads = cls.inputs(params)
+    for loss in cls.DEFAULT_TASK_LOSSES:
+        task = TASK_LOSSES.get(loss["name"])
+        assert set(task.CONSUMES.values()) <= set(cls.TAPS.values()), f"default task loss {loss['name']} fits"
+        if reads <= info.fields:
+            assert {task.default_field(role, info.fields) for role in task.BATCH} <= info.fields
+    if not reads <= info.fields:
+        return  # adapters on other data (or inputs from another stage) are run by the tests that define them
     assert cls.check_data(params, info) == []
     assert isinstance(cls.describe(params), str)
     torch.manual_seed(0)
     model = cls(params, info).eval()
-    ds = build_synthetic(SyntheticParams(**TINY_DATA), "train")
+    ds = build_synthetic(data, "train")
     with torch.no_grad():
-        out = model(collate_lidar([ds[0], ds[1]]))
+        out = model(collate_street([ds[0], ds[1]]))
     for tap, kind in cls.TAPS.items():
         check_tap(out[tap], kind, f"{name}.{tap}")
         if kind == "sparse_features" and cls.tap_grid(tap, params, info) is not None:

@@ -16,7 +16,7 @@ def probe_trainer(res: Any, stage_name: str, params: Any, run_dir: Path, batch_s
     from distilkit.engine.distributed import SINGLE
     from distilkit.engine.loader import BatchPlan
     from distilkit.engine.runs import build_model, freeze
-    from distilkit.engine.stage import pick_device
+    from distilkit.engine.stage import pick_device, with_aux_inputs
     from distilkit.engine.trainer import Trainer
     from distilkit.registry import DATASETS
 
@@ -31,8 +31,10 @@ def probe_trainer(res: Any, stage_name: str, params: Any, run_dir: Path, batch_s
     teacher = None
     if stage.teacher is not None and stage.distill:
         teacher = freeze(build_model(stage.teacher, info, "teacher").to(device))
+    aux = [(a, freeze(build_model(a.model, info, f"aux model {a.name!r}").to(device))) for a in stage.aux]
     plan = BatchPlan(len(train_set), batch_size, 0, SINGLE)
-    return Trainer(stage, info, train_set, plan, device, collate=entry.meta["collate"], teacher=teacher, world=SINGLE)
+    return Trainer(stage, info, train_set, plan, device, collate=entry.meta["collate"], teacher=teacher, world=SINGLE,
+                   prepare=lambda batch: with_aux_inputs(batch.to(device), aux))
 
 
 __all__ = ["probe_trainer"]

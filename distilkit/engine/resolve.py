@@ -370,7 +370,8 @@ def data_problems(model: ResolvedModel, info: Any, path: str) -> list[tuple[str,
     if missing:
         out.append((f"{path}.adapter", f"adapter {model.adapter!r} reads batch input(s) {', '.join(missing)}, which "
                                        f"the data does not provide (it has: {', '.join(sorted(info.fields))})"))
-    out += [(f"{path}.params.{param}", problem) for param, problem in model.cls.check_data(model.params, info)]
+    out += [(f"{path}.params.{param}" if param else f"{path}.adapter", problem)
+            for param, problem in model.cls.check_data(model.params, info)]
     return out
 
 

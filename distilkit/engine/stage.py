@@ -58,6 +58,18 @@ def read_summary(run_dir: Path) -> dict[str, Any] | None:
     return summary if summary.get("status") == "finished" else None
 
 
+def with_aux_inputs(batch: Any, aux: list[tuple[Any, Any]]) -> Any:
+    """``batch`` with the inputs the frozen auxiliary models give: each (resolved aux, model)'s taps under no_grad."""
+    if not aux:
+        return batch
+    added: dict[str, Any] = {}
+    with torch.no_grad():
+        for spec, model in aux:
+            out = model(batch)
+            added.update({field: out[tap] for tap, field in spec.inputs.items()})
+    return batch.with_inputs(**added)
+
+
 def pick_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -151,15 +163,7 @@ class StageRun:
 
     def prepare(self, batch: Any) -> Any:
         """A batch on the device, with the inputs the auxiliary models give (their taps, under no_grad)."""
-        batch = batch.to(self.device)
-        if not self.aux:
-            return batch
-        added: dict[str, Any] = {}
-        with torch.no_grad():
-            for aux, model in self.aux:
-                out = model(batch)
-                added.update({field: out[tap] for tap, field in aux.inputs.items()})
-        return batch.with_inputs(**added)
+        return with_aux_inputs(batch.to(self.device), self.aux)
 
     def load_aux(self) -> None:
         """The frozen auxiliary models (``aux``), each from its stage's checkpoint (once)."""

@@ -123,3 +123,21 @@ def dense_to_sparse(dense: Tensor, grid: VoxelGrid | None = None) -> SparseVoxel
     coords = active.nonzero()  # sorted lexicographically: batch, x, y, z
     feats = dense.permute(0, 2, 3, 4, 1)[active]
     return SparseVoxels(coords, feats, tuple(dense.shape[2:]), grid)  # type: ignore[arg-type]
+
+
+def pool_occupancy(target: Tensor, factor: int, ignore_index: int = 255) -> Tensor:
+    """(B, X/f, Y/f, Z/f) occupancy of a label grid (B, X, Y, Z) coarsened by ``factor``: 1 where a block holds an
+    occupied voxel (label neither 0 nor ``ignore_index``), else 0 where it holds an empty one, else ``ignore_index``
+    (VoxFormer's binarised half-resolution geometry)."""
+    if factor == 1:
+        occ = (target != 0) & (target != ignore_index)
+        return torch.where(target == ignore_index, target.new_tensor(ignore_index), occ.long())
+    b, x, y, z = target.shape
+    if x % factor or y % factor or z % factor:
+        raise ValueError(f"pool_occupancy: grid {(x, y, z)} is not divisible by {factor}")
+    blocks = target.reshape(b, x // factor, factor, y // factor, factor, z // factor, factor)
+    occupied = ((blocks != 0) & (blocks != ignore_index)).amax(dim=(2, 4, 6))
+    empty = (blocks == 0).amax(dim=(2, 4, 6))
+    out = torch.full(occupied.shape, ignore_index, dtype=torch.long, device=target.device)
+    return out.masked_fill(empty, 0).masked_fill(occupied, 1)
+

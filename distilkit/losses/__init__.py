@@ -13,6 +13,7 @@ from distilkit.losses.dskd import dskd
 from distilkit.losses.feature import fitnet, nst, pkt
 from distilkit.losses.logit import dist, kd
 from distilkit.losses.mgd import mgd
+from distilkit.losses.proposal import depth_l1, occupancy_ce
 from distilkit.losses.pvkd import pvkd, pvkd_affinity, supervoxel_ids
 from distilkit.losses.rgo2d import rgo2d, rgo2d_region
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
@@ -22,4 +23,5 @@ from distilkit.losses.vsd import vsd
 
 __all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "pvkd", "pvkd_affinity", "supervoxel_ids", "mgd", "cleaners",
            "rgo2d_region", "rgo2d", "cross_entropy", "lovasz_softmax", "vsd", "scene_wise", "point_wise", "curvature",
-           "select_keypoints", "structural", "weighted_ce", "partial_ce", "geo_scal", "sem_scal", "log_frequency_weights"]
+           "select_keypoints", "structural", "weighted_ce", "partial_ce", "geo_scal", "sem_scal", "log_frequency_weights",
+           "depth_l1", "occupancy_ce"]

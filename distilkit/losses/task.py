@@ -216,3 +216,49 @@ TASK_LOSSES.add("geo_scal", GeoScal, description="scene-class affinity loss on g
                 paper="MonoScene (Cao & de Charette CVPR 2022), scene-class affinity loss", consumes=("voxel_logits",))
 TASK_LOSSES.add("sem_scal", SemScal, description="scene-class affinity loss on semantics, per present class",
                 paper="MonoScene (Cao & de Charette CVPR 2022), scene-class affinity loss", consumes=("voxel_logits",))
+
+
+class _OccupancyParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    alpha: float = Field(0.54, gt=0, lt=1, description="weight of the occupied class (VoxFormer: 0.54)")
+
+
+class OccupancyCE(TaskLoss):
+    """VoxFormer's stage-1 loss: weighted two-class CE of the proposals against the pooled dense geometry."""
+
+    Params = _OccupancyParams
+    CONSUMES = {"student": "occupancy_logits"}
+    BATCH = {"target": "voxel_target"}
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        from distilkit.losses.proposal import occupancy_ce
+
+        return occupancy_ce(taps["student"], taps["target"], self.params.alpha, self.ignore_index)
+
+
+class _DepthParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    sky_depth: float | None = Field(None, gt=0, description="pixels with no surface count as this far (metres; "
+                                                            "e.g. the camera's max_depth); none: left out")
+
+
+class DepthL1(TaskLoss):
+    """Depth regression of a camera model (metres, pixels with a true depth)."""
+
+    Params = _DepthParams
+    CONSUMES = {"student": "depth_map"}
+    BATCH = {"target": "depth"}
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        from distilkit.losses.proposal import depth_l1
+
+        return depth_l1(taps["student"], taps["target"], self.params.sky_depth)
+
+
+TASK_LOSSES.add("occupancy_ce", OccupancyCE, description="weighted empty/occupied CE at the proposals' resolution",
+                paper="VoxFormer (Li et al. CVPR 2023), stage 1 (BCE_ssc_loss, alpha 0.54)",
+                consumes=("occupancy_logits",))
+TASK_LOSSES.add("depth_l1", DepthL1, description="L1 depth error over pixels with a true depth",
+                paper="VoxFormer (Li et al. CVPR 2023), stage 1 depth (stand-in for its stereo depth network)",
+                consumes=("depth_map",))
+

@@ -58,6 +58,34 @@ class SSCScore(Metric):
         return out
 
 
+class OccupancyScore(Metric):
+    """Empty / occupied scores (query proposals) against the occupancy of ``voxel_label`` pooled to their grid
+    (invalid voxels left out): IoU, precision and recall of the occupied class over the split (VoxFormer's stage-1
+    numbers)."""
+
+    SCORES = "occupancy_logits"
+    TARGETS = frozenset({"voxel_label", "invalid"})
+    KEYS = ("iou", "precision", "recall")
+    TITLE = "occupancy (query proposals) in %"
+    COLUMNS = (("iou", "IoU", 100.0), ("precision", "precision", 100.0), ("recall", "recall", 100.0))
+
+    def __init__(self, info: DataInfo) -> None:
+        super().__init__(info)
+        self.acc = SSCMetric(2, info.classes.ignore_index)
+
+    def update(self, prediction: Tensor, batch: Batch) -> None:
+        from distilkit.geometry.voxel import pool_occupancy
+
+        ignore = self.info.classes.ignore_index
+        target = batch.targets["voxel_label"].masked_fill(batch.targets["invalid"].bool(), ignore).cpu()
+        occupancy = pool_occupancy(target.long(), target.shape[1] // prediction.shape[2], ignore)
+        self.acc.update(prediction.argmax(dim=1).cpu(), occupancy)
+
+    def compute(self) -> dict[str, Any]:
+        scores = self.acc.compute()
+        return {k: scores[k] for k in self.KEYS}
+
+
 class SceneCompletionScore(Metric):
     """Point-cloud completions scored as LiDiff and ScoreLiDAR report them (seed_code.md §3.4): Chamfer
     distance (m) and BEV Jensen-Shannon distance averaged over scenes; occupied-voxel IoU at 0.5 / 0.2 /
@@ -137,6 +165,15 @@ METRICS.add(
     description="SemanticKITTI SSC: completion IoU/precision/recall and semantic mIoU over classes 1..K-1",
     paper="Behley et al., SemanticKITTI, ICCV 2019 (evaluate_completion.py)",
     consumes=(SSCScore.SCORES,),
+)
+
+
+METRICS.add(
+    "occupancy",
+    OccupancyScore,
+    description="binary occupancy (query proposals) at the scores' resolution: IoU, precision, recall",
+    paper="VoxFormer (Li et al. CVPR 2023), stage 1 (labels pooled as its half-resolution geometry)",
+    consumes=(OccupancyScore.SCORES,),
 )
 
 

@@ -1,0 +1,174 @@
+"""How distilkit sees the VoxFormer-style camera models: ``voxformer-proposal`` (stage 1, query proposals from
+predicted depth) and ``voxformer`` (stage 2; with ``geometry: ground-truth`` Scribble2Scene's Teacher-Labeler).
+
+Stage 2 reads its proposals from a frozen stage-1 model through an auxiliary edge (``aux: {proposal: {from: ...}}``
+puts the proposal model's occupancy scores in the batch as ``proposal``), not as a teacher. Its size is a parameter:
+``size: tiny`` for tests and CPUs, ``size: paper`` for VoxFormer's (128 channels, 3 cross-attention layers, 8 heads
+and points, a stride-16 encoder); any single field given overrides the preset.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from distilkit.adapter import Adapter
+from distilkit.data.batch import Batch
+from distilkit.data.info import DataInfo
+from distilkit.geometry.voxel import pool_occupancy
+from distilkit.registry import ADAPTERS
+from distilkit.structures import VoxelGrid
+from distilkit_adapters.voxformer.model import VoxFormerNet
+from distilkit_adapters.voxformer.proposal import QueryProposal
+
+CAMERA_INPUTS = frozenset({"image", "intrinsics", "lidar_to_camera"})
+SIZES: dict[str, dict[str, Any]] = {
+    "tiny": {"widths": [8, 16, 32], "channels": 16, "heads": 2, "points": 4, "cross_layers": 2, "mix_layers": 1,
+             "bev_width": 16},
+    "paper": {"widths": [64, 128, 256, 512, 1024], "channels": 128, "heads": 8, "points": 8, "cross_layers": 3,
+              "mix_layers": 2, "bev_width": 64},
+}
+Width = Annotated[int, Field(ge=1)]
+
+
+class _SizedParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    size: Literal["tiny", "paper"] = Field("tiny", description="preset of the fields below left unset: tiny (CPU, "
+                                                               "tests) or paper (VoxFormer's)")
+    widths: list[Width] | None = Field(None, min_length=2, description="encoder stage widths; the output stride is "
+                                                                       "2 ** (stages - 1) (paper: 16)")
+    channels: int | None = Field(None, ge=1, description="FPN and query channels (paper: 128)")
+
+    def value(self, name: str) -> Any:
+        """A field's value, or the size preset's where the recipe left it unset."""
+        given = getattr(self, name)
+        return SIZES[self.size][name] if given is None else given
+
+
+class ProposalParams(_SizedParams):
+    bev_width: int | None = Field(None, ge=1, description="width of the bird's-eye U-Net (LMSCNet-style)")
+    max_depth: float = Field(80.0, gt=0, description="largest depth the depth head predicts (metres)")
+
+
+class VoxFormerParams(_SizedParams):
+    heads: int | None = Field(None, ge=1, description="cross-attention heads (paper: 8)")
+    points: int | None = Field(None, ge=1, description="sampling points per head and frame (paper: 8)")
+    cross_layers: int | None = Field(None, ge=1, description="deformable cross-attention layers (paper: 3)")
+    mix_layers: int | None = Field(None, ge=0, description="residual 3-D convolution blocks over the query volume")
+    frames: int = Field(1, ge=1, description="images read: the current one and the frames before it the data gives "
+                                             "(VoxFormer-S: 1, VoxFormer-T: 5)")
+    geometry: Literal["proposals", "ground-truth"] = Field(
+        "proposals", description="where the occupied queries come from: a frozen stage-1 model's scores (batch "
+                                 "input `proposal`, from an aux edge) or the dense ground truth at half resolution "
+                                 "(Scribble2Scene's Teacher-Labeler)")
+
+
+def _camera_problems(info: DataInfo, frames: int = 1) -> list[tuple[str, str]]:
+    if not info.cameras:
+        return [("", "the data has no camera (synthetic-lidar: set data.params.camera, e.g. `camera: {}`)")]
+    if frames > len(info.cameras[0].frames):
+        return [("frames", f"{frames} images requested, but the data gives {len(info.cameras[0].frames)} per sample "
+                           "(data.params.camera.previous)")]
+    return []
+
+
+class VoxFormerProposalAdapter(Adapter):
+    """VoxFormer's stage 1: depth from the current image, lifted and completed to half-resolution occupancy."""
+
+    Params = ProposalParams
+    INPUTS = CAMERA_INPUTS
+    TAPS = {"depth": "depth_map", "occupancy": "occupancy_logits"}
+    PREDICTION_TAP = "occupancy"
+    DEFAULT_TASK_LOSSES = [{"name": "occupancy_ce", "weight": 1.0},
+                           {"name": "depth_l1", "weight": 0.1, "params": {"sky_depth": 80.0}}]
+
+    def __init__(self, params: ProposalParams, info: DataInfo) -> None:
+        super().__init__(params, info)
+        self.net = QueryProposal(params.value("widths"), params.value("channels"), params.value("bev_width"),
+                                 info.grid.coarsen(2), params.max_depth)
+
+    def forward(self, batch: Batch) -> dict[str, Any]:
+        b = batch.inputs
+        depth, occupancy = self.net(b["image"][:, 0], b["intrinsics"][:, 0], b["lidar_to_camera"][:, 0])
+        return {"depth": depth, "occupancy": occupancy}
+
+    @classmethod
+    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> VoxelGrid | None:
+        return info.grid.coarsen(2) if tap == "occupancy" and info.grid is not None else None
+
+    @classmethod
+    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
+        return _camera_problems(info)
+
+    @classmethod
+    def describe(cls, params: BaseModel) -> str:
+        return "camera, query proposals"
+
+
+class VoxFormerAdapter(Adapter):
+    """VoxFormer's stage 2: proposed voxel queries read the images by deformable cross-attention; CE (VoxFormer's
+    class weights, mean over valid voxels) + sem_scal + geo_scal (seed_code.md §5)."""
+
+    Params = VoxFormerParams
+    TAPS = {"image_features": "image_features", "query_features": "sparse_features", "logits": "voxel_logits"}
+    PREDICTION_TAP = "logits"
+    DEFAULT_TASK_LOSSES = [{"name": "weighted_ce", "weight": 1.0}, {"name": "sem_scal", "weight": 1.0},
+                           {"name": "geo_scal", "weight": 1.0}]
+
+    def __init__(self, params: VoxFormerParams, info: DataInfo) -> None:
+        super().__init__(params, info)
+        v = params.value
+        self.net = VoxFormerNet(v("widths"), v("channels"), v("heads"), v("points"), params.frames, v("cross_layers"),
+                                v("mix_layers"), info.num_classes, info.grid)
+
+    @classmethod
+    def inputs(cls, params: BaseModel) -> frozenset[str]:
+        geometry = "proposal" if getattr(params, "geometry") == "proposals" else "voxel_target"
+        return CAMERA_INPUTS | {geometry}
+
+    def occupied(self, batch: Batch) -> Any:
+        """(B, X/2, Y/2, Z/2) bool: the queries that read the images."""
+        shape = self.net.query_grid.shape
+        if self.params.geometry == "ground-truth":
+            return pool_occupancy(batch.field("voxel_target").long(), 2, self.info.classes.ignore_index) == 1
+        proposal = batch.field("proposal")
+        if proposal.dim() != 5 or proposal.shape[1] != 2 or tuple(proposal.shape[2:]) != tuple(shape):
+            raise ValueError(f"voxformer: the batch input `proposal` must be (B, 2, {', '.join(map(str, shape))}) "
+                             f"empty/occupied scores (a voxformer-proposal stage through an aux edge), got "
+                             f"{tuple(proposal.shape)}")
+        return proposal.argmax(dim=1) == 1
+
+    def forward(self, batch: Batch) -> dict[str, Any]:
+        frames = self.params.frames
+        b = batch.inputs
+        feats, queries, logits = self.net(b["image"][:, :frames], b["intrinsics"][:, :frames],
+                                          b["lidar_to_camera"][:, :frames], self.occupied(batch))
+        return {"image_features": feats.flatten(1, 2), "query_features": queries, "logits": logits}
+
+    @classmethod
+    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> VoxelGrid | None:
+        if info.grid is None:
+            return None
+        return {"query_features": info.grid.coarsen(2), "logits": info.grid}.get(tap)
+
+    @classmethod
+    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
+        return _camera_problems(info, getattr(params, "frames"))
+
+    @classmethod
+    def describe(cls, params: BaseModel) -> str:
+        frames = int(getattr(params, "frames"))
+        geometry = "ground-truth geometry" if getattr(params, "geometry") == "ground-truth" else "proposals"
+        return f"camera, {frames} image{'s' if frames > 1 else ''}, {geometry}"
+
+
+ADAPTERS.add("voxformer-proposal", VoxFormerProposalAdapter,
+             description="VoxFormer stage 1: depth from the image, lifted, completed to half-resolution occupancy",
+             paper="Li et al., VoxFormer, CVPR 2023 (stage 1, query proposals)",
+             consumes=tuple(VoxFormerProposalAdapter.TAPS.values()))
+ADAPTERS.add("voxformer", VoxFormerAdapter,
+             description="VoxFormer stage 2: voxel queries with deformable cross-attention to the images, 3-D mixing, "
+                         "x2 completion head (geometry: proposals, or ground-truth for the Teacher-Labeler)",
+             paper="Li et al., VoxFormer, CVPR 2023; Wang et al., Scribble2Scene, IJCAI 2024 (Teacher-Labeler)",
+             consumes=tuple(VoxFormerAdapter.TAPS.values()))
