@@ -4,6 +4,7 @@
 
 def register() -> None:
     """Import the adapter modules; each registers itself in ``distilkit.registry.ADAPTERS``."""
+    from distilkit_adapters.dean import adapter as _dean  # noqa: F401
     from distilkit_adapters.js3cnet import adapter as _js3c  # noqa: F401
     from distilkit_adapters.lidiff import adapter as _lidiff  # noqa: F401
     from distilkit_adapters.lidiff import loss as _lidiff_loss  # noqa: F401

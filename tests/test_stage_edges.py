@@ -152,6 +152,10 @@ def test_the_overlay_keeps_the_datas_labelled_values(tmp_path) -> None:
     assert overlay[1]["voxel_label"][:, :, 0].tolist() == [[1, 2], [2, 0]]
     plain = LabelOverlay(samples, PredictionStore(tmp_path / "p"), "voxel_label", None, 255, 254)
     assert plain[0]["voxel_label"][:, :, 0].tolist() == [[2, 2], [2, 2]]
+    # a voxel the data itself leaves unlabelled (its ignore index) stays so: the prediction cannot label it
+    ignored = [{**samples[0], "voxel_label": np.array([[[255], [0]], [[0], [0]]], np.uint8)}]
+    assert LabelOverlay(ignored, PredictionStore(tmp_path / "p"), "voxel_label", None, 255, 254)[0][
+        "voxel_label"][:, :, 0].tolist() == [[255, 2], [2, 2]]
     with pytest.raises(Exception, match="no prediction for sample 'other/0'"):
         LabelOverlay([{**samples[0], "sample_id": "other/0"}], PredictionStore(tmp_path / "p"), "voxel_label",
                      None, 255, 254)[0]

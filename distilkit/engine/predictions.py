@@ -90,7 +90,8 @@ def is_published(folder: Path) -> bool:
 
 
 class LabelOverlay(torch.utils.data.Dataset):
-    """Samples of ``dataset`` whose ``field`` is the published prediction, except where ``keep`` is labelled."""
+    """Samples of ``dataset`` whose ``field`` is the published prediction, except where ``keep`` is labelled (its
+    value wins) and where the data's own ``field`` is the ignore index (it stays ignored: no label to replace)."""
 
     def __init__(self, dataset: Any, store: PredictionStore, field: str, keep: str | None, ignore_index: int,
                  unlabelled: int | None) -> None:
@@ -108,6 +109,8 @@ class LabelOverlay(torch.utils.data.Dataset):
             raise DataError(f"sample {sample['sample_id']!r}: the published prediction has shape {pred.shape}, the "
                             f"data's {self.field!r} {np.shape(own)}")
         label = pred.astype(own.dtype if own is not None else pred.dtype)
+        if own is not None:  # what the data itself cannot label (its ignore index) stays unlabelled
+            label = np.where(np.asarray(own) == self.ignore_index, own, label).astype(label.dtype)
         if self.keep is not None:
             data = np.asarray(sample[self.keep])
             labelled = data != self.ignore_index

@@ -16,32 +16,64 @@ from distilkit.metrics.ssc import SSCMetric
 from distilkit.registry import METRICS
 
 
+def range_key(r: float) -> str:
+    """The score-key suffix of a range: 12.8 -> ``12_8m`` (keys hold no dots: ``train.metric`` splits on them)."""
+    return f"{r:g}".replace(".", "_") + "m"
+
+
+def range_box(grid: Any, r: float) -> Tensor:
+    """(X, Y, Z) bool: the voxels whose centres lie in VoxFormer's evaluation box of range ``r`` in front of the
+    sensor, x in [0, r) and y in [-r/2, r/2) metres (z uncropped; data_metrics.md §2.4)."""
+    import torch
+
+    x = grid.origin[0] + (torch.arange(grid.shape[0]) + 0.5) * grid.voxel_size
+    y = grid.origin[1] + (torch.arange(grid.shape[1]) + 0.5) * grid.voxel_size
+    inside = ((x >= 0) & (x < r))[:, None] & ((y >= -r / 2) & (y < r / 2))[None, :]
+    return inside[:, :, None].expand(*grid.shape)
+
+
 class SSCScore(Metric):
     """Voxel logits scored as SemanticKITTI SSC: the argmax class per voxel against ``voxel_label``, voxels
     flagged ``invalid`` left out, one confusion matrix over the split."""
 
     SCORES = "voxel_logits"
     TARGETS = frozenset({"voxel_label", "invalid"})
-    KEYS = ("miou", "iou", "precision", "recall")
+    RANGES = (12.8, 25.6)  # VoxFormer's inner boxes; the whole grid (51.2 m on SemanticKITTI) is miou / iou
+    KEYS = ("miou", "iou", "precision", "recall", *(f"{s}_{range_key(r)}" for r in RANGES for s in ("miou", "iou")))
     TITLE = "SSC metrics in %"
     COLUMNS = (("miou", "mIoU", 100.0), ("iou", "IoU", 100.0), ("precision", "precision", 100.0),
-               ("recall", "recall", 100.0))
+               ("recall", "recall", 100.0),
+               *((f"{s}_{range_key(r)}", f"{name} {r:g} m", 100.0) for r in RANGES
+                 for s, name in (("miou", "mIoU"), ("iou", "IoU"))))
     PER_CLASS, PER_CLASS_FROM = ("class_iou", "IoU", 100.0), 1  # classes 1..K-1 (0 = empty is not semantic)
 
     def __init__(self, info: DataInfo) -> None:
         super().__init__(info)
         self.acc = SSCMetric(info.num_classes, info.classes.ignore_index)
+        self.ranges = {range_key(r): SSCMetric(info.num_classes, info.classes.ignore_index) for r in self.RANGES}
 
     def update(self, prediction: Tensor, batch: Batch) -> None:
-        self.acc.update(prediction.argmax(dim=1).cpu(), batch.targets["voxel_label"].cpu(),
-                        batch.targets["invalid"].cpu())
+        pred = prediction.argmax(dim=1).cpu()
+        target, invalid = batch.targets["voxel_label"].cpu(), batch.targets["invalid"].cpu()
+        self.acc.update(pred, target, invalid)
+        grid = self.info.grid
+        if grid is None or tuple(grid.shape) != tuple(target.shape[1:]):
+            return
+        for r in self.RANGES:
+            outside = ~range_box(grid, r)
+            self.ranges[range_key(r)].update(pred, target, invalid | outside)
 
     def compute(self) -> dict[str, Any]:
-        return self.acc.compute()
+        out = self.acc.compute()
+        for key, acc in self.ranges.items():
+            scores = acc.compute()
+            out.update({f"miou_{key}": scores["miou"], f"iou_{key}": scores["iou"]})
+        return out
 
     @classmethod
     def preview(cls, prediction: Tensor, batch: Batch, info: DataInfo) -> dict[str, Any] | None:
-        """The first scene from above: its current input scan, the predicted and the true class per column."""
+        """The first scene from above: its current input scan (a camera model: its current image), the predicted and
+        the true class per column."""
         if info.grid is None:
             return None
         g = info.grid
@@ -50,7 +82,9 @@ class SSCScore(Metric):
             "target": top_class(batch.targets["voxel_label"][0], info.classes.ignore_index),
             "extent": np.array([g.origin[0], g.origin[0] + g.shape[0] * g.voxel_size,
                                 g.origin[1], g.origin[1] + g.shape[1] * g.voxel_size], dtype=np.float32)}
-        if "points" in batch.inputs and "point_batch" in batch.inputs:
+        if "image" in batch.inputs:  # a camera model: its current image beside the views from above
+            out["input"] = (batch.inputs["image"][0, 0].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().cpu().numpy()
+        elif "points" in batch.inputs and "point_batch" in batch.inputs:
             first = batch.inputs["point_batch"] == 0
             if "point_frame" in batch.inputs:
                 first &= batch.inputs["point_frame"] == 0

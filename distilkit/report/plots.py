@@ -108,8 +108,13 @@ def task_loss(terms: dict[str, tuple[list[int], list[float]]]) -> dict[str, tupl
 
 def bev_panel(ax: Any, value: np.ndarray, extent: np.ndarray, colours: np.ndarray, title: str) -> None:
     """One bird's-eye panel: a class-id image (x forward up, y left to the left) or a point cloud coloured by
-    height."""
+    height; or an (H, W, 3) camera image as it is."""
     x0, x1, y0, y1 = (float(v) for v in extent)
+    if value.ndim == 3 and value.shape[-1] == 3:  # a camera image, shown as the camera saw it
+        ax.imshow(value, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        ax.set_axis_off()
+        return
     if value.ndim == 2 and np.issubdtype(value.dtype, np.integer):
         rgb = np.ones(value.shape + (3,), dtype=np.float32)  # white where nothing is
         known = (value >= 0) & (value < len(colours))
@@ -145,8 +150,9 @@ def bev_row(axes: list[Any], preview: dict[str, np.ndarray], title: str = "") ->
     colours = preview.get("class_colours", np.zeros((0, 3)))
     for ax, key in zip(axes, ("input", "prediction", "target")):
         if key in preview:
-            bev_panel(ax, preview[key], preview["extent"], colours,
-                      f"{title}{'input scan' if key == 'input' else key if key == 'prediction' else 'ground truth'}")
+            name = {"input": "input image" if preview[key].ndim == 3 else "input scan", "prediction": "prediction",
+                    "target": "ground truth"}[key]
+            bev_panel(ax, preview[key], preview["extent"], colours, f"{title}{name}")
         else:
             ax.set_axis_off()
 

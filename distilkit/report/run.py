@@ -101,7 +101,7 @@ def write_run_report(run_dir: str | Path) -> Path:
         plots.save(fig, path / "bev.png")
         lines += ["## A validation scene from above", "",
                   f"The first validation scene at the best checkpoint (step {int(preview.get('step', -1))}): the input "
-                  "scan, the prediction and the ground truth, seen from above (voxels: the class of the highest "
+                  "(scan, or a camera model's image), the prediction and the ground truth, seen from above (voxels: the class of the highest "
                   "occupied voxel of each column, in the dataset's colours; points: coloured by height).", "",
                   "![input, prediction and ground truth from above](bev.png)", ""]
     atomic_write_text(path / "report.md", "\n".join(lines))

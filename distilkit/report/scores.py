@@ -54,6 +54,9 @@ class ScoreView:
                    metric.PER_CLASS, metric.PER_CLASS_FROM, spec["key"] in metric.LOWER_IS_BETTER)
 
     def fmt(self, column: tuple[str, str, float], value: float) -> str:
+        """A score as shown; a score the summary lacks (written before its metric reported it) as "—"."""
+        if value != value:  # NaN
+            return "—"
         return f"{column[2] * value:.2f}" if column[2] != 1.0 else f"{value:.4g}"
 
 
