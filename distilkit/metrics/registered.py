@@ -16,6 +16,17 @@ from distilkit.metrics.ssc import SSCMetric
 from distilkit.registry import METRICS
 
 
+def camera_image(batch: Batch) -> np.ndarray | None:
+    """The batch's first RGB image as (H, W, 3) uint8 (``image`` (B, T, 3, H, W) or (B, 3, H, W), 0..1), or None."""
+    image = batch.inputs.get("image")
+    if image is None or image.dim() not in (4, 5):
+        return None
+    first = image[0, 0] if image.dim() == 5 else image[0]
+    if first.shape[0] != 3:
+        return None
+    return (first.permute(1, 2, 0).clamp(0, 1) * 255).round().byte().cpu().numpy()
+
+
 def range_key(r: float) -> str:
     """The score-key suffix of a range: 12.8 -> ``12_8m`` (keys hold no dots: ``train.metric`` splits on them)."""
     return f"{r:g}".replace(".", "_") + "m"
@@ -82,8 +93,9 @@ class SSCScore(Metric):
             "target": top_class(batch.targets["voxel_label"][0], info.classes.ignore_index),
             "extent": np.array([g.origin[0], g.origin[0] + g.shape[0] * g.voxel_size,
                                 g.origin[1], g.origin[1] + g.shape[1] * g.voxel_size], dtype=np.float32)}
-        if "image" in batch.inputs:  # a camera model: its current image beside the views from above
-            out["input"] = (batch.inputs["image"][0, 0].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().cpu().numpy()
+        image = camera_image(batch)
+        if image is not None:  # a camera model: its (current) image beside the views from above
+            out["input"] = image
         elif "points" in batch.inputs and "point_batch" in batch.inputs:
             first = batch.inputs["point_batch"] == 0
             if "point_frame" in batch.inputs:
