@@ -247,6 +247,13 @@ class DataSpec(_Strict):
     params: dict[str, Any] = Field(default_factory=dict, description="the dataset's parameters")
 
 
+class ReportSpec(_Strict):
+    """How the recipe's report shows its stages beyond the results table."""
+
+    per_class: bool = Field(False, description="also print and write the papers' layout: one row per stage, its "
+                                               "scores and then every class's score (best checkpoint, test split)")
+
+
 class Recipe(_Strict):
     """A distilkit recipe: data and named stages, run in dependency order."""
 
@@ -255,6 +262,7 @@ class Recipe(_Strict):
     seed: int = 0
     data: DataSpec = Field(default_factory=DataSpec)
     stages: dict[str, StageSpec] = Field(..., min_length=1)
+    report: ReportSpec = Field(default_factory=ReportSpec)
 
     @field_validator("stages")
     @classmethod

@@ -214,6 +214,11 @@ def _grid_text(grid: Any) -> str:
     return f"{shape}" + (f" of {size:g} m voxels" if size is not None else "")
 
 
+def _camera_text(camera: Any) -> str:
+    frames = ", ".join(str(f) for f in camera.frames)
+    return f"{camera.name!r} ({camera.size[0]}x{camera.size[1]} pixels, frame{'s' if len(camera.frames) > 1 else ''} {frames})"
+
+
 def alignment_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedModel | None], info: Any,
                        path: str) -> list[tuple[str, str]]:
     """Student/teacher tap pairs that cannot be aligned, known from the adapters' declarations: sparse
@@ -235,9 +240,10 @@ def alignment_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedMode
             where = f"{term.name}: student tap {s_tap!r} ({s_model.adapter}) and teacher tap {tap!r} ({t_model.adapter})"
             s_cam = s_model.cls.tap_camera(s_tap, s_model.params, info)
             t_cam = t_model.cls.tap_camera(tap, t_model.params, info)
-            if s_cam is not None and t_cam is not None and s_cam.name != t_cam.name:
-                out.append((f"{path}[{i}]", f"{where} see through cameras {s_cam.name!r} and {t_cam.name!r}: image "
-                                            "features of different cameras cannot be compared pixel by pixel"))
+            if s_cam is not None and t_cam is not None and s_cam != t_cam:
+                out.append((f"{path}[{i}]", f"{where} see through cameras {_camera_text(s_cam)} and "
+                                            f"{_camera_text(t_cam)}: image features of different cameras (or frames) "
+                                            "cannot be compared pixel by pixel"))
             s_grid = s_model.cls.tap_grid(s_tap, s_model.params, info)
             t_grid = t_model.cls.tap_grid(tap, t_model.params, info)
             if s_grid is None or t_grid is None:

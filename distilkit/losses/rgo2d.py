@@ -106,8 +106,9 @@ def range_regions(shape: Sequence[int], kind: str = "boxes", device: torch.devic
 
 def rgo2d(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, mask: Tensor,
           regions: str | Sequence[Tensor] = "boxes", region_weights: Sequence[float] = (0.06, 0.15, 0.20),
-          inter: float = 2.625, intra: float = 0.375, ignore_index: int = 255) -> Tensor:
-    """Scribble2Scene eq. 2-4 without the image-feature term: sum_r w_r (global_r + local_r).
+          inter: float = 2.625, intra: float = 0.375, ignore_index: int = 255, local: float = 1.0) -> Tensor:
+    """Scribble2Scene eq. 2-4 without the image-feature term: sum_r w_r (global_r + local * local_r) (``local`` = 1
+    in the paper; 0 gives Table 6's global-only ablation, ``inter = intra = 0`` the local-only one).
 
     ``regions``: ``"boxes"`` (default, the authors' nested boxes), ``"rings"``, or a list of bool
     masks of shape (*S) or (B, *S), one per weight. The occupied voxels of all regions are gathered
@@ -136,5 +137,5 @@ def rgo2d(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, mask: 
         for w, inside in zip(region_weights, rows):
             out = _terms(ys[inside], yt[inside], lab[inside], inter, intra, ignore_index)
             if out is not None:
-                total = total + w * (out[0] + out[1]) / b
+                total = total + w * (out[0] + local * out[1]) / b
     return total

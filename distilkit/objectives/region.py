@@ -41,6 +41,8 @@ class RGO2DParams(BaseModel):
     region_weights: tuple[float, float, float] = (0.06, 0.15, 0.20)
     inter: float = 2.625
     intra: float = 0.375
+    local: float = Field(1.0, ge=0, description="weight of the local (affinity) term in each region (Table 6 "
+                                                "ablations: 0 = global only; inter = intra = 0: local only)")
     feature_weight: float = Field(0.6, ge=0, description="weight of the image-feature MSE (with feature taps)")
 
 
@@ -62,7 +64,7 @@ class RGO2D(MultiTapObjective):
         p = self.params
         labels, occupied = taps["labels"], geometry(taps["target"], self.ignore_index)
         loss = rgo2d(taps["student"], taps["teacher"], labels, occupied, p.regions, p.region_weights, p.inter, p.intra,
-                     self.ignore_index)
+                     self.ignore_index, p.local)
         feat = _feature_term(taps)
         return loss if feat is None else loss + p.feature_weight * feat
 

@@ -53,6 +53,48 @@ def results_table(results: list[Any]) -> Any:
     return tables[0] if len(tables) == 1 else Group(*tables)
 
 
+def class_rows(rows: list[dict[str, Any]], members: list[int], view: ScoreView,
+               class_names: tuple[str, ...]) -> tuple[list[str], list[list[str]]]:
+    """The papers' layout of one metric's stages: header and rows of the stage, every score column but the selection
+    key's runners-up, then each class's score (best checkpoint)."""
+    assert view.per_class is not None
+    scores = [c for c in view.columns if c[0] not in ("precision", "recall")]
+    names = class_names[view.first_class:]
+    head = ["stage", *(c[1] for c in scores), *names]
+    out = []
+    for i in members:
+        row = rows[i]
+        classes = row["class_scores"]
+        out.append([row["label"], *(view.fmt(c, row["best"][c[0]]) for c in scores),
+                    *(f"{view.per_class[2] * classes[c]:.1f}" if len(classes) > c else "—" for c in range(len(names)))])
+    return head, out
+
+
+def class_tables(results: list[Any], class_names: tuple[str, ...]) -> tuple[Any, list[str]]:
+    """The per-class tables (``report: {per_class: true}``) as a rich renderable (a column per stage) and as
+    Markdown lines (the papers' layout: a row per stage)."""
+    from rich.console import Group
+    from rich.table import Table
+
+    rows = [stage_row(r.summary) for r in results]
+    tables, lines = [], []
+    for view, members in _groups(rows):
+        if view.per_class is None:
+            continue
+        head, body = class_rows(rows, members, view, class_names)
+        title = f"{rows[members[0]]['split']} split, {view.per_class[1]} per class (best checkpoint), {view.title}"
+        table = Table(title=title)  # the console's: one column per stage (the papers' rows would not fit its width)
+        table.add_column("score / class")
+        for cells in body:
+            table.add_column(cells[0], justify="right")
+        for j, name in enumerate(head[1:], 1):
+            table.add_row(name, *(cells[j] for cells in body))
+        tables.append(table)
+        lines += [f"## {title[0].upper()}{title[1:]}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        lines += ["| " + " | ".join(cells) + " |" for cells in body] + [""]
+    return Group(*tables), lines
+
+
 def _seeds(default: int, results: list[Any]) -> str:
     """'Seed 0', or each stage's seed when stages have their own."""
     seeds = {r.name: r.summary.get("seed", default) for r in results}
@@ -87,6 +129,10 @@ def write_report(pipeline: Any, results: list[Any]) -> Path:
                         for i in members]
                 lines.append(f"| {cname} | " + " | ".join(vals) + " |")
             lines.append("")
+    if pipeline.recipe.report.per_class:
+        renderable, class_lines = class_tables(results, pipeline.resolved.data_info.class_names)
+        pipeline.console.print(renderable)
+        lines += class_lines
     lines += [f"![training loss and validation {groups[0][0].main[1] if groups else 'score'}](report.png)", ""]
     atomic_write_text(root / "report.md", "\n".join(lines))
     try:

@@ -9,13 +9,14 @@ and points, a stride-16 encoder); any single field given overrides the preset.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
-from distilkit.data.info import DataInfo
+from distilkit.data.info import Camera, DataInfo
 from distilkit.geometry.voxel import pool_occupancy
 from distilkit.registry import ADAPTERS
 from distilkit.structures import VoxelGrid
@@ -151,6 +152,14 @@ class VoxFormerAdapter(Adapter):
         if info.grid is None:
             return None
         return {"query_features": info.grid.coarsen(2), "logits": info.grid}.get(tap)
+
+    @classmethod
+    def tap_camera(cls, tap: str, params: BaseModel, info: DataInfo) -> Camera | None:
+        """The data's camera with the frames the model reads: image features of one frame and of five are not one
+        camera's (``validate`` refuses to compare them)."""
+        if tap != "image_features" or not info.cameras:
+            return None
+        return dataclasses.replace(info.cameras[0], frames=info.cameras[0].frames[:getattr(params, "frames")])
 
     @classmethod
     def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
