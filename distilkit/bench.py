@@ -388,10 +388,46 @@ def loader_cases(device: torch.device, quick: bool) -> list[Case]:
     return [Case("loader: 2 workers vs none", size, lambda: run(2), lambda: run(0), [], same_value=False)]
 
 
+def camera_cases(device: torch.device, quick: bool) -> list[Case]:
+    """One training step of recipes/scribble2scene.yaml's camera student (VoxFormer-style, tiny, 2 images, frozen
+    query proposals; batch 4 on its 64 x 64 x 8 grid, the quick mode 32 x 32 x 4) with RGO²D from the
+    Teacher-Labeler and the image-feature MSE ('naive') and without distillation ('fast'): what distilling costs.
+    Models have random weights (the step's cost does not depend on them)."""
+    import tempfile
+
+    from distilkit.data.probe import _one_scene
+    from distilkit.engine.probe import probe_trainer
+    from distilkit.engine.resolve import resolve
+    from distilkit.recipe import recipe_from_dict
+
+    data = {"dataset": "synthetic-lidar", "params": {"scale": 8 if quick else 4, "input_frames": 1, "gt_frames": 10,
+                                                     "camera": {"previous": [3]}}}
+    student = {"model": {"adapter": "voxformer", "params": {"frames": 2}}, "aux": {"proposal": {"from": "proposal"}},
+               "task_losses": [{"name": "weighted_ce"}, {"name": "geo_scal"}],
+               "train": {"batch_size": 4, "device": device.type}}
+    features = {"student_features": "image_features", "teacher_features": "image_features"}
+    stages = {"proposal": {"model": {"adapter": "voxformer-proposal"}, "train": {"metric": "iou"}},
+              "teacher_labeler": {"model": {"adapter": "voxformer", "params": {"geometry": "ground-truth",
+                                                                               "frames": 2}}},
+              "plain": student,
+              "rgo2d": {**student, "teacher": {"from": "teacher_labeler"},
+                        "distill": [{"name": "rgo2d", "taps": features}]}}
+    res = resolve(recipe_from_dict({"name": "bench", "data": data, "stages": stages}, "bench"), "bench")
+    params = _one_scene(res.data_params).model_copy(update={"num_train": 4})
+    steps = {}
+    for name in ("plain", "rgo2d"):
+        trainer = probe_trainer(res, name, params, Path(tempfile.mkdtemp(prefix="distilkit-bench-")), batch_size=4)
+        batch = trainer.first_batch()
+        trainer.student.train()
+        steps[name] = lambda trainer=trainer, batch=batch: torch.tensor(trainer.train_step(batch, 0)["loss"])
+    size = f"train step, batch 4, 2 images, {'x'.join(map(str, res.data_info.grid.shape))}"
+    return [Case("camera student: no KD vs RGO²D", size, steps["plain"], steps["rgo2d"], [], same_value=False)]
+
+
 BENCHES: dict[str, Callable[[torch.device, bool], list[Case]]] = {
     "dskd": dskd_cases, "pkt": pkt_cases, "rgo2d": rgo2d_cases, "kd": kd_cases, "nst": nst_cases,
     "structural": structural_cases, "sampler": sampler_cases, "determinism": determinism_cases,
-    "loader": loader_cases}
+    "loader": loader_cases, "camera": camera_cases}
 
 
 def _fmt_mem(b: int | None) -> str:

@@ -223,3 +223,11 @@ def test_bench_loader_times_the_same_steps_with_and_without_workers(capsys) -> N
     (row,) = run_bench(["loader"], quick=True, repeat=1)
     assert "loader: 2 workers vs none" in capsys.readouterr().out
     assert row["fast_ms"] > 0 and row["naive_ms"] > 0 and math.isfinite(row["value"])
+
+
+def test_bench_camera_times_the_camera_student_with_and_without_rgo2d(capsys) -> None:
+    from distilkit.bench import run_bench
+
+    (row,) = run_bench(["camera"], quick=True, repeat=1)
+    assert "camera student: no KD vs RGO²D" in capsys.readouterr().out
+    assert row["fast_ms"] > 0 and row["naive_ms"] > 0 and math.isfinite(row["value"])
