@@ -112,3 +112,21 @@ def test_vsd_gradient_is_the_formula_and_not_zero_unlike_the_released_form() -> 
     assert x0.grad.abs().max() == 0  # exactly zero: the term the paper describes does nothing there
     with pytest.raises(ValueError, match="one shape"):
         L.vsd(x0, e_t[:10], e_a)
+
+
+def test_distillation_dpo_moves_the_winner_like_vsd_and_the_loser_the_other_way() -> None:
+    """Distillation-DPO's intended generator gradient (issue 18): exact for both completions, and none reaches the
+    four noise predictions (the released loss's gradient is 0, as ScoreLiDAR's)."""
+    win, lose = cloud(30, 20).requires_grad_(), cloud(30, 21).requires_grad_()
+    preds = [cloud(30, s).requires_grad_() for s in (22, 23, 24, 25)]
+    e_tw, e_aw, e_tl, e_al = preds
+    w = torch.tensor([[[0.5]], [[2.0]]], dtype=torch.float64)  # w(t) per scene
+    win2, lose2 = win.expand(2, -1, -1), lose.expand(2, -1, -1)
+    loss = L.distillation_dpo(win2, lose2, *(p.expand(2, -1, -1) for p in preds), weight=w)
+    loss.backward()
+    n = win2.numel()
+    assert torch.allclose(win.grad, (w * (e_tw - e_aw)).sum(0) / n, rtol=0, atol=1e-15)
+    assert torch.allclose(lose.grad, -(w * (e_tl - e_al)).sum(0) / n, rtol=0, atol=1e-15)
+    assert all(p.grad is None for p in preds) and win.grad.abs().max() > 0
+    with pytest.raises(ValueError, match="same scans"):
+        L.distillation_dpo(win, lose[:10], e_tw, e_aw, e_tl, e_al)

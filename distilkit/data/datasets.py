@@ -189,7 +189,8 @@ def _kitti_factory(params: SemanticKittiParams, split: str, progress: Any = None
 
 DATASETS.add(
     "synthetic-lidar", _synthetic_factory,
-    description="procedural street scenes, ray-cast LiDAR scans, multi-frame input and SSC ground truth (cached on disk)",
+    description="procedural street scenes, ray-cast LiDAR scans, multi-frame input, SSC ground truth and scribbles; "
+                "with `camera` also a KITTI-like camera's images, depth and calibration (cached on disk)",
     paper="distilkit (SemanticKITTI conventions, Behley et al. ICCV 2019)",
     params=SyntheticParams, info=synthetic_info, collate=collate_street, version=GENERATOR_VERSION,
     has_split=lambda p, split: True, probe=grid_plan,

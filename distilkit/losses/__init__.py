@@ -9,6 +9,7 @@ map without its class dimension.
 """
 
 from distilkit.losses.cleaners import cleaners
+from distilkit.losses.dpo import distillation_dpo
 from distilkit.losses.dskd import dskd
 from distilkit.losses.feature import fitnet, nst, pkt
 from distilkit.losses.logit import dist, kd
@@ -24,4 +25,4 @@ from distilkit.losses.vsd import vsd
 __all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "pvkd", "pvkd_affinity", "supervoxel_ids", "mgd", "cleaners",
            "rgo2d_region", "rgo2d", "cross_entropy", "lovasz_softmax", "vsd", "scene_wise", "point_wise", "curvature",
            "select_keypoints", "structural", "weighted_ce", "partial_ce", "geo_scal", "sem_scal", "log_frequency_weights",
-           "depth_l1", "occupancy_ce"]
+           "depth_l1", "occupancy_ce", "distillation_dpo"]
