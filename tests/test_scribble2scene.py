@@ -82,7 +82,7 @@ def test_the_cross_modal_pairs_train(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_the_shipped_scribble2scene_recipe_at_its_default_scale(tmp_path: Path) -> None:
-    """`distilkit run recipes/scribble2scene.yaml` unchanged (about 6 minutes on a 2-core CPU with its data): the
+    """`distilkit run recipes/scribble2scene.yaml` unchanged (about 7 minutes on a 2-core CPU with its data): the
     Teacher-Labeler, which proposes the true geometry, beats the camera-only student on IoU."""
     assert main(["run", str(ROOT / "recipes" / "scribble2scene.yaml"), "-o", str(tmp_path), "-q"]) == 0
     done = summaries(tmp_path)
