@@ -27,7 +27,6 @@ from distilkit.structures import VoxelGrid
 from distilkit.registry import DATASETS
 
 
-CAMERA_ARRAYS = ("image", "depth", "intrinsics", "lidar_to_camera")  # per sample, stacked on the first axis
 
 
 class ArrayDataset(torch.utils.data.Dataset):
@@ -49,7 +48,7 @@ class ArrayDataset(torch.utils.data.Dataset):
             "voxel_label": self.a["voxel_label"][i],
             "invalid": self.a["invalid"][i],
             **({"scribble": self.a["scribble"][i]} if "scribble" in self.a else {}),
-            **{k: self.a[k][i] for k in CAMERA_ARRAYS if k in self.a},
+            **{k: self.a[k][i] for k in CAMERA_FIELDS if k in self.a},  # the camera's arrays bear its fields' names
         }
 
 

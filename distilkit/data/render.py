@@ -91,13 +91,10 @@ def make_camera_sample(seed: int, p: SyntheticParams) -> dict[str, np.ndarray]:
     cp = p.camera
     _, scene, ego = street(seed, p)
     rng = np.random.default_rng([seed, 0xCA])  # the images' own stream: the scans' draws are untouched
-    images, depth = [], None
-    for frame in frame_offsets(cp):
-        image, d = render(scene, ego, frame, cp, p.ego_speed, rng)
-        images.append(image)
-        depth = d if frame == 0 else depth
+    views = [render(scene, ego, frame, cp, p.ego_speed, rng) for frame in frame_offsets(cp)]  # current frame first
+    images = [image for image, _ in views]
     k = intrinsics(cp).astype(np.float32)
-    return {"image": np.stack(images), "depth": depth,
+    return {"image": np.stack(images), "depth": views[0][1],
             "intrinsics": np.stack([k] * len(images)),
             "lidar_to_camera": np.stack([lidar_to_camera(-f, p.ego_speed) for f in frame_offsets(cp)]).astype(np.float32)}
 

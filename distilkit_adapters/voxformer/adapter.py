@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
+from distilkit.data.camera import CAMERA_INPUTS
 from distilkit.data.info import Camera, DataInfo
 from distilkit.geometry.voxel import pool_occupancy
 from distilkit.registry import ADAPTERS
@@ -23,7 +24,6 @@ from distilkit.structures import VoxelGrid
 from distilkit_adapters.voxformer.model import VoxFormerNet
 from distilkit_adapters.voxformer.proposal import QueryProposal
 
-CAMERA_INPUTS = frozenset({"image", "intrinsics", "lidar_to_camera"})
 SIZES: dict[str, dict[str, Any]] = {
     "tiny": {"widths": [8, 16, 32], "channels": 16, "heads": 2, "points": 4, "cross_layers": 2, "mix_layers": 1,
              "bev_width": 16},
