@@ -1,4 +1,5 @@
-"""The LiDiff adapter: LiDiff's forward process and loss, a DDIM sampler of any number of steps, and a run."""
+"""The LiDiff adapter: LiDiff's forward process and loss, its two samplers (DDIM, diffusers' SDE-DPM-Solver++) of any
+number of steps against naive forms of their formulas, and a run."""
 
 from __future__ import annotations
 
@@ -32,7 +33,8 @@ def test_schedule_is_lidiffs() -> None:
     abar = np.cumprod(1 - betas)
     assert np.allclose(m.alphas_cumprod.double().numpy(), abar, rtol=1e-6)
     assert abar[-1] == pytest.approx(0.0294, abs=5e-4)  # x_T is not pure noise (seed_code.md §3.1)
-    assert m.timesteps(1) == [999] and m.timesteps(4) == [999, 666, 333, 0]
+    assert m.timesteps(1) == [999] and m.timesteps(4) == [999, 749, 499, 249]
+    assert model(sampler="dpm-solver++").timesteps(4) == [999, 749, 500, 250]  # diffusers 0.18 linspace
 
 
 def test_training_forward_noises_the_scene_with_local_noise() -> None:
@@ -68,6 +70,114 @@ def test_ddim_with_an_oracle_denoiser_returns_the_scene_in_any_number_of_steps(s
     m.net.forward = lambda x_t, t, c: (x_t - target) / (1 - m.alphas_cumprod[t]).sqrt()[:, None, None]  # type: ignore
     out = m.sample(scan, steps=steps, generator=torch.Generator().manual_seed(1))
     assert torch.allclose(out, target, atol=1e-4)
+
+
+@pytest.mark.parametrize("sampler", ["ddim", "dpm-solver++"])
+@pytest.mark.parametrize("steps", [1, 2, 8, 50])
+def test_n_steps_are_n_network_evaluations_none_at_t_zero(sampler: str, steps: int) -> None:
+    m = model(sampler=sampler, duplicate=2)
+    seen: list[int] = []
+    m.net.forward = lambda x_t, t, c: seen.append(int(t[0])) or torch.zeros_like(x_t)  # type: ignore
+    m.sample(torch.randn(1, 8, 3), steps=steps, guidance=1.0, generator=torch.Generator().manual_seed(0))
+    assert len(seen) == steps and len(set(seen)) == steps and min(seen) > 0 and seen[0] == 999
+    seen.clear()
+    m.sample(torch.randn(1, 8, 3), steps=steps, guidance=6.0, generator=torch.Generator().manual_seed(0))
+    assert len(seen) == 2 * steps  # guidance: a conditional and an unconditional call per step
+
+
+def _toy_eps(x: np.ndarray, t: int) -> np.ndarray:
+    """A network stand-in that depends on the input and the timestep (float64)."""
+    return np.tanh(0.7 * x + 0.001 * t) - 0.2 * x
+
+
+def _naive_ddim(x: np.ndarray, abar: np.ndarray, steps: int) -> np.ndarray:
+    T = len(abar)
+    ts = [round(T * (steps - i) / steps) - 1 for i in range(steps)]
+    for i, t in enumerate(ts):
+        e = _toy_eps(x, t)
+        x0 = x - np.sqrt(1 - abar[t]) * e
+        x = x0 if i == steps - 1 else x0 + np.sqrt(1 - abar[ts[i + 1]]) * e
+    return x
+
+
+def _naive_sde_dpmsolver_pp(x: np.ndarray, abar: np.ndarray, steps: int, noises: list[np.ndarray]) -> np.ndarray:
+    """diffusers 0.18 DPMSolverMultistepScheduler(sde-dpmsolver++, order 2, midpoint, lower_order_final), written
+    out from its formulas in float64."""
+    T = len(abar)
+    ts = list(np.linspace(0, T - 1, steps + 1).round()[::-1][:-1].astype(int))
+    alpha, sigma = np.sqrt(abar), np.sqrt(1 - abar)
+    lam = np.log(alpha) - np.log(sigma)
+    outputs: list[np.ndarray] = []
+    lower = 0
+    for i, s in enumerate(ts):
+        t = 0 if i == len(ts) - 1 else ts[i + 1]
+        m0 = (x - sigma[s] * _toy_eps(x, s)) / alpha[s]
+        outputs.append(m0)
+        h = lam[t] - lam[s]
+        first = lower < 1 or (i == len(ts) - 1 and len(ts) < 15)
+        x_t = sigma[t] / sigma[s] * np.exp(-h) * x + alpha[t] * (1 - np.exp(-2 * h)) * m0 \
+            + sigma[t] * np.sqrt(1 - np.exp(-2 * h)) * noises[i]
+        if not first:
+            s1 = ts[i - 1]
+            r0 = (lam[s] - lam[s1]) / h
+            x_t = x_t + 0.5 * alpha[t] * (1 - np.exp(-2 * h)) * (m0 - outputs[-2]) / r0
+        lower = min(lower + 1, 2)
+        x = x_t
+    return x
+
+
+@pytest.mark.parametrize("steps", [1, 2, 3, 8, 20])
+def test_samplers_equal_their_naive_forms(steps: int) -> None:
+    from distilkit_adapters.lidiff.sampler import ddim, ddim_timesteps, dpm_timesteps, sde_dpmsolver_pp
+
+    abar = np.cumprod(1 - np.linspace(3.5e-5, 0.007, 1000))
+    abar_t = torch.from_numpy(abar)
+    x = np.random.default_rng(steps).normal(size=(5, 3))
+    eps = lambda x_t, t: torch.from_numpy(_toy_eps(x_t.numpy(), t))  # noqa: E731
+    got = ddim(eps, torch.from_numpy(x), (1 - abar_t).sqrt(), ddim_timesteps(steps, 1000))
+    assert np.allclose(got.numpy(), _naive_ddim(x, abar, steps), atol=1e-12)
+    gen = torch.Generator().manual_seed(3)
+    noises = [torch.randn((5, 3), generator=gen, dtype=torch.float64).numpy() for _ in range(steps)]
+    got = sde_dpmsolver_pp(eps, torch.from_numpy(x), abar_t, dpm_timesteps(steps, 1000),
+                           torch.Generator().manual_seed(3))
+    assert np.allclose(got.numpy(), _naive_sde_dpmsolver_pp(x, abar, steps, noises), atol=1e-10)
+
+
+def test_dpm_solver_runs_on_the_offset_from_the_duplicated_scan() -> None:
+    """LiDiff's loop: the network sees x_init + offset, the solver steps the offset; with eps_hat = 0 one step from
+    t = 999 to t = 0 maps the offset to alpha_0 / alpha_999 times itself (VP formulas) plus SDE noise."""
+    m = model(sampler="dpm-solver++", duplicate=2)
+    scan = torch.randn(1, 8, 3)
+    seen = {}
+    m.net.forward = lambda x_t, t, c: seen.update(x=x_t.clone()) or torch.zeros_like(x_t)  # type: ignore
+    out = m.sample(scan, steps=1, guidance=1.0, generator=torch.Generator().manual_seed(0))
+    gen = torch.Generator().manual_seed(0)
+    noise = torch.randn((1, 16, 3), generator=gen)
+    z = torch.randn((1, 16, 3), generator=gen)
+    x_init = scan.repeat(1, 2, 1)
+    assert torch.allclose(seen["x"], x_init + noise)
+    abar = m.alphas_cumprod.double()
+    a, s = abar.sqrt(), (1 - abar).sqrt()
+    h = (a[0] / s[0]).log() - (a[999] / s[999]).log()
+    want = s[0] / s[999] * torch.exp(-h) * noise + s[0] * (1 - torch.exp(-2 * h)).sqrt() * z \
+        + a[0] * (1 - torch.exp(-2 * h)) * noise / a[999]
+    assert torch.allclose(out - x_init, want.float(), atol=1e-5)
+
+
+def test_the_evaluated_completion_is_post_processed_as_lidiffs_pipeline() -> None:
+    """Points kept: 3-D range < 50 m and z in (mean - 2 std, max) of the scan's heights (numpy's population std)."""
+    m = model(duplicate=2).eval()
+    scan = torch.tensor([[[5.0, 0.0, -1.0], [6.0, 1.0, 0.0], [7.0, 0.0, 2.0], [8.0, 2.0, -1.5]]])
+    scene = torch.tensor([[[1.0, 0.0, 0.0], [2.0, 0.0, 1.99], [30.0, 30.0, 0.0], [35.33, 35.33, 1.9], [0.0, 0.0, -2.9],
+                           [0.0, 0.0, -2.4], [3.0, 0.0, 2.0], [1.0, 1.0, 1.0]]])
+    m.sample = lambda scan, **kw: scene  # type: ignore[method-assign]
+    z = scan[0, :, 2].numpy()
+    s = scene[0].numpy()
+    want = s[(np.sqrt((s ** 2).sum(1)) < 50) & (s[:, 2] > z.mean() - 2 * np.std(z)) & (s[:, 2] < z.max())]
+    got = m(Batch({"scan": scan, "scan_lengths": torch.tensor([4])}, {}, {"size": 1}))["completion"]
+    assert np.array_equal(got.cloud(0).numpy(), want) and len(want) == 5  # (35.33, 35.33, 1.9): 49.97 m in 2-D, 50.001 in 3-D
+    m.params = m.params.model_copy(update={"postprocess": False})
+    assert m(Batch({"scan": scan, "scan_lengths": torch.tensor([4])}, {}, {"size": 1}))["completion"].cloud(0).shape == (8, 3)
 
 
 def test_classifier_free_guidance_extrapolates_from_the_unconditional_prediction() -> None:

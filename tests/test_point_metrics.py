@@ -64,6 +64,27 @@ def test_precision_recall_auc_over_5_to_10_cm() -> None:
     assert 0 < auc(precision) < 1
 
 
+def _naive_lidiff_eval(preds: list[np.ndarray], gts: list[np.ndarray]) -> dict[str, float]:
+    """LiDiff's eval_path.py written out with brute-force distances (float64): predictions cut to a 3-D range
+    < 50 m, CD per scene, per-scene F per threshold averaged over scenes, then Simpson's normalised area."""
+    from scipy.integrate import simpson
+
+    tau = np.linspace(0.05, 0.10, 100)
+    cds, ps, rs, fs = [], [], [], []
+    for pred, gt in zip(preds, gts):
+        pred = pred[np.sqrt((pred ** 2).sum(1)) < 50.0]
+        d = np.sqrt(((pred[:, None, :] - gt[None, :, :]) ** 2).sum(-1))
+        d_pred, d_gt = d.min(1), d.min(0)
+        cds.append((d_gt.mean() + d_pred.mean()) / 2)
+        pr = np.array([(d_pred < t).mean() for t in tau])
+        re = np.array([(d_gt < t).mean() for t in tau])
+        ps.append(pr)
+        rs.append(re)
+        fs.append(np.where(pr + re > 0, 2 * pr * re / np.maximum(pr + re, 1e-300), 0.0))
+    area = lambda c: simpson(np.mean(c, 0), x=tau) / simpson(np.ones(100), x=tau)  # noqa: E731
+    return {"cd": float(np.mean(cds)), "precision": area(ps), "recall": area(rs), "fscore": area(fs)}
+
+
 def test_the_registered_completion_metric_accumulates_like_lidiffs_evaluation() -> None:
     from distilkit.data.batch import Batch
     from distilkit.registry import METRICS
@@ -72,18 +93,23 @@ def test_the_registered_completion_metric_accumulates_like_lidiffs_evaluation() 
     cls = METRICS.get("completion")
     gts = [scene(400, 10, 5.0), scene(300, 11, 5.0)]
     preds = [g[:250] + 0.03 for g in gts]
-    preds[1] = torch.cat([preds[1], torch.tensor([[80.0, 0.0, 0.0]], dtype=torch.float64)])  # beyond 50 m: dropped
+    preds[0] = preds[0] + 0.05 * torch.randn(250, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    far = torch.tensor([[80.0, 0.0, 0.0], [30.0, 30.0, 30.0]], dtype=torch.float64)  # 3-D range 80 m, 52 m: dropped
+    preds[1] = torch.cat([preds[1], far])
     gt = PointCloud.from_list([g.float() for g in gts])
-    batch = Batch({}, {"scene": gt.points, "scene_lengths": gt.lengths}, {"size": 2})
+    batch = Batch({}, {"scene_eval": gt.points, "scene_eval_lengths": gt.lengths}, {"size": 2})
     metric = cls(None)
     metric.update(PointCloud.from_list([p.float() for p in preds]), batch)
     got = metric.compute()
-    kept = [preds[0], preds[1][:-1]]
-    assert got["cd"] == pytest.approx(np.mean([chamfer_distance(p.float().double(), g.float().double())
-                                               for p, g in zip(kept, gts)]), rel=1e-6)
+    want = _naive_lidiff_eval([p.float().double().numpy() for p in preds], [g.float().double().numpy() for g in gts])
+    for key in ("cd", "precision", "recall", "fscore"):
+        assert got[key] == pytest.approx(want[key], rel=1e-9), key
+    kept = [preds[0], preds[1][:-2]]
+    # F is the mean of per-scene F, not F of the mean precision and recall (which differs here)
+    p_mean, r_mean = (torch.stack([precision_recall_curves(p.float().double(), g.float().double())[i]
+                                   for p, g in zip(kept, gts)]).mean(0) for i in (0, 1))
+    assert abs(auc(2 * p_mean * r_mean / (p_mean + r_mean)) - got["fscore"]) > 1e-4
     conf = [voxel_confusion(p.float().double(), g.float().double(), 0.2) for p, g in zip(kept, gts)]
     tp, fp, fn = (sum(c[i] for c in conf) for i in range(3))
     assert got["iou_20cm"] == pytest.approx(tp / (tp + fp + fn))
-    curves = [precision_recall_curves(p.float().double(), g.float().double()) for p, g in zip(kept, gts)]
-    assert got["precision"] == pytest.approx(auc(torch.stack([c[0] for c in curves]).mean(0)))
     assert set(got) == set(cls.KEYS) and cls.LOWER_IS_BETTER == {"cd", "jsd"}

@@ -93,7 +93,7 @@ def test_point_cloud_preview_shows_scan_completion_and_scene() -> None:
 
     scene = torch.randn(1, 50, 3) * 10
     batch = Batch({"scan": scene[:, :20], "scan_lengths": torch.tensor([12])},
-                  {"scene": scene, "scene_lengths": torch.tensor([40])}, {"size": 1})
+                  {"scene_eval": scene, "scene_eval_lengths": torch.tensor([40])}, {"size": 1})
     pred = PointCloud.from_list([scene[0, :30] + 0.1])
     view = SceneCompletionScore.preview(pred, batch, DataInfo(grid=None))
     assert view["input"].shape == (12, 3) and view["target"].shape == (40, 3) and view["prediction"].shape == (30, 3)

@@ -49,6 +49,25 @@ def test_a_sample_follows_lidiffs_crops_and_sizes() -> None:
     assert np.array_equal(again["scene"], s["scene"])  # a seed gives one sample
 
 
+def test_the_evaluation_ground_truth_is_lidiffs_untiled_map_crop() -> None:
+    """data_metrics.md §3.2: 3-D distance < 50 m, -4 < z < 4.4, the 10 m viewpoint cells of the raw scan, one point
+    per map voxel (no tiling: every point distinct) and denser than the tiled training scene's distinct points."""
+    from distilkit.data.scenes import evaluation_ground_truth
+
+    p = SceneParams(**TINY)
+    s = make_scene_sample(3, p)
+    gt = s["scene_eval"]
+    assert len(np.unique(gt, axis=0)) == len(gt) > len(np.unique(s["scene"], axis=0))
+    assert (np.linalg.norm(gt, axis=1) < 50).all() and (gt[:, 2] > -4).all() and (gt[:, 2] < 4.4).all()
+    world = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 5.0], [40.0, 0.0, 35.0], [45.0, 1.0, 0.0], [15.0, 0.0, 0.0],
+                      [1.02, 0.01, 0.0]], np.float32)
+    raw = np.array([[2.0, 1.0, 0.0], [42.0, 3.0, 0.0], [60.0, 0.0, 0.0]], np.float32)  # the last is out of range
+    got = {tuple(v.tolist()) for v in evaluation_ground_truth(world, raw, p.model_copy(update={"gt_voxel": 0.1})).astype(float).round(3)}
+    # z = 5 is above 4.4, (40, 0, 35) is 53 m away in 3-D, (15, 0, 0)'s 10 m cell holds no scan point within 50 m,
+    # and the two points near (1, 0, 0) share a 0.1 m voxel (their mean is kept)
+    assert got == {(1.01, 0.005, 0.0), (45.0, 1.0, 0.0)}
+
+
 def test_the_registered_dataset_collates_padded_clouds_with_ids(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("DISTILKIT_CACHE", str(tmp_path))
     entry = DATASETS.entry("synthetic-scenes")
@@ -60,5 +79,7 @@ def test_the_registered_dataset_collates_padded_clouds_with_ids(tmp_path, monkey
     assert batch.fields == entry.meta["info"](params).fields
     assert list((tmp_path / "synthetic-scenes").glob("train-*.npz"))  # cached
     assert torch.equal(collate_scenes([entry.obj(params, "train")[1]]).targets["scene"][0], batch.targets["scene"][1])
+    n = batch.targets["scene_eval_lengths"]
+    assert [len(ds[i]["scene_eval"]) for i in (0, 1)] == n.tolist() and (batch.targets["scene_eval"][n.argmin(), n.min():] == 0).all()
     with pytest.raises(ValueError, match="multiple of scan_points"):
         entry.meta["params"](scan_points=100, scene_points=250)

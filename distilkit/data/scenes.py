@@ -7,11 +7,15 @@ One sample, around the current frame of a drive along the street (SemanticKITTI 
 * ``scene`` (M, 3): the static points of every scan of the drive (``frames`` of them, the current one in
   the middle) within ``max_range`` of the current pose and z > -4 m, downsampled to one point (the mean)
   per ``gt_voxel`` voxel, kept where a ``viewpoint_voxel`` voxel holds a point of the scan (LiDiff's 10 m
-  "viewpoint" crop), randomly permuted and tiled to ``scene_points`` (LiDiff: 180,000 = 10 x 18,000).
+  "viewpoint" crop), randomly permuted and tiled to ``scene_points`` (LiDiff: 180,000 = 10 x 18,000);
+* ``scene_eval`` (E, 3): the ground truth LiDiff *evaluates* against (data_metrics.md §3.2): the same static map
+  points within ``max_range`` of the current pose (3-D distance) with ``min_z`` < z < 4.4 m, one per ``gt_voxel``,
+  kept in the 10 m viewpoint cells of the raw current scan (every point within ``max_range``, moving ones
+  included), neither permuted nor tiled (its length varies).
 
 Moving objects (raw ids >= 252) and unlabelled points are left out of both, as LiDiff's maps do.
 The batch holds padded clouds with lengths (PyTorch3D's convention): inputs ``scan``/``scan_lengths``,
-targets ``scene``/``scene_lengths``, meta ``scene_id`` (stable per split and index, for per-scene caches).
+targets ``scene``/``scene_lengths`` and ``scene_eval``/``scene_eval_lengths``, meta ``scene_id`` (stable per split and index, for per-scene caches).
 """
 
 from __future__ import annotations
@@ -28,8 +32,9 @@ from distilkit.data.raycast import ray_directions
 from distilkit.data.cache import cached_samples
 from distilkit.data.synthetic import EGO_LANE_Y, SENSOR_HEIGHT, cast_scan, make_scene
 
-SCENES_VERSION = 1
-SCENE_FIELDS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths"})
+SCENES_VERSION = 2  # 2: the untiled evaluation ground truth ``scene_eval``
+SCENE_FIELDS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths", "scene_eval", "scene_eval_lengths"})
+EVAL_MAX_Z = 4.4  # LiDiff's evaluation keeps -4 < z < 4.4
 
 
 def farthest_point_sample(points: np.ndarray, count: int, start: int = 0) -> np.ndarray:
@@ -99,7 +104,7 @@ def make_scene_sample(seed: int, p: SceneParams) -> dict[str, np.ndarray]:
     dirs = ray_directions(p.beams, p.azimuth_steps, p.fov_up, p.fov_down)
     ego = np.array([x0 + p.ego_speed * cur, EGO_LANE_Y, SENSOR_HEIGHT], np.float32)
     statics = []
-    scan = np.zeros((0, 3), np.float32)
+    scan = raw = np.zeros((0, 3), np.float32)
     for j in range(p.frames):
         origin = np.array([x0 + p.ego_speed * j, EGO_LANE_Y, SENSOR_HEIGHT], np.float32)
         s = cast_scan(scene, origin, j, dirs, rng, p.max_range, p.range_noise)
@@ -107,16 +112,38 @@ def make_scene_sample(seed: int, p: SceneParams) -> dict[str, np.ndarray]:
         xyz = s.xyz[static] - ego[None, :]  # the current sensor frame (the ego drives along +x, heading 0)
         statics.append(xyz)
         if j == cur:
-            scan = xyz
+            scan, raw = xyz, s.xyz - ego[None, :]
     partial = scan_crop(scan, p.min_range, p.max_range, p.min_z)
     if len(partial) == 0:
         raise ValueError(f"scene seed {seed}: the scan has no static point in range")
     partial = tile_to(partial, p.scan_points)
     partial = partial[farthest_point_sample(partial, p.scan_points, int(rng.integers(len(partial))))]
-    full = scan_crop(np.concatenate(statics), 0.0, p.max_range, p.min_z)
+    world = np.concatenate(statics)
+    full = scan_crop(world, 0.0, p.max_range, p.min_z)
     full = viewpoint_crop(voxel_mean(full, p.gt_voxel), partial, p.viewpoint_voxel)
     full = tile_to(full[rng.permutation(len(full))], p.scene_points)[: p.scene_points]
-    return {"scan": partial.astype(np.float32), "scene": full.astype(np.float32)}
+    return {"scan": partial.astype(np.float32), "scene": full.astype(np.float32),
+            "scene_eval": evaluation_ground_truth(world, raw, p).astype(np.float32)}
+
+
+def evaluation_ground_truth(world: np.ndarray, raw_scan: np.ndarray, p: SceneParams) -> np.ndarray:
+    """LiDiff's per-scan evaluation ground truth (``get_ground_truth``): map points (here: the static points of the
+    drive, one per ``gt_voxel``) within ``max_range`` of the sensor (3-D), ``min_z`` < z < 4.4, inside the 10 m
+    viewpoint cells of the raw scan's points within ``max_range``."""
+    gt = voxel_mean(world, p.gt_voxel)
+    gt = gt[(np.linalg.norm(gt, axis=1) < p.max_range) & (gt[:, 2] > p.min_z) & (gt[:, 2] < EVAL_MAX_Z)]
+    view = raw_scan[np.linalg.norm(raw_scan, axis=1) < p.max_range]
+    return viewpoint_crop(gt, view, p.viewpoint_voxel)
+
+
+def _stack_padded(samples: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Fixed-size arrays stacked; ``scene_eval`` zero-padded to the longest, with ``scene_eval_lengths``."""
+    out = {k: np.stack([s[k] for s in samples]) for k in ("scan", "scene")}
+    lengths = np.array([len(s["scene_eval"]) for s in samples], np.int64)
+    padded = np.zeros((len(samples), int(lengths.max()), 3), np.float32)
+    for i, s in enumerate(samples):
+        padded[i, : lengths[i]] = s["scene_eval"]
+    return {**out, "scene_eval": padded, "scene_eval_lengths": lengths}
 
 
 def generate_scenes(p: SceneParams, split: str, count: int,
@@ -125,7 +152,7 @@ def generate_scenes(p: SceneParams, split: str, count: int,
     entry is regenerated)."""
     return cached_samples("synthetic-scenes", SCENES_VERSION, p.model_dump(), split, count,
                           lambda seed: make_scene_sample(seed, p),
-                          lambda samples: {k: np.stack([s[k] for s in samples]) for k in ("scan", "scene")}, progress)
+                          _stack_padded, progress)
 
 
 class SceneDataset(torch.utils.data.Dataset):
@@ -136,11 +163,13 @@ class SceneDataset(torch.utils.data.Dataset):
         return len(self.a["scan"])
 
     def __getitem__(self, i: int) -> dict[str, Any]:
-        return {"scan": self.a["scan"][i], "scene": self.a["scene"][i], "scene_id": f"{self.split}/{i}"}
+        return {"scan": self.a["scan"][i], "scene": self.a["scene"][i],
+                "scene_eval": self.a["scene_eval"][i, : int(self.a["scene_eval_lengths"][i])],
+                "scene_id": f"{self.split}/{i}"}
 
 
 def collate_scenes(samples: list[dict[str, Any]]) -> Batch:
-    """Padded clouds with lengths: inputs ``scan``, targets ``scene``; meta ``scene_id``."""
+    """Padded clouds with lengths: inputs ``scan``, targets ``scene`` and ``scene_eval``; meta ``scene_id``."""
     def pad(key: str) -> tuple[torch.Tensor, torch.Tensor]:
         clouds = [torch.from_numpy(np.asarray(s[key], np.float32)) for s in samples]
         m = max(len(c) for c in clouds)
@@ -151,7 +180,10 @@ def collate_scenes(samples: list[dict[str, Any]]) -> Batch:
 
     scan, scan_len = pad("scan")
     scene, scene_len = pad("scene")
-    return Batch({"scan": scan, "scan_lengths": scan_len}, {"scene": scene, "scene_lengths": scene_len},
+    targets = {"scene": scene, "scene_lengths": scene_len}
+    if all("scene_eval" in s for s in samples):
+        targets["scene_eval"], targets["scene_eval_lengths"] = pad("scene_eval")
+    return Batch({"scan": scan, "scan_lengths": scan_len}, targets,
                  {"size": len(samples), "scene_id": [s.get("scene_id", "") for s in samples]})
 
 

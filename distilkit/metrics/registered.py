@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import torch
 from torch import Tensor
 
 from distilkit.data.batch import Batch
@@ -133,17 +134,18 @@ class OccupancyScore(Metric):
 
 
 class SceneCompletionScore(Metric):
-    """Point-cloud completions scored as LiDiff and ScoreLiDAR report them (seed_code.md §3.4): Chamfer
-    distance (m) and BEV Jensen-Shannon distance averaged over scenes; occupied-voxel IoU at 0.5 / 0.2 /
-    0.1 m over the whole split; precision, recall and F-score as the normalised area over 5-10 cm of the
-    per-threshold values averaged over scenes. Predicted points beyond 50 m are dropped first, as LiDiff's
-    evaluation does."""
+    """Point-cloud completions scored as LiDiff's ``eval_path.py`` scores them (data_metrics.md §3): against the
+    untiled evaluation ground truth ``scene_eval`` (the map crop, -4 < z < 4.4), predicted points with a 3-D range
+    of 50 m or more dropped first; Chamfer distance (m) and BEV Jensen-Shannon distance averaged over scenes;
+    occupied-voxel IoU at 0.5 / 0.2 / 0.1 m over the whole split; precision, recall and F (per scene and threshold
+    F = 2PR / (P + R)) averaged over scenes per threshold, then the normalised area over 5-10 cm. (The z-crop
+    post-processing of LiDiff's pipeline is the model's: LiDiff's completion applies it before any refinement.)"""
 
     SCORES = "points"
-    TARGETS = frozenset({"scene", "scene_lengths"})
+    TARGETS = frozenset({"scene_eval", "scene_eval_lengths"})
     KEYS = ("cd", "jsd", "iou_50cm", "iou_20cm", "iou_10cm", "precision", "recall", "fscore")
     LOWER_IS_BETTER = frozenset({"cd", "jsd"})
-    TITLE = "scene completion (LiDiff's conventions: CD in m, IoU, precision, recall and F in %)"
+    TITLE = "scene completion (LiDiff's evaluation: CD in m, IoU, precision, recall and F in %)"
     COLUMNS = (("cd", "CD", 1.0), ("jsd", "JSD", 1.0), ("iou_50cm", "IoU 0.5 m", 100.0),
                ("iou_20cm", "IoU 0.2 m", 100.0), ("iou_10cm", "IoU 0.1 m", 100.0), ("precision", "precision", 100.0),
                ("recall", "recall", 100.0), ("fscore", "F", 100.0), ("seconds_per_sample", "s / scene", 1.0))
@@ -157,13 +159,14 @@ class SceneCompletionScore(Metric):
         self.confusion = {k: [0, 0, 0] for k in self.VOXELS}
         self.precision: list[Tensor] = []
         self.recall: list[Tensor] = []
+        self.fscore: list[Tensor] = []
 
     def update(self, prediction: Any, batch: Batch) -> None:
-        target = batch.targets["scene"].cpu()
-        lengths = batch.targets["scene_lengths"].cpu()
+        target = batch.targets["scene_eval"].cpu()
+        lengths = batch.targets["scene_eval_lengths"].cpu()
         for b in range(batch.size):
             pred = prediction.cloud(b).detach().cpu().double()
-            pred = pred[pred[:, :2].norm(dim=1) < self.MAX_RANGE]
+            pred = pred[pred.norm(dim=1) < self.MAX_RANGE]
             gt = target[b, : int(lengths[b])].double()
             if len(pred) == 0:
                 raise ValueError(f"scene {b} of the batch: no predicted point within {self.MAX_RANGE:g} m")
@@ -175,17 +178,15 @@ class SceneCompletionScore(Metric):
             p, r = precision_recall_curves(pred, gt)
             self.precision.append(p)
             self.recall.append(r)
+            self.fscore.append(torch.where(p + r > 0, 2 * p * r / (p + r).clamp_min(1e-300), torch.zeros_like(p)))
 
     def compute(self) -> dict[str, Any]:
-        import torch
-
         n = max(len(self.cd), 1)
         out: dict[str, Any] = {"cd": sum(self.cd) / n, "jsd": sum(self.jsd) / n}
         for key, (tp, fp, fn) in self.confusion.items():
             out[key] = tp / (tp + fp + fn + 1e-15)
         if self.precision:
-            p, r = torch.stack(self.precision).mean(0), torch.stack(self.recall).mean(0)
-            f = 2 * p * r / (p + r).clamp_min(1e-15)
+            p, r, f = (torch.stack(v).mean(0) for v in (self.precision, self.recall, self.fscore))
             out.update(precision=auc(p), recall=auc(r), fscore=auc(f))
         else:
             out.update(precision=0.0, recall=0.0, fscore=0.0)
@@ -194,7 +195,7 @@ class SceneCompletionScore(Metric):
     @classmethod
     def preview(cls, prediction: Any, batch: Batch, info: DataInfo) -> dict[str, Any] | None:
         """The first scene from above: the scan, the completed and the true scene (points within 50 m)."""
-        target = thin(batch.targets["scene"][0, : int(batch.targets["scene_lengths"][0])])
+        target = thin(batch.targets["scene_eval"][0, : int(batch.targets["scene_eval_lengths"][0])])
         low, high = target[:, :2].min(axis=0) - 2.0, target[:, :2].max(axis=0) + 2.0  # the scene, 2 m around
         out = {"prediction": thin(prediction.cloud(0)), "target": target,
                "extent": np.array([low[0], high[0], low[1], high[1]], dtype=np.float32)}

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
@@ -15,6 +15,7 @@ from distilkit.data.info import DataInfo
 from distilkit.registry import ADAPTERS
 from distilkit.structures import PointCloud
 from distilkit_adapters.lidiff.model import PointDenoiser, lidiff_alphas_cumprod
+from distilkit_adapters.lidiff.sampler import ddim, ddim_timesteps, dpm_timesteps, sde_dpmsolver_pp
 
 
 class LiDiffParams(BaseModel):
@@ -28,9 +29,16 @@ class LiDiffParams(BaseModel):
     beta_end: float = Field(0.007, gt=0)
     duplicate: int = Field(10, ge=1, description="K: the scan is duplicated K times as the start of sampling "
                                                 "(LiDiff: 10 = scene points / scan points)")
-    sample_steps: int = Field(50, ge=1, description="sampler steps at evaluation (LiDiff: 50; ScoreLiDAR's student: 8)")
+    sample_steps: int = Field(50, ge=1, description="sampler steps at evaluation = network evaluations (LiDiff: 50; "
+                                                    "ScoreLiDAR's student: 8)")
+    sampler: Literal["ddim", "dpm-solver++"] = Field(
+        "ddim", description="ddim: deterministic DDIM of the local-noise process (consistent with its training); "
+                            "dpm-solver++: what LiDiff runs, diffusers 0.18's second-order SDE DPM-Solver++ on the "
+                            "offset x - x_init (parity with released teachers)")
     guidance: float = Field(1.0, ge=0, description="classifier-free guidance weight when sampling (LiDiff: 6.0, "
                                                    "ScoreLiDAR: 3.5; 1 = the conditional prediction alone)")
+    postprocess: bool = Field(True, description="LiDiff's post-processing of the evaluated completion: keep points "
+                                                "within 50 m whose height lies in (mean - 2 std, max) of the scan's")
     uncond_prob: float = Field(0.1, ge=0, le=1, description="share of training scenes with the condition dropped")
     generate_steps: int = Field(0, ge=0, description="0: training denoises noised scenes (LiDiff); n > 0: training "
                                                      "generates ``samples`` in n sampler steps with their gradient "
@@ -45,7 +53,7 @@ class LiDiffAdapter(Adapter):
     TAPS = {"eps_pred": "points", "eps": "points", "samples": "points", "completion": "points"}
     PREDICTION_TAP = "completion"
     DEFAULT_TASK_LOSSES = [{"name": "lidiff", "taps": {"student": "eps_pred", "noise": "eps"}}]
-    VERSION = 1
+    VERSION = 2  # 2: n sampler steps are n network evaluations (none at t = 0)
 
     def __init__(self, params: LiDiffParams, info: DataInfo) -> None:
         super().__init__(params, info)
@@ -74,11 +82,9 @@ class LiDiffAdapter(Adapter):
         return eps
 
     def timesteps(self, steps: int) -> list[int]:
-        """``steps`` timesteps from T - 1 down to 0, evenly spaced (one step: T - 1 only)."""
-        top = self.params.diffusion_steps - 1
-        if steps == 1:
-            return [top]
-        return sorted({int(round(v)) for v in torch.linspace(top, 0, steps).tolist()}, reverse=True)
+        """The ``steps`` timesteps the sampler evaluates the network at (one each, none at t = 0)."""
+        spacing = ddim_timesteps if self.params.sampler == "ddim" else dpm_timesteps
+        return spacing(steps, self.params.diffusion_steps)
 
     def start(self, condition: Tensor, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
         """(x_init, x_T): the scan duplicated K times, and it plus N(0, I) noise (LiDiff's start point)."""
@@ -86,32 +92,29 @@ class LiDiffAdapter(Adapter):
         noise = torch.randn(x_init.shape, generator=generator, device=x_init.device, dtype=x_init.dtype)
         return x_init, x_init + noise
 
-    def denoise_step(self, x_t: Tensor, t: int, t_prev: int | None, condition: Tensor, guidance: float) -> Tensor:
-        """One deterministic DDIM step of the local-noise process x_t = x_0 + sigma_t eps:
-        x0_hat = x_t - sigma_t eps_hat, x_prev = x0_hat + sigma_prev eps_hat (x0_hat at the last step)."""
-        tt = torch.full((x_t.shape[0],), t, dtype=torch.long, device=x_t.device)
-        eps = self.predict_noise(x_t, tt, condition, guidance)
-        x0 = x_t - self.sigma(tt)[:, None, None] * eps
-        if t_prev is None:
-            return x0
-        return x0 + self.sigma(torch.tensor(t_prev, device=x_t.device)) * eps
-
     def sample(self, condition: Tensor, steps: int | None = None, guidance: float | None = None,
                generator: torch.Generator | None = None) -> Tensor:
-        """A completed scene (B, K*N, 3) from the scan (B, N, 3) in ``steps`` sampler steps."""
+        """A completed scene (B, K*N, 3) from the scan (B, N, 3): ``steps`` network evaluations (two each with
+        guidance) of the configured sampler (:mod:`distilkit_adapters.lidiff.sampler`)."""
         ts = self.timesteps(steps or self.params.sample_steps)
         w = self.params.guidance if guidance is None else guidance
-        _, x = self.start(condition, generator)
-        for i, t in enumerate(ts):
-            x = self.denoise_step(x, t, ts[i + 1] if i + 1 < len(ts) else None, condition, w)
-        return x
+        x_init, x = self.start(condition, generator)
+        b = x.shape[0]
+
+        def eps(x_t: Tensor, t: int) -> Tensor:
+            return self.predict_noise(x_t, torch.full((b,), t, dtype=torch.long, device=x_t.device), condition, w)
+
+        if self.params.sampler == "ddim":
+            return ddim(eps, x, self.sigma(torch.arange(len(self.alphas_cumprod), device=x.device)), ts)
+        offset = sde_dpmsolver_pp(lambda o, t: eps(x_init + o, t), x - x_init, self.alphas_cumprod, ts, generator)
+        return x_init + offset
 
     # -- completing a user's scan (``distilkit complete``) ----------------------------------------
     def complete_scan(self, points: Any, *, scan_points: int | None = None, steps: int | None = None,
                       guidance: float | None = None, seed: int = 0) -> tuple[Any, int, int]:
         """A completed scene from a raw scan ((N, 3) numpy), prepared and post-processed as LiDiff does
         (:mod:`distilkit_adapters.lidiff.complete`); also the scan points it was sampled to and the sampler steps."""
-        from distilkit_adapters.lidiff.complete import DEFAULT_SCAN_POINTS, postprocess, prepare_scan
+        from distilkit_adapters.lidiff.complete import DEFAULT_SCAN_POINTS, prepare_scan
 
         count = scan_points or DEFAULT_SCAN_POINTS
         prepared = prepare_scan(points, count, seed)
@@ -119,19 +122,28 @@ class LiDiffAdapter(Adapter):
         n_steps = steps or int(self.params.sample_steps)
         with torch.no_grad():
             cond = torch.from_numpy(prepared)[None].to(device)
-            scene = self.sample(cond, steps=n_steps, guidance=guidance,
-                                generator=torch.Generator(device=device).manual_seed(seed))
-        return postprocess(scene[0].cpu().numpy(), prepared), count, n_steps
+            scene = self.completion(cond, steps=n_steps, guidance=guidance,
+                                    generator=torch.Generator(device=device).manual_seed(seed))
+        return scene.cloud(0).cpu().numpy(), count, n_steps
+
+    def completion(self, scan: Tensor, scan_lengths: Tensor | None = None, **sample: Any) -> PointCloud:
+        """Sampled scenes (``sample``'s keywords: steps, guidance, generator), post-processed as LiDiff's pipeline
+        does when ``postprocess`` (:func:`~distilkit_adapters.lidiff.complete.keep_mask`): variable lengths."""
+        from distilkit_adapters.lidiff.complete import keep_mask
+
+        x = self.sample(scan, **sample)
+        if not self.params.postprocess:
+            return PointCloud(x, torch.full((x.shape[0],), x.shape[1], dtype=torch.int64, device=x.device))
+        counts = scan_lengths.tolist() if scan_lengths is not None else [scan.shape[1]] * x.shape[0]
+        return PointCloud.from_list([x[b][keep_mask(x[b], scan[b, : int(n)])] for b, n in enumerate(counts)])
 
     # -- forward -----------------------------------------------------------------------------------
     def forward(self, batch: Batch) -> dict[str, Any]:
         scan = batch.inputs["scan"]
         if not self.training:
-            x = self.sample(scan)
-            lengths = torch.full((x.shape[0],), x.shape[1], dtype=torch.int64, device=x.device)
-            return {"completion": PointCloud(x, lengths)}
+            return {"completion": self.completion(scan, batch.inputs.get("scan_lengths"))}
         if self.params.generate_steps:  # a few-step generator: its samples, differentiable (ScoreLiDAR's student)
-            x = self.sample(scan, steps=self.params.generate_steps)
+            x = self.sample(scan, steps=self.params.generate_steps, guidance=1.0)  # no guidance in distillation
             lengths = torch.full((x.shape[0],), x.shape[1], dtype=torch.int64, device=x.device)
             return {"samples": PointCloud(x, lengths)}
         x0, lengths = batch.field("scene"), batch.field("scene_lengths")
