@@ -57,6 +57,7 @@ class Term(nn.Module, ABC):
     # role -> the batch field read for it, or candidates in order of preference (the first the data provides)
     BATCH: ClassVar[dict[str, str | tuple[str, ...]]] = {}
     REQUIRES: ClassVar[frozenset[str]] = frozenset()  # teacher capabilities called through the context
+    STUDENT_REQUIRES: ClassVar[frozenset[str]] = frozenset()  # student capabilities called through the context
     DEFAULT_WEIGHT: ClassVar[float] = 1.0
     DEFAULT_CONNECTOR: ClassVar[str | None] = None  # e.g. "linear": the student tap is projected first
     DEFAULT_PARAM_GROUPS: ClassVar[list[dict[str, Any]]] = []  # optimizer groups asked for by default

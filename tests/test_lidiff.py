@@ -216,8 +216,15 @@ def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -
                                                   "taps": {"student": "samples"}},
                                                  {"name": "structural", "params": {"k": 8},
                                                   "taps": {"student": "samples"}}],
-                                     "optimizer": {"name": "sgd", "lr": 1e-4}, "train": train}}}
-    teacher, student = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+                                     "optimizer": {"name": "sgd", "lr": 1e-4}, "train": train},
+                         "dpo": {"model": {"adapter": "lidiff", "params": {**SMALL, "generate_steps": 1,
+                                                                               "sample_steps": 1}},
+                                 "init": {"from": "teacher", "strict": False}, "teacher": {"from": "teacher"},
+                                 "task_losses": [],
+                                 "distill": [{"name": "distillation_dpo", "params": {"rank": 2, "aux_lr": 0.01},
+                                              "taps": {"student": "samples", "noise": "start_noise"}}],
+                                 "optimizer": {"name": "sgd", "lr": 1e-4}, "train": train}}}
+    teacher, student, dpo = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     log = [__import__("json").loads(x) for x in (student.run_dir / "metrics.jsonl").read_text().splitlines()]
     steps = [r for r in log if "loss" in r]
     assert steps and all({"kd_vsd", "kd_structural", "vsd_aux_loss"} <= set(r) for r in steps)
@@ -229,6 +236,12 @@ def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -
             if ".base." in k}
     assert base and all(torch.equal(v, t_ckpt["student"][k]) for k, v in base.items())  # the LoRA base is frozen
     assert student.summary["input"] == "1 step" and student.summary["test"]["best"]["cd"] > 0
+    encoder = [k for k in t_ckpt["student"] if k.startswith("net.encoder.")]
+    assert encoder and all(torch.equal(ckpt["student"][k], t_ckpt["student"][k]) for k in encoder)  # frozen
+    assert any(not torch.equal(ckpt["student"][k], t_ckpt["student"][k]) for k in t_ckpt["student"])  # it trained
+    log = [__import__("json").loads(x) for x in (dpo.run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert all({"kd_distillation_dpo", "dpo_aux_loss", "dpo_first_wins"} <= set(r) for r in log if "loss" in r)
+    assert dpo.summary["test"]["best"]["cd"] > 0
 
 
 def test_an_evaluate_only_stage_scores_a_trained_model_at_other_sampler_steps(tmp_path) -> None:

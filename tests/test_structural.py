@@ -52,9 +52,13 @@ def test_nearest_and_self_excluded_neighbours_match_brute_force() -> None:
 def test_scene_wise_is_the_mean_squared_distance_to_the_nearest_target_point() -> None:
     g, t = cloud(40, 3).requires_grad_(), cloud(70, 4)
     idx = naive_nn(g.detach().numpy(), t.numpy())
-    want = ((g.detach().numpy() - t.numpy()[idx]) ** 2).sum(1).mean()
+    want = ((g.detach().numpy() - t.numpy()[idx]) ** 2).mean()  # per element: the released code's MSE scale
     assert val(L.scene_wise(g, t)) == pytest.approx(want, rel=1e-12)
+    assert val(L.scene_wise(g, t, reduction="sum")) == pytest.approx(3 * want, rel=1e-12)  # eq. 12's squared norm
     assert torch.autograd.gradcheck(lambda x: L.scene_wise(x, t), (g,))
+    assert torch.autograd.gradcheck(lambda x: L.scene_wise(x, t, reduction="sum"), (g,))
+    with pytest.raises(ValueError, match="reduction"):
+        L.scene_wise(g, t, reduction="max")
     # the released code: index-aligned MSE per coordinate (seed_code.md §3.5)
     t40 = t[:40]
     assert val(L.scene_wise(g, t40, legacy_index_aligned=True)) == pytest.approx(

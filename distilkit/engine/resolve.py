@@ -446,11 +446,13 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
                     problems.extend(data_problems(model, stage_info, where))
         if info is not None:
             problems.extend(alignment_problems(distill, models, info, f"{path}.distill"))
-        for i, term in enumerate(distill):  # teacher capabilities the objective calls
-            for cap in sorted(term.cls.REQUIRES):
-                if teacher is not None and not callable(getattr(teacher.cls, cap, None)):
-                    problems.append((f"{path}.distill[{i}]", f"{term.name} calls the teacher's {cap}(), which adapter "
-                                                              f"{teacher.adapter!r} does not provide"))
+        for i, term in enumerate(distill):  # teacher and student capabilities the objective calls
+            for role, model, caps in (("teacher", teacher, term.cls.REQUIRES),
+                                      ("student", student, term.cls.STUDENT_REQUIRES)):
+                for cap in sorted(caps):
+                    if model is not None and not callable(getattr(model.cls, cap, None)):
+                        problems.append((f"{path}.distill[{i}]", f"{term.name} calls the {role}'s {cap}(), which "
+                                                                  f"adapter {model.adapter!r} does not provide"))
         _lookup(OPTIMIZERS, spec.optimizer.name, f"{path}.optimizer.name", problems)
         schedule_entry = _lookup(SCHEDULES, spec.optimizer.schedule.name, f"{path}.optimizer.schedule.name", problems)
         schedule = None if schedule_entry is None else _params(schedule_entry.meta["params"], spec.optimizer.schedule.params,

@@ -38,7 +38,7 @@ def _per_scene(fn, generated: Tensor | PointCloud, target: Tensor | PointCloud, 
     return fn(generated, target, *extra)
 
 
-def _scene_wise(generated: Tensor, target: Tensor, legacy: bool) -> Tensor:
+def _scene_wise(generated: Tensor, target: Tensor, legacy: bool, reduction: str = "mean") -> Tensor:
     _points(generated, "generated")
     _points(target, "target")
     if legacy:  # the released code: F.mse_loss(pcd_full, x0), i.e. point i against point i, per coordinate
@@ -46,16 +46,21 @@ def _scene_wise(generated: Tensor, target: Tensor, legacy: bool) -> Tensor:
             raise ValueError(f"legacy_index_aligned needs equal sizes, got {tuple(generated.shape)} and "
                              f"{tuple(target.shape)}")
         return F.mse_loss(generated, target)
+    if reduction not in ("mean", "sum"):
+        raise ValueError(f"scene_wise reduction must be 'mean' or 'sum', got {reduction!r}")
     idx = nearest(generated, target)
-    return (generated - target[idx]).pow(2).sum(dim=1).mean()
+    sq = (generated - target[idx]).pow(2)
+    return sq.mean() if reduction == "mean" else sq.sum(dim=1).mean()
 
 
 def scene_wise(generated: Tensor | PointCloud, target: Tensor | PointCloud,
-               legacy_index_aligned: bool = False) -> Tensor:
-    """ScoreLiDAR eq. 12 as the paper describes it: the mean over generated points of the squared distance
-    to the nearest target point (the target carries no gradient). ``legacy_index_aligned=True`` is the
-    released code's ``F.mse_loss(target, generated)`` between index-aligned points."""
-    return _per_scene(lambda g, t: _scene_wise(g, t, legacy_index_aligned), generated, target)
+               legacy_index_aligned: bool = False, reduction: str = "mean") -> Tensor:
+    """ScoreLiDAR eq. 12 as the paper describes it: the squared distance of each generated point to its nearest
+    target point (the target carries no gradient), averaged over points and coordinates (``reduction="mean"``,
+    the per-element MSE the released code's lambda = 0.5 was tuned with) or summed over xyz (``"sum"``, eq. 12's
+    squared norm: 3x the mean). ``legacy_index_aligned=True`` is the released code's ``F.mse_loss(target,
+    generated)`` between index-aligned points."""
+    return _per_scene(lambda g, t: _scene_wise(g, t, legacy_index_aligned, reduction), generated, target)
 
 
 def curvature(points: Tensor, k: int = 180, chunk: int = 16384) -> Tensor:

@@ -2,7 +2,8 @@
 
 from distilkit.objectives.base import Objective
 from distilkit.objectives import connectors as _connectors  # noqa: F401  (registers the connectors)
-from distilkit.objectives import dskd as _dskd  # noqa: F401  (registers the objectives)
+from distilkit.objectives import dpo as _dpo  # noqa: F401  (registers the objectives)
+from distilkit.objectives import dskd as _dskd  # noqa: F401
 from distilkit.objectives import feature as _feature  # noqa: F401
 from distilkit.objectives import logit as _logit  # noqa: F401
 from distilkit.objectives import region as _region  # noqa: F401

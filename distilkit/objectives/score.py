@@ -19,7 +19,8 @@ class VSDParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     aux: Literal["lora", "copy"] = Field("lora", description="the auxiliary score network: a LoRA of the teacher's "
                                                             "denoiser (the paper) or a full copy (the released code)")
-    rank: int = Field(8, ge=1, description="LoRA rank")
+    rank: int = Field(8, ge=1, description="LoRA rank (neither the paper nor the released code gives one: the code "
+                                           "trains a full copy; 8 and the scale alpha / rank = 1 are distilkit's)")
     aux_lr: float = Field(3e-5, gt=0, description="learning rate of the auxiliary network (ScoreLiDAR: SGD 3e-5)")
     aux_optimizer: Literal["sgd", "adam"] = "sgd"
     aux_steps: int = Field(1, ge=1, description="auxiliary steps per student step (ScoreLiDAR: 1, alternating)")
@@ -28,6 +29,10 @@ class VSDParams(BaseModel):
     t_max: int | None = Field(None, ge=0, description="(default: T - 1)")
     weighting: Literal["uniform", "sigma"] = Field(
         "uniform", description="w(t): 1 (eq. 11 as written) or sigma_t = sqrt(1 - abar_t)")
+    aux_update: Literal["before", "after"] = Field(
+        "before", description="the auxiliary network's steps come before the student's (the released code: optimizer "
+                              "0 then 1 on every batch, so the first student step already sees a fitted network) or "
+                              "after it")
 
 
 class VSD(MultiTapObjective):
@@ -36,9 +41,10 @@ class VSD(MultiTapObjective):
     Each step: t ~ U{t_min..t_max}, eps ~ N(0, I), the student's samples re-noised with LiDiff's local noise
     x_t = x0 + sigma_t eps; the frozen teacher's and the auxiliary network's noise predictions at x_t (both
     conditional, no guidance, no gradient); the loss :func:`distilkit.losses.vsd` whose gradient is
-    w(t) (eps_teacher - eps_aux) / numel. After the student's step, the auxiliary network (a LoRA of the teacher's
-    denoiser, or a copy) takes ``aux_steps`` denoising steps (eq. 5) on the detached samples with its own optimizer.
-    The teacher must offer ``predict_noise(x_t, t, condition)`` and ``alphas_cumprod``.
+    w(t) (eps_teacher - eps_aux) / numel. Before the student's step (``aux_update``; or after it), the auxiliary
+    network (a LoRA of the teacher's denoiser, or a copy) takes ``aux_steps`` denoising steps (eq. 5) on the
+    detached samples with its own optimizer. The teacher must offer ``predict_noise(x_t, t, condition)`` and
+    ``alphas_cumprod``.
     """
 
     Params = VSDParams
@@ -50,16 +56,24 @@ class VSD(MultiTapObjective):
 
     def setup(self, taps: dict[str, Any], batch: Batch) -> None:
         assert self.context is not None and self.context.teacher is not None, "bound to a teacher before setup"
-        teacher = self.context.teacher
-        self.aux = lora_copy(teacher, self.params.rank) if self.params.aux == "lora" else full_copy(teacher)
-        self.aux.train()
+        self.aux = self._aux_copy()
+        self._aux_losses: list[float] = []
+
+    def _aux_copy(self) -> nn.Module:
+        teacher = self.context.teacher  # type: ignore[union-attr]
+        aux = lora_copy(teacher, self.params.rank) if self.params.aux == "lora" else full_copy(teacher)
+        return aux.train()
+
+    def aux_networks(self) -> list[nn.Module]:
+        """The auxiliary score networks this objective trains (VSD: one)."""
+        return [self.aux]
 
     def own_optimizer(self) -> torch.optim.Optimizer:
-        params = [p for p in self.aux.parameters() if p.requires_grad]
+        groups = [{"params": [p for p in net.parameters() if p.requires_grad]} for net in self.aux_networks()]
         if self.params.aux_optimizer == "sgd":
-            self.opt = torch.optim.SGD(params, lr=self.params.aux_lr)
+            self.opt = torch.optim.SGD(groups, lr=self.params.aux_lr)
         else:
-            self.opt = torch.optim.Adam(params, lr=self.params.aux_lr)
+            self.opt = torch.optim.Adam(groups, lr=self.params.aux_lr)
         return self.opt
 
     def _noised(self, x0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -71,37 +85,53 @@ class VSD(MultiTapObjective):
         eps = torch.randn_like(x0)
         return x0 + sigma * eps, t, eps
 
-    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
-        samples: PointCloud = taps["student"]
-        x0 = samples.points
+    def _weight(self, t: Tensor) -> float | Tensor:
+        if self.params.weighting == "sigma":
+            return (1.0 - self.context.teacher.alphas_cumprod[t]).sqrt()[:, None, None]  # type: ignore[union-attr]
+        return 1.0
+
+    def _predictions(self, aux: nn.Module, x0: Tensor, condition: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(eps_teacher, eps_aux, t) at x0 re-noised, no gradient."""
         with torch.no_grad():
             x_t, t, _ = self._noised(x0.detach())
-            eps_teacher = self.context.teacher.predict_noise(x_t, t, taps["condition"])  # type: ignore[union-attr]
-            eps_aux = self.aux.predict_noise(x_t, t, taps["condition"])
-        weight: float | Tensor = 1.0
-        if self.params.weighting == "sigma":
-            weight = (1.0 - self.context.teacher.alphas_cumprod[t]).sqrt()[:, None, None]  # type: ignore[union-attr]
-        return vsd(x0, eps_teacher, eps_aux, weight)
+            eps_teacher = self.context.teacher.predict_noise(x_t, t, condition)  # type: ignore[union-attr]
+            return eps_teacher, aux.predict_noise(x_t, t, condition), t
+
+    def fit_aux(self, pairs: list[tuple[nn.Module, Tensor]], condition: Tensor) -> None:
+        """``aux_steps`` denoising steps (eq. 5) of each auxiliary network on its detached samples, one optimizer
+        step for all of them."""
+        for _ in range(self.params.aux_steps):
+            self.opt.zero_grad(set_to_none=True)
+            total = 0.0
+            for aux, x0 in pairs:
+                x_t, t, eps = self._noised(x0.detach())
+                loss = nn.functional.mse_loss(aux.predict_noise(x_t, t, condition), eps)
+                loss.backward()
+                total += float(loss.detach())
+            params = [p for net in self.aux_networks() for p in net.parameters() if p.requires_grad]
+            self.context.sync(params)  # type: ignore[union-attr]
+            if self.params.aux_grad_clip is not None:
+                nn.utils.clip_grad_norm_(params, self.params.aux_grad_clip)
+            self.opt.step()
+            self._aux_losses.append(total / len(pairs))
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        x0 = taps["student"].points
+        if self.params.aux_update == "before":
+            self.fit_aux([(self.aux, x0)], taps["condition"])
+        eps_teacher, eps_aux, t = self._predictions(self.aux, x0, taps["condition"])
+        return vsd(x0, eps_teacher, eps_aux, self._weight(t))
 
     def update(self, step: int, batch: Batch, taps: dict[str, Any]) -> dict[str, float]:
-        x0 = taps["student"].points.detach()
-        values = []
-        for _ in range(self.params.aux_steps):
-            x_t, t, eps = self._noised(x0)
-            loss = nn.functional.mse_loss(self.aux.predict_noise(x_t, t, taps["condition"]), eps)  # eq. 5
-            self.opt.zero_grad(set_to_none=True)
-            loss.backward()
-            self.context.sync(p for p in self.aux.parameters() if p.requires_grad)
-            if self.params.aux_grad_clip is not None:
-                nn.utils.clip_grad_norm_([p for p in self.aux.parameters() if p.requires_grad], self.params.aux_grad_clip)
-            self.opt.step()
-            values.append(float(loss.detach()))
-        return {"vsd_aux_loss": sum(values) / len(values)}
+        if self.params.aux_update == "after":
+            self.fit_aux([(self.aux, taps["student"].points)], taps["condition"])
+        values, self._aux_losses = self._aux_losses, []
+        return {"vsd_aux_loss": sum(values) / len(values)} if values else {}
 
 
 register_objective("vsd", VSD, description="variational score distillation with an auxiliary (LoRA) score network "
                                            "trained on the student's samples",
                    paper="ScoreLiDAR (Zhang et al., ICCV 2025), eq. 7-11; ProlificDreamer's VSD",
                    equation="∇ = w(t) (ε_teacher(x_t, t, c) − ε_aux(x_t, t, c)) ∂x0/∂θ, x_t = x0 + σ_t ε; ε_aux trained "
-                            "with eq. 5 on sg(x0), 1:1",
+                            "with eq. 5 on sg(x0), 1:1, before the student's step",
                    shapes="student samples: points (B, M, 3); condition: the batch's scan; teacher: predict_noise")

@@ -3,7 +3,7 @@ with the ground truth's key points computed once per scene and cached."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
@@ -23,13 +23,20 @@ class StructuralParams(BaseModel):
     sample_ratio: float = Field(0.1, gt=0, le=1, description="share of the scene sampled before the curvature")
     keep_ratio: float = Field(1 / 3, gt=0, le=1, description="share of the sample kept as key points")
     legacy_index_aligned: bool = Field(False, description="the released code's index-aligned scene-wise MSE")
+    scene_reduction: Literal["mean", "sum"] = Field(
+        "mean", description="scene-wise term: mean over points and xyz (the released code's MSE, what lambda_scene = "
+                            "0.5 was tuned with) or summed over xyz (eq. 12's squared norm, 3x larger)")
+    keypoints: Literal["per-step", "cached"] = Field(
+        "per-step", description="key points drawn anew at every step (the released code) or once per scene and "
+                                "cached (faster: the curvature depends on the ground truth only)")
 
 
 class Structural(MultiTapObjective):
     """lambda_scene * scene_wise + lambda_point * point_wise between the student's samples and the scene (eq. 17).
 
-    Key points depend on the ground truth only: they are selected once per ``scene_id`` (the batch's meta) with a
-    generator seeded from the id, and reused every step."""
+    Key points depend on the ground truth only: with ``keypoints: per-step`` (the released code) a new random sample
+    is drawn every step from the stage's random stream; with ``cached`` they are selected once per ``scene_id`` (the
+    batch's meta) with a generator seeded from the id, and reused every step."""
 
     Params = StructuralParams
     CONSUMES = {"student": "points"}
@@ -41,10 +48,12 @@ class Structural(MultiTapObjective):
         self._keys: dict[str, Tensor] = {}
 
     def keypoints(self, scene: Tensor, scene_id: str) -> Tensor:
+        p = self.params
+        if p.keypoints == "per-step":
+            return select_keypoints(scene.detach(), p.k, p.sample_ratio, p.keep_ratio)
         if scene_id and scene_id in self._keys:
             return self._keys[scene_id].to(scene.device)
         seed = int.from_bytes(scene_id.encode()[-8:].rjust(8, b"\0"), "little") % (2**63) if scene_id else 0
-        p = self.params
         key = select_keypoints(scene.detach(), p.k, p.sample_ratio, p.keep_ratio, torch.Generator().manual_seed(seed))
         if scene_id:
             self._keys[scene_id] = key.cpu()
@@ -56,7 +65,7 @@ class Structural(MultiTapObjective):
         ids = batch.meta.get("scene_id") or [""] * batch.size
         keys = [self.keypoints(target.cloud(b), ids[b]) for b in range(batch.size)]
         p = self.params
-        return (p.lambda_scene * scene_wise(samples, target, p.legacy_index_aligned)
+        return (p.lambda_scene * scene_wise(samples, target, p.legacy_index_aligned, p.scene_reduction)
                 + p.lambda_point * point_wise(samples, target, keys))
 
 

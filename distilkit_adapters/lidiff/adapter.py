@@ -1,5 +1,7 @@
 """How distilkit sees LiDiff: training taps ``eps_pred``/``eps`` (the denoising pair) or, for a few-step student,
-``samples`` (generated with their gradient), and in evaluation the sampled ``completion``; it offers the ``Denoiser`` capability (``alphas_cumprod``, ``predict_noise``, ``sample``)."""
+``samples`` (generated with their gradient) and the ``start_noise`` they came from, and in evaluation the sampled,
+post-processed ``completion``; it offers the capabilities ``alphas_cumprod``, ``predict_noise``, ``sample`` and
+``generate`` (the few-step generator from a given noise)."""
 
 from __future__ import annotations
 
@@ -43,6 +45,9 @@ class LiDiffParams(BaseModel):
     generate_steps: int = Field(0, ge=0, description="0: training denoises noised scenes (LiDiff); n > 0: training "
                                                      "generates ``samples`` in n sampler steps with their gradient "
                                                      "(a few-step student, ScoreLiDAR: 1)")
+    freeze_encoder: bool | None = Field(None, description="keep the scan encoder's weights fixed (default: frozen for "
+                                                          "a few-step student, generate_steps > 0, as ScoreLiDAR's code "
+                                                          "keeps the teacher's encoder; trained otherwise)")
 
 
 class LiDiffAdapter(Adapter):
@@ -50,7 +55,7 @@ class LiDiffAdapter(Adapter):
 
     Params = LiDiffParams
     INPUTS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths"})  # training noises the scene
-    TAPS = {"eps_pred": "points", "eps": "points", "samples": "points", "completion": "points"}
+    TAPS = {"eps_pred": "points", "eps": "points", "samples": "points", "start_noise": "points", "completion": "points"}
     PREDICTION_TAP = "completion"
     DEFAULT_TASK_LOSSES = [{"name": "lidiff", "taps": {"student": "eps_pred", "noise": "eps"}}]
     VERSION = 2  # 2: n sampler steps are n network evaluations (none at t = 0)
@@ -58,6 +63,9 @@ class LiDiffAdapter(Adapter):
     def __init__(self, params: LiDiffParams, info: DataInfo) -> None:
         super().__init__(params, info)
         self.net = PointDenoiser(params.channels, params.blocks, params.k_scan, params.k_cond)
+        frozen = params.freeze_encoder if params.freeze_encoder is not None else params.generate_steps > 0
+        for p in self.net.encoder.parameters():
+            p.requires_grad_(not frozen)
         abar = lidiff_alphas_cumprod(params.diffusion_steps, params.beta_start, params.beta_end)
         self.register_buffer("alphas_cumprod", abar.float(), persistent=False)
 
@@ -86,19 +94,30 @@ class LiDiffAdapter(Adapter):
         spacing = ddim_timesteps if self.params.sampler == "ddim" else dpm_timesteps
         return spacing(steps, self.params.diffusion_steps)
 
-    def start(self, condition: Tensor, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
-        """(x_init, x_T): the scan duplicated K times, and it plus N(0, I) noise (LiDiff's start point)."""
+    def start(self, condition: Tensor, generator: torch.Generator | None = None,
+              noise: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """(x_init, x_T): the scan duplicated K times, and it plus N(0, I) noise (LiDiff's start point; ``noise``
+        given: that noise)."""
         x_init = condition.repeat(1, self.params.duplicate, 1)
-        noise = torch.randn(x_init.shape, generator=generator, device=x_init.device, dtype=x_init.dtype)
+        if noise is None:
+            noise = torch.randn(x_init.shape, generator=generator, device=x_init.device, dtype=x_init.dtype)
+        elif noise.shape != x_init.shape:
+            raise ValueError(f"start noise {tuple(noise.shape)} must match the duplicated scan {tuple(x_init.shape)}")
         return x_init, x_init + noise
 
+    def generate(self, condition: Tensor, noise: Tensor) -> Tensor:
+        """The few-step generator of training (``generate_steps``, no guidance) from a given start noise, with its
+        gradient (the ``generate`` capability: Distillation-DPO completes one scan from two noises)."""
+        return self.sample(condition, steps=self.params.generate_steps or self.params.sample_steps, guidance=1.0,
+                           noise=noise)
+
     def sample(self, condition: Tensor, steps: int | None = None, guidance: float | None = None,
-               generator: torch.Generator | None = None) -> Tensor:
+               generator: torch.Generator | None = None, noise: Tensor | None = None) -> Tensor:
         """A completed scene (B, K*N, 3) from the scan (B, N, 3): ``steps`` network evaluations (two each with
         guidance) of the configured sampler (:mod:`distilkit_adapters.lidiff.sampler`)."""
         ts = self.timesteps(steps or self.params.sample_steps)
         w = self.params.guidance if guidance is None else guidance
-        x_init, x = self.start(condition, generator)
+        x_init, x = self.start(condition, generator, noise)
         b = x.shape[0]
 
         def eps(x_t: Tensor, t: int) -> Tensor:
@@ -143,9 +162,11 @@ class LiDiffAdapter(Adapter):
         if not self.training:
             return {"completion": self.completion(scan, batch.inputs.get("scan_lengths"))}
         if self.params.generate_steps:  # a few-step generator: its samples, differentiable (ScoreLiDAR's student)
-            x = self.sample(scan, steps=self.params.generate_steps, guidance=1.0)  # no guidance in distillation
+            noise = torch.randn(scan.shape[0], scan.shape[1] * self.params.duplicate, 3, device=scan.device,
+                                dtype=scan.dtype)
+            x = self.generate(scan, noise)
             lengths = torch.full((x.shape[0],), x.shape[1], dtype=torch.int64, device=x.device)
-            return {"samples": PointCloud(x, lengths)}
+            return {"samples": PointCloud(x, lengths), "start_noise": PointCloud(noise, lengths)}
         x0, lengths = batch.field("scene"), batch.field("scene_lengths")
         b = x0.shape[0]
         t = torch.randint(0, self.params.diffusion_steps, (b,), device=x0.device)

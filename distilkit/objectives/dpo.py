@@ -1,0 +1,95 @@
+"""Distillation-DPO (Zhang et al., arXiv 2504.11447; happyw1nd/DistillationDPO): preference pairs of the student's own
+completions, scored against the ground truth, steer a VSD-style score distillation."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import torch
+from pydantic import Field
+from torch import Tensor, nn
+
+from distilkit.data.batch import Batch
+from distilkit.losses.dpo import distillation_dpo
+from distilkit.metrics.points import chamfer_distance, jsd_bev
+from distilkit.objectives.base import register_objective
+from distilkit.objectives.score import VSD, VSDParams
+from distilkit.structures import PointCloud
+
+RANKINGS = {"chamfer": chamfer_distance, "jsd": jsd_bev}  # lower is better
+
+
+class DPOParams(VSDParams):
+    noise_scale: float = Field(1.1, gt=0, description="the second completion starts from this multiple of the first "
+                                                      "one's noise (the released code: 1.1)")
+    rank_by: Literal["chamfer", "jsd"] = Field(
+        "chamfer", description="the completion with the lower value against the ground-truth scene wins: LiDiff's "
+                               "Chamfer distance or BEV Jensen-Shannon distance (the released code's Sinkhorn 'EMD' "
+                               "is left out: it is degenerate)")
+
+
+class DistillationDPO(VSD):
+    """Each step: the student's ``samples`` (from its ``start_noise`` eps) and a second completion of the same scans
+    from ``noise_scale`` eps (the student's ``generate``); per scene the one closer to the ground truth (``rank_by``)
+    is the winner. Two auxiliary score networks (LoRAs of the teacher, one optimizer) fit the winners and the losers
+    (eq. 5, before the student's step by default); both are re-noised with one t and eps, and
+    :func:`distilkit.losses.distillation_dpo` moves the winner towards the teacher's score and away from its
+    auxiliary network's, the loser the other way (the intended gradient: the released loss's is 0)."""
+
+    Params = DPOParams
+    CONSUMES = {"student": "points", "noise": "points"}
+    BATCH = {"condition": "scan", "target": "scene", "target_lengths": "scene_lengths"}
+    STUDENT_REQUIRES = frozenset({"generate"})
+
+    def setup(self, taps: dict[str, Any], batch: Batch) -> None:
+        super().setup(taps, batch)
+        self.aux_loser = self._aux_copy()
+        self._win_rate: list[float] = []
+
+    def aux_networks(self) -> list[nn.Module]:
+        return [self.aux, self.aux_loser]
+
+    def pair(self, first: Tensor, second: Tensor, target: PointCloud) -> tuple[Tensor, Tensor, Tensor]:
+        """(winner, loser, first_wins (B,)) per scene, by ``rank_by`` against the target (no gradient in the
+        choice; each output keeps the gradient of the completion it came from)."""
+        rank = RANKINGS[self.params.rank_by]
+        first_wins = torch.tensor([rank(first[b], target.cloud(b)) <= rank(second[b], target.cloud(b))
+                                   for b in range(first.shape[0])], device=first.device)
+        pick = first_wins[:, None, None]
+        return torch.where(pick, first, second), torch.where(pick, second, first), first_wins
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        student = self.context.student  # type: ignore[union-attr]  (its generate(): checked by the recipe)
+        first = taps["student"].points
+        second = student.generate(taps["condition"], self.params.noise_scale * taps["noise"].points)
+        winner, loser, first_wins = self.pair(first, second, PointCloud(taps["target"], taps["target_lengths"]))
+        self._win_rate.append(float(first_wins.float().mean()))
+        if self.params.aux_update == "before":
+            self.fit_aux([(self.aux, winner), (self.aux_loser, loser)], taps["condition"])
+        self._pending = (winner.detach(), loser.detach())
+        with torch.no_grad():
+            x_w, t, eps = self._noised(winner.detach())
+            x_l = loser.detach() + (x_w - winner.detach())  # the same t and eps for both
+            teacher, cond = self.context.teacher, taps["condition"]  # type: ignore[union-attr]
+            preds = (teacher.predict_noise(x_w, t, cond), self.aux.predict_noise(x_w, t, cond),
+                     teacher.predict_noise(x_l, t, cond), self.aux_loser.predict_noise(x_l, t, cond))
+        return distillation_dpo(winner, loser, *preds, weight=self._weight(t))
+
+    def update(self, step: int, batch: Batch, taps: dict[str, Any]) -> dict[str, float]:
+        if self.params.aux_update == "after":
+            winner, loser = self._pending
+            self.fit_aux([(self.aux, winner), (self.aux_loser, loser)], taps["condition"])
+        values, self._aux_losses = self._aux_losses, []
+        rate, self._win_rate = self._win_rate, []
+        out = {"dpo_first_wins": sum(rate) / len(rate)} if rate else {}
+        return {**out, **({"dpo_aux_loss": sum(values) / len(values)} if values else {})}
+
+
+register_objective("distillation_dpo", DistillationDPO,
+                   description="Distillation-DPO: winner/loser pairs of the student's completions from eps and 1.1 eps, "
+                               "two auxiliary score networks, VSD towards the winner and away from the loser",
+                   paper="Distillation-DPO (Zhang et al., arXiv 2504.11447), ScoreLiDAR's successor",
+                   equation="∇ = w(t)[(ε_T − ε_aux,w)(x_t^w) ∂x_w/∂θ − (ε_T − ε_aux,l)(x_t^l) ∂x_l/∂θ], winner = lower "
+                            "CD to the ground truth",
+                   shapes="student samples and their start noise: points (B, M, 3); condition: the batch's scan; "
+                          "target: its scene; teacher: predict_noise; student: generate")
