@@ -295,6 +295,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--scan-points", type=int, default=None,
                    help="points the scan is sampled to (default: what the model was trained with)")
     c.add_argument("--seed", type=int, default=0, help="seed of the sampler's noise")
+    c.add_argument("--refine", default=None, metavar="RUN",
+                   help="refine the completion with this refinement run (a lidiff-refine stage's folder or checkpoint)")
     c.add_argument("--device", default="cpu", help="cpu or cuda")
     c.set_defaults(fn=_cmd_complete)
     return p
@@ -308,9 +310,10 @@ def _cmd_complete(args: argparse.Namespace) -> int:
     with console.status("loading the model") as spinner:
         done = complete(args.checkpoint, args.scan, args.out, steps=args.steps, guidance=args.guidance,
                         scan_points=args.scan_points, seed=args.seed, device=args.device,
-                        status=lambda text: spinner.update(text))
+                        status=lambda text: spinner.update(text), refine=args.refine)
     console.print(f"{done.out}: {done.output_points:,} points completed from {done.input_points:,} scan points "
-                  f"(sampled to {done.scan_points:,}) in {done.steps} steps, {done.seconds:.1f} s")
+                  f"(sampled to {done.scan_points:,}) in {done.steps} steps{', refined' if done.refined else ''}, "
+                  f"{done.seconds:.1f} s")
     return 0
 
 

@@ -8,5 +8,6 @@ def register() -> None:
     from distilkit_adapters.js3cnet import adapter as _js3c  # noqa: F401
     from distilkit_adapters.lidiff import adapter as _lidiff  # noqa: F401
     from distilkit_adapters.lidiff import loss as _lidiff_loss  # noqa: F401
+    from distilkit_adapters.lidiff import refine as _lidiff_refine  # noqa: F401
     from distilkit_adapters.scpnet import adapter as _scp  # noqa: F401
     from distilkit_adapters.voxformer import adapter as _voxformer  # noqa: F401

@@ -56,3 +56,48 @@ def test_a_trained_lidiff_completes_a_real_scan_from_the_command_line(tmp_path, 
     assert main(["complete", str(result.run_dir), str(broken), "--out", str(tmp_path / "x.ply")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "broken.bin" in err and "16 bytes" in err
+
+
+def _kitti_scan(n: int, seed: int = 0) -> np.ndarray:
+    """An (n, 4) float32 scan in SemanticKITTI's layout (x, y, z, remission) the size of an HDL-64E sweep: ground
+    rings and two walls around the sensor, 1.73 m above the road."""
+    rng = np.random.default_rng(seed)
+    k = n // 2
+    r, a = rng.uniform(3.0, 60.0, k), rng.uniform(-np.pi, np.pi, k)
+    ground = np.stack([r * np.cos(a), r * np.sin(a), np.full(k, -1.73) + rng.normal(0, 0.02, k)], 1)
+    x = rng.uniform(-40, 40, n - k)
+    wall = np.stack([x, np.where(rng.random(n - k) < 0.5, -6.0, 7.0), rng.uniform(-1.7, 3.0, n - k)], 1)
+    xyz = np.concatenate([ground, wall]).astype(np.float32)
+    return np.concatenate([xyz, rng.uniform(0, 1, (n, 1)).astype(np.float32)], 1)
+
+
+def test_complete_refine_on_a_kitti_format_scan_of_125k_points(tmp_path, capsys) -> None:
+    """`distilkit complete --refine`: the LiDiff completion of a full-size scan, refined to six points per point
+    (time and memory of LiDiff's sizes: `distilkit bench complete`)."""
+    data = {"num_train": 2, "num_val": 1, "num_test": 1, "scan_points": 32, "scene_points": 128, "frames": 3,
+            "beams": 8, "azimuth_steps": 128}
+    train = {"steps": 1, "batch_size": 2, "eval_every": 1, "metric": "cd"}
+    recipe = {"schema_version": 1, "name": "r", "seed": 0, "data": {"dataset": "synthetic-scenes", "params": data},
+              "stages": {"teacher": {"model": {"adapter": "lidiff", "params": {"channels": 8, "blocks": 1,
+                                                                                "duplicate": 4, "sample_steps": 2}},
+                                     "train": train},
+                         "refiner": {"model": {"adapter": "lidiff-refine", "params": {"channels": 8}},
+                                     "aux": {"diffusion": {"from": "teacher", "inputs": {"completion": "coarse"}}},
+                                     "train": train}}}
+    teacher, refiner = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    assert refiner.summary["test"]["best"]["cd"] > 0
+    scan = tmp_path / "000000.bin"
+    _kitti_scan(125_000).tofile(scan)
+    assert len(read_points(scan)) == 125_000
+    plain, refined = tmp_path / "plain.npy", tmp_path / "refined.npy"
+    assert main(["complete", str(teacher.run_dir), str(scan), "--out", str(plain), "--seed", "1"]) == 0
+    assert main(["complete", str(teacher.run_dir), str(scan), "--out", str(refined), "--seed", "1",
+                 "--refine", str(refiner.run_dir)]) == 0
+    coarse, fine = read_points(plain), read_points(refined)
+    assert 0 < len(coarse) <= 4 * 32 and len(fine) == 6 * len(coarse)  # the same completion, six offsets per point
+    moved = np.linalg.norm(fine.reshape(-1, 6, 3) - coarse[:, None], axis=2)
+    assert (moved <= np.sqrt(3) + 1e-5).all()  # tanh offsets: at most 1 m per axis
+    assert "refined" in capsys.readouterr().out
+    assert main(["complete", str(teacher.run_dir), str(scan), "--out", str(refined), "--refine",
+                 str(teacher.run_dir)]) == 2
+    assert "cannot refine a completion" in capsys.readouterr().err

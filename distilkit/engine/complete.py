@@ -3,7 +3,9 @@
 The model is rebuilt from its run (:func:`~distilkit.engine.runs.load_run`); its adapter offers the
 :class:`ScanCompleter` capability, which prepares the scan and post-processes the result by its own conventions
 (LiDiff's: :mod:`distilkit_adapters.lidiff.complete`). The number of scan points defaults to what the run was
-trained with (its ``recipe.resolved.yaml``); ``--scan-points`` overrides it.
+trained with (its ``recipe.resolved.yaml``); ``--scan-points`` overrides it. ``--refine RUN`` passes the completion
+through a refinement model's :class:`PointRefiner` capability (LiDiff's refinement network, ``lidiff-refine``), as
+LiDiff's pipeline does after its post-processing.
 """
 
 from __future__ import annotations
@@ -27,6 +29,12 @@ class ScanCompleter(Protocol):
         """(completed scene (M, 3), scan points it was sampled to, sampler steps) from a raw (N, 3) scan."""
 
 
+@runtime_checkable
+class PointRefiner(Protocol):
+    def refine_cloud(self, points: np.ndarray) -> np.ndarray:
+        """A refined scene from a completed one ((M, 3) -> (M', 3))."""
+
+
 @dataclass
 class Completion:
     out: Path
@@ -35,34 +43,45 @@ class Completion:
     output_points: int
     steps: int
     seconds: float
+    refined: bool = False
 
 
-def _model(source: Path) -> tuple[Any, dict[str, Any]]:
+def _model(source: Path, capability: type, what: str) -> tuple[Any, dict[str, Any]]:
     """The run's model (best checkpoint, else last) and the data parameters it was trained with."""
     from distilkit.engine.runs import checkpoint_path, load_run, run_config
 
     path = checkpoint_path(source, "any")
     model = load_run(path)
-    if not isinstance(model, ScanCompleter):
-        raise DistilkitError(f"adapter {type(model).__name__} cannot complete a scan: it offers no "
-                             "complete_scan(points, ...)")
+    if not isinstance(model, capability):
+        raise DistilkitError(f"{source}: adapter {type(model).__name__} cannot {what}")
     return model, (run_config(path).get("data") or {}).get("params") or {}
 
 
 def complete(checkpoint: str | Path, scan: str | Path, out: str | Path, steps: int | None = None,
              guidance: float | None = None, scan_points: int | None = None, seed: int = 0,
-             device: str = "cpu", status: Any = None) -> Completion:
-    """Complete ``scan`` with the model in ``checkpoint`` (a checkpoint file or a stage's run folder); write ``out``."""
+             device: str = "cpu", status: Any = None, refine: str | Path | None = None) -> Completion:
+    """Complete ``scan`` with the model in ``checkpoint`` (a checkpoint file or a stage's run folder), refine it with
+    the model of ``refine`` if given; write ``out``."""
     t0 = time.perf_counter()
-    model, data_params = _model(Path(checkpoint).expanduser())
+    model, data_params = _model(Path(checkpoint).expanduser(), ScanCompleter,
+                                "complete a scan: it offers no complete_scan(points, ...)")
+    refiner = None
+    if refine is not None:
+        refiner = _model(Path(refine).expanduser(), PointRefiner,
+                         "refine a completion: it offers no refine_cloud(points)")[0].to(torch.device(device))
     model = model.to(torch.device(device))
     raw = read_points(scan)
     if status:
         status(f"completing {len(raw):,} scan points")
-    scene, count, n_steps = model.complete_scan(raw, scan_points=scan_points or data_params.get("scan_points"),
-                                                steps=steps, guidance=guidance, seed=seed)
+    with torch.no_grad():
+        scene, count, n_steps = model.complete_scan(raw, scan_points=scan_points or data_params.get("scan_points"),
+                                                    steps=steps, guidance=guidance, seed=seed)
+        if refiner is not None:
+            if status:
+                status(f"refining {len(scene):,} completed points")
+            scene = refiner.refine_cloud(scene)
     path = write_points(out, scene)
-    return Completion(path, count, len(raw), len(scene), n_steps, time.perf_counter() - t0)
+    return Completion(path, count, len(raw), len(scene), n_steps, time.perf_counter() - t0, refiner is not None)
 
 
-__all__ = ["Completion", "ScanCompleter", "complete"]
+__all__ = ["Completion", "PointRefiner", "ScanCompleter", "complete"]

@@ -53,17 +53,17 @@ def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device
              prepare: Callable[[Batch], Batch] | None = None) -> dict[str, Any]:
     """Scores of the model's prediction tap over ``dataset`` with ``metrics`` (each with its registered ``name``
     and ``cls``): the first one's keys as they are, the others' as ``<name>.<key>``; and ``seconds_per_sample`` of
-    the model's forward passes."""
+    the model's forward passes, its auxiliary models' included (``prepare``)."""
     was_training = model.training
     model.eval()
     accs = [m.cls(model.info) for m in metrics]
     seconds, count = 0.0, 0
     with seeded(seed, device):
         for batch in eval_batches(dataset, batch_size, collate, world, workers):
-            batch = prepare(batch) if prepare is not None else batch.to(device)
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
-            t0 = time.perf_counter()
+            t0 = time.perf_counter()  # the frozen auxiliary models' passes (in ``prepare``) count: they predict too
+            batch = prepare(batch) if prepare is not None else batch.to(device)
             out = model(batch)
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
@@ -81,7 +81,7 @@ def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device
     scores: dict[str, Any] = dict(accs[0].compute())
     for m, acc in zip(metrics[1:], accs[1:]):
         scores.update({f"{m.name}.{k}": v for k, v in acc.compute().items()})
-    # the model's forward time per sample (not the metric's), e.g. a sampler's seconds per scene
+    # the forward time per sample (not the metric's), e.g. a sampler's seconds per scene (+ a refiner's)
     return {**scores, "seconds_per_sample": seconds / max(count, 1)}
 
 

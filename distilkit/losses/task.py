@@ -10,6 +10,7 @@ from torch import Tensor, nn
 
 from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES
+from distilkit.losses.chamfer import chamfer
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
 from distilkit.registry import TASK_LOSSES, NoParams
 from distilkit.term import Term
@@ -262,3 +263,22 @@ TASK_LOSSES.add("depth_l1", DepthL1, description="L1 depth error over pixels wit
                 paper="VoxFormer (Li et al. CVPR 2023), stage 1 depth (stand-in for its stereo depth network)",
                 consumes=("depth_map",))
 
+
+
+class Chamfer(TaskLoss):
+    """Squared-L2 Chamfer distance between predicted points and the ground-truth scene (LiDiff's refinement loss):
+    the evaluation ground truth ``scene_eval`` when the data has it (the untiled map crop), else ``scene``."""
+
+    Params = NoParams
+    CONSUMES = {"student": "points"}
+    BATCH = {"target": ("scene_eval", "scene"), "target_lengths": ("scene_eval_lengths", "scene_lengths")}
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        from distilkit.structures import PointCloud
+
+        return chamfer(taps["student"], PointCloud(taps["target"], taps["target_lengths"]))
+
+
+TASK_LOSSES.add("chamfer", Chamfer, description="squared-L2 Chamfer distance to the ground-truth scene (both "
+                                                "directions, per-set means summed)",
+                paper="Nunes et al., LiDiff, CVPR 2024 (refinement; pytorch3d's chamfer_distance)", consumes=("points",))
