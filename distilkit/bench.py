@@ -12,7 +12,7 @@ import gc
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
@@ -290,19 +290,9 @@ def sampler_cases(device: torch.device, quick: bool) -> list[Case]:
     """ScoreLiDAR's claim (Table 4): the distilled student samples in 8 steps what the LiDiff teacher samples in 50 —
     the same denoiser, timed side by side ('fast' = 8 steps, 'naive' = 50). The model is built through the adapter
     registry at recipes/scorelidar.yaml's size (weights random: the time does not depend on them)."""
-    from distilkit.engine.runs import build_model
-    from distilkit.engine.resolve import resolve
-    from distilkit.recipe import recipe_from_dict
-
     cases = []
     for scan in ((64,) if quick else (256, 1024)):
-        recipe = {"name": "bench", "data": {"dataset": "synthetic-scenes",
-                                            "params": {"scan_points": scan, "scene_points": 10 * scan}},
-                  "stages": {"m": {"model": {"adapter": "lidiff", "params": {"channels": 32, "blocks": 2,
-                                                                            "duplicate": 10}},
-                                   "train": {"metric": "cd"}}}}
-        res = resolve(recipe_from_dict(recipe, "bench"), "bench")
-        model = build_model(res.stages["m"].student, res.data_info).to(device).eval()
+        model, _ = _lidiff_models(device, scan)
         points = _street(scan, 0, device)[None]
 
         def run(steps: int, model=model, points=points) -> Tensor:
@@ -312,6 +302,58 @@ def sampler_cases(device: torch.device, quick: bool) -> list[Case]:
         cases.append(Case("sampler 8 vs 50 steps", f"{scan:,}-pt scan → {10 * scan:,} pts", lambda run=run: run(8),
                           lambda run=run: run(50), [], same_value=False))
     return cases
+
+
+def _lidiff_models(device: torch.device, scan: int) -> tuple[Any, Any]:
+    """recipes/scorelidar.yaml's LiDiff denoiser and refiner, built through the adapter registry (random weights: the
+    time does not depend on them)."""
+    from distilkit.data.params import SceneParams
+    from distilkit.data.scenes import scenes_info
+    from distilkit.registry import ADAPTERS
+
+    info = scenes_info(SceneParams(scan_points=scan, scene_points=10 * scan))
+    with torch.random.fork_rng(devices=[]):
+        lidiff, refine = ADAPTERS.get("lidiff"), ADAPTERS.get("lidiff-refine")
+        model = lidiff(lidiff.Params(channels=32, blocks=2, duplicate=10, sample_steps=8), info).to(device).eval()
+        refiner = refine(refine.Params(channels=32), info).to(device).eval()
+    return model, refiner
+
+
+def guidance_cases(device: torch.device, quick: bool) -> list[Case]:
+    """The cost of classifier-free guidance (LiDiff 6.0, ScoreLiDAR 3.5): its second, unconditional network call per
+    step, 8 steps with guidance 1 ('fast': one call) and 3.5 ('naive': two calls), per scene."""
+    cases = []
+    for scan in ((64,) if quick else (256, 1024)):
+        model, _ = _lidiff_models(device, scan)
+        points = _street(scan, 0, device)[None]
+
+        def run(w: float, model=model, points=points) -> Tensor:
+            with torch.no_grad():
+                return model.sample(points, steps=8, guidance=w, generator=torch.Generator().manual_seed(0)).sum()
+
+        cases.append(Case("guidance 1 vs 3.5, 8 steps", f"{scan:,}-pt scan → {10 * scan:,} pts",
+                          lambda run=run: run(1.0), lambda run=run: run(3.5), [], same_value=False))
+    return cases
+
+
+def complete_cases(device: torch.device, quick: bool) -> list[Case]:
+    """``distilkit complete`` on a scan the size of an HDL-64E sweep (125,000 points; 20,000 with --quick): LiDAR-frame
+    preparation and farthest-point sampling to LiDiff's 18,000 scan points (1,024 quick), 8 DPM-free DDIM steps at
+    guidance 3.5 into 10x the points, post-processing; 'fast' without refinement, 'naive' with the 6x refinement
+    network on top (the columns compare the two: the refinement's time and memory)."""
+    n, scan = (20_000, 1024) if quick else (125_000, 18_000)
+    model, refiner = _lidiff_models(device, scan)
+    raw = _street(n, 1, torch.device("cpu")).numpy()
+
+    def run(refine: bool) -> Tensor:
+        with torch.no_grad():
+            scene, _, _ = model.complete_scan(raw, scan_points=scan, steps=8, guidance=3.5)
+            if refine:
+                scene = refiner.refine_cloud(scene)
+        return torch.tensor(float(len(scene)))
+
+    return [Case("complete vs complete + refine", f"{n:,}-pt scan → {10 * scan:,} → ×6 pts",
+                 lambda: run(False), lambda: run(True), [], same_value=False)]
 
 
 def determinism_cases(device: torch.device, quick: bool) -> list[Case]:
@@ -427,7 +469,7 @@ def camera_cases(device: torch.device, quick: bool) -> list[Case]:
 BENCHES: dict[str, Callable[[torch.device, bool], list[Case]]] = {
     "dskd": dskd_cases, "pkt": pkt_cases, "rgo2d": rgo2d_cases, "kd": kd_cases, "nst": nst_cases,
     "structural": structural_cases, "sampler": sampler_cases, "determinism": determinism_cases,
-    "loader": loader_cases, "camera": camera_cases}
+    "loader": loader_cases, "camera": camera_cases, "guidance": guidance_cases, "complete": complete_cases}
 
 
 def _fmt_mem(b: int | None) -> str:

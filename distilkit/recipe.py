@@ -252,6 +252,10 @@ class ReportSpec(_Strict):
 
     per_class: bool = Field(False, description="also print and write the papers' layout: one row per stage, its "
                                                "scores and then every class's score (best checkpoint, test split)")
+    compare: dict[str, str] = Field(default_factory=dict, description="stage -> the stage its paired differences over "
+                                                                      "seeds are taken to (e.g. a few-step student -> "
+                                                                      "the undistilled teacher at the same step "
+                                                                      "count; default: the seeds' baseline)")
 
 
 class Recipe(_Strict):
@@ -273,6 +277,17 @@ class Recipe(_Strict):
             if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
                 raise ValueError(f"stage name {name!r} must be letters, digits, '_', '-' or '.'")
         return v
+
+    @model_validator(mode="after")
+    def _compared_stages(self) -> "Recipe":
+        for stage, ref in self.report.compare.items():
+            unknown = [n for n in (stage, ref) if n not in self.stages]
+            if unknown:
+                raise ValueError(f"report.compare: {', '.join(map(repr, unknown))} is not a stage of the recipe "
+                                 f"(stages: {', '.join(self.stages)})")
+            if stage == ref:
+                raise ValueError(f"report.compare: stage {stage!r} is compared with itself")
+        return self
 
 
 def format_loc(loc: tuple[Any, ...]) -> str:

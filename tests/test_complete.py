@@ -81,11 +81,20 @@ def test_complete_refine_on_a_kitti_format_scan_of_125k_points(tmp_path, capsys)
               "stages": {"teacher": {"model": {"adapter": "lidiff", "params": {"channels": 8, "blocks": 1,
                                                                                 "duplicate": 4, "sample_steps": 2}},
                                      "train": train},
+                         "teacher_1": {"model": {"adapter": "lidiff", "params": {"channels": 8, "blocks": 1,
+                                                                                  "duplicate": 4, "sample_steps": 1}},
+                                       "init": {"from": "teacher", "strict": False}, "train": {**train, "steps": 0}},
                          "refiner": {"model": {"adapter": "lidiff-refine", "params": {"channels": 8}},
-                                     "aux": {"diffusion": {"from": "teacher", "inputs": {"completion": "coarse"}}},
-                                     "train": train}}}
-    teacher, refiner = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
-    assert refiner.summary["test"]["best"]["cd"] > 0
+                                     "aux": {"diffusion": {"from": "teacher_1", "inputs": {"completion": "coarse"}}},
+                                     "train": train},
+                         "refined_2": {"model": {"adapter": "lidiff-refine", "params": {"channels": 8}},
+                                       "aux": {"diffusion": {"from": "teacher", "inputs": {"completion": "coarse"}}},
+                                       "init": {"from": "refiner"}, "train": {**train, "steps": 0}}}}
+    # an evaluate-only stage (teacher_1: the teacher's weights at 1 step) serves as an auxiliary model, and an
+    # evaluate-only refiner scores the refinement of another model's completions
+    teacher, _, refiner, refined_2 = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    assert refiner.summary["test"]["best"]["cd"] > 0 and refined_2.summary["test"]["best"]["cd"] > 0
+    assert refined_2.summary["test"]["best"]["cd"] != refiner.summary["test"]["best"]["cd"]
     scan = tmp_path / "000000.bin"
     _kitti_scan(125_000).tofile(scan)
     assert len(read_points(scan)) == 125_000

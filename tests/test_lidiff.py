@@ -67,9 +67,23 @@ def test_ddim_with_an_oracle_denoiser_returns_the_scene_in_any_number_of_steps(s
     m = model(duplicate=2)
     scan = torch.randn(1, 16, 3)
     target = scan.repeat(1, 2, 1) + 0.3 * torch.randn(1, 32, 3)
-    m.net.forward = lambda x_t, t, c: (x_t - target) / (1 - m.alphas_cumprod[t]).sqrt()[:, None, None]  # type: ignore
+    m.net.forward = lambda x_t, t, c, enc=None: (x_t - target) / (1 - m.alphas_cumprod[t]).sqrt()[:, None, None]  # type: ignore
     out = m.sample(scan, steps=steps, generator=torch.Generator().manual_seed(1))
     assert torch.allclose(out, target, atol=1e-4)
+
+
+@pytest.mark.parametrize("steps", [8, 50])
+def test_dpm_solver_with_an_oracle_denoiser_lands_within_its_sde_noise_at_many_steps(steps: int) -> None:
+    """The VP formulas on the local-noise offset still converge to the scene when the noise prediction is exact
+    (its last step adds sigma_0 = 6 mm of noise); one step does not (the offset is divided by alpha_999 = 0.17)."""
+    m = model(duplicate=2, sampler="dpm-solver++")
+    scan = torch.randn(1, 16, 3) * 5
+    target = scan.repeat(1, 2, 1) + 0.3 * torch.randn(1, 32, 3)
+    m.net.forward = lambda x_t, t, c, enc=None: (x_t - target) / (1 - m.alphas_cumprod[t]).sqrt()[:, None, None]  # type: ignore
+    err = (m.sample(scan, steps=steps, guidance=1.0, generator=torch.Generator().manual_seed(1)) - target).norm(dim=-1)
+    assert err.mean() < 0.05
+    one = (m.sample(scan, steps=1, guidance=1.0, generator=torch.Generator().manual_seed(1)) - target).norm(dim=-1)
+    assert one.mean() > 10 * err.mean()
 
 
 @pytest.mark.parametrize("sampler", ["ddim", "dpm-solver++"])
@@ -77,12 +91,22 @@ def test_ddim_with_an_oracle_denoiser_returns_the_scene_in_any_number_of_steps(s
 def test_n_steps_are_n_network_evaluations_none_at_t_zero(sampler: str, steps: int) -> None:
     m = model(sampler=sampler, duplicate=2)
     seen: list[int] = []
-    m.net.forward = lambda x_t, t, c: seen.append(int(t[0])) or torch.zeros_like(x_t)  # type: ignore
+    m.net.forward = lambda x_t, t, c, enc=None: seen.append(int(t[0])) or torch.zeros_like(x_t)  # type: ignore
     m.sample(torch.randn(1, 8, 3), steps=steps, guidance=1.0, generator=torch.Generator().manual_seed(0))
     assert len(seen) == steps and len(set(seen)) == steps and min(seen) > 0 and seen[0] == 999
     seen.clear()
     m.sample(torch.randn(1, 8, 3), steps=steps, guidance=6.0, generator=torch.Generator().manual_seed(0))
     assert len(seen) == 2 * steps  # guidance: a conditional and an unconditional call per step
+
+
+@pytest.mark.parametrize("sampler", ["ddim", "dpm-solver++"])
+def test_a_diverged_model_stops_sampling_with_a_clear_error(sampler: str) -> None:
+    from distilkit.errors import NonFiniteLossError
+
+    m = model(sampler=sampler, duplicate=2)
+    m.net.forward = lambda x_t, t, c, enc=None: torch.where(t[:, None, None] < 600, torch.nan, 0.0) * x_t  # type: ignore
+    with pytest.raises(NonFiniteLossError, match=r"non-finite at step 3 of 4 \(t = (499|500)\)"):
+        m.sample(torch.randn(1, 8, 3), steps=4, guidance=1.0)
 
 
 def _toy_eps(x: np.ndarray, t: int) -> np.ndarray:
@@ -149,7 +173,7 @@ def test_dpm_solver_runs_on_the_offset_from_the_duplicated_scan() -> None:
     m = model(sampler="dpm-solver++", duplicate=2)
     scan = torch.randn(1, 8, 3)
     seen = {}
-    m.net.forward = lambda x_t, t, c: seen.update(x=x_t.clone()) or torch.zeros_like(x_t)  # type: ignore
+    m.net.forward = lambda x_t, t, c, enc=None: seen.update(x=x_t.clone()) or torch.zeros_like(x_t)  # type: ignore
     out = m.sample(scan, steps=1, guidance=1.0, generator=torch.Generator().manual_seed(0))
     gen = torch.Generator().manual_seed(0)
     noise = torch.randn((1, 16, 3), generator=gen)
@@ -162,6 +186,18 @@ def test_dpm_solver_runs_on_the_offset_from_the_duplicated_scan() -> None:
     want = s[0] / s[999] * torch.exp(-h) * noise + s[0] * (1 - torch.exp(-2 * h)).sqrt() * z \
         + a[0] * (1 - torch.exp(-2 * h)) * noise / a[999]
     assert torch.allclose(out - x_init, want.float(), atol=1e-5)
+
+
+def test_the_unconditional_scan_as_one_point_and_the_cached_encoding_change_no_prediction() -> None:
+    """LiDiff's all-zero scan of N points and one point at the origin give the same eps_u (the same neighbours and
+    features); a sampler's once-computed scan encoding gives the same predictions as encoding at every call."""
+    m = model(k_scan=4, k_cond=3).eval()
+    x, t, scan = torch.randn(2, 40, 3) * 3, torch.tensor([10, 900]), torch.randn(2, 12, 3) * 3
+    with torch.no_grad():
+        assert torch.allclose(m.net(x, t, torch.zeros_like(scan)), m.net(x, t, m.unconditional(scan)), atol=1e-6)
+        plain = m.predict_noise(x, t, scan, guidance=3.5)
+        cached = m.predict_noise(x, t, scan, guidance=3.5, encoded=m.encode(scan))
+    assert torch.allclose(plain, cached, atol=1e-6) and not torch.allclose(plain, m.predict_noise(x, t, scan), atol=1e-3)
 
 
 def test_the_evaluated_completion_is_post_processed_as_lidiffs_pipeline() -> None:
@@ -182,7 +218,7 @@ def test_the_evaluated_completion_is_post_processed_as_lidiffs_pipeline() -> Non
 
 def test_classifier_free_guidance_extrapolates_from_the_unconditional_prediction() -> None:
     m = model()
-    m.net.forward = lambda x_t, t, c: x_t + c.abs().sum()  # type: ignore[method-assign]
+    m.net.forward = lambda x_t, t, c, enc=None: x_t + c.abs().sum()  # type: ignore[method-assign]
     x, t, c = torch.zeros(1, 4, 3), torch.tensor([5]), torch.ones(1, 2, 3)
     eps_c, eps_u = 6.0, 0.0  # sum |c| = 6 with the scan, 0 with the all-zero scan
     assert torch.allclose(m.predict_noise(x, t, c, guidance=3.5), torch.full((1, 4, 3), eps_u + 3.5 * (eps_c - eps_u)))

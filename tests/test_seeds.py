@@ -46,6 +46,30 @@ def test_mean_std_and_paired_differences_match_numpy() -> None:
     assert rows["dskd"]["delta_ci"] == pytest.approx((paired.mean() - half, paired.mean() + half), rel=1e-6)
 
 
+def test_report_compare_pairs_each_stage_with_its_own_reference(tmp_path: Path) -> None:
+    """A few-step student against the undistilled teacher at its own step count (recipes/scorelidar.yaml)."""
+    from distilkit.report.seeds import seeds_markdown
+
+    rng = np.random.default_rng(1)
+    stages = ("teacher_1", "teacher_8", "student_1", "student_8")
+    values = {stage: rng.uniform(0.1, 0.3, size=(3, 3)) for stage in stages}
+    results = {seed: [fake(stage, *values[stage][i]) for stage in stages] for i, seed in enumerate((0, 1, 2))}
+    compare = {"student_1": "teacher_1", "student_8": "teacher_8"}
+    rows = {r["stage"]: r for r in seed_rows(results, "teacher_8", compare)}
+    for student, teacher in compare.items():
+        assert rows[student]["delta"] == pytest.approx(list(values[student][:, 0] - values[teacher][:, 0]))
+        assert rows[student]["reference"] == teacher
+    assert rows["teacher_1"]["delta"] == pytest.approx(list(values["teacher_1"][:, 0] - values["teacher_8"][:, 0]))
+    assert rows["teacher_8"]["delta"] == [] and rows["teacher_8"]["reference"] is None
+    # stages without distillation are not weights of one method: none is "chosen" over another
+    assert all(r["chosen"] and r["alternatives"] == 1 for r in rows.values())
+    md = seeds_markdown(list(rows.values()), "teacher_8", "t")
+    assert "| Δ to |" in md and "| teacher_1 |" in md and "report.compare" in md
+    assert "Δ to" not in seeds_markdown(list(seed_rows(results, "teacher_8")), "teacher_8", "t")
+    with pytest.raises(Exception, match="report.compare: 'nope' is not a stage"):
+        recipe_from_dict({**tiny_recipe(), "report": {"compare": {"nope": "teacher"}}})
+
+
 def test_t_interval_against_tabulated_quantiles() -> None:
     from distilkit.report.seeds import t_interval
 

@@ -66,6 +66,18 @@ class Pipeline:
     def run_dir(self, name: str) -> Path:
         return self.root / f"{name}-{self.hashes[name]}"
 
+    def weights(self, name: str, which: str = "best") -> Path:
+        """The checkpoint holding stage ``name``'s weights: its own, or for an evaluate-only stage (``steps: 0``, which
+        writes none) the one it was initialised from, followed back to a trained stage or a weights file."""
+        from distilkit.engine.runs import checkpoint_path
+
+        spec = self.resolved.stages[name].spec
+        if spec.train.steps == 0 and spec.init is not None:
+            if spec.init.from_ is not None:
+                return self.weights(spec.init.from_, spec.init.which)
+            return Path(spec.init.checkpoint or "").expanduser()
+        return checkpoint_path(self.run_dir(name), which)
+
     def dataset(self, split: str) -> Any:
         """The split's samples, each with its ``sample_id`` (generated or read once, shared by the stages)."""
         from distilkit.data.samples import Split

@@ -29,7 +29,7 @@ def run_seeds(recipe: str | Path, output: str | Path, seeds: list[int], baseline
         results[seed] = pipe.run(rerun=rerun, only=only, wait=wait)
     assert pipe is not None
     chosen = baseline if baseline is not None else default_baseline(pipe.resolved)
-    rows = seed_rows(results, chosen)
+    rows = seed_rows(results, chosen, pipe.resolved.recipe.report.compare)
     if pipe.world.main:  # multi-process runs: one writer
         write_seeds_report(pipe.root, rows, chosen, pipe.console)
     return rows

@@ -31,7 +31,7 @@ from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop
 from distilkit.engine.randomness import seed_everything
 from distilkit.files import atomic_write_json, atomic_write_text
 from distilkit.engine.loader import BatchPlan, eval_batches, resolve_workers, train_batches
-from distilkit.engine.runs import checkpoint_path, load_run
+from distilkit.engine.runs import load_run
 
 if TYPE_CHECKING:
     from distilkit.engine.pipeline import Pipeline
@@ -146,7 +146,7 @@ class StageRun:
         """The checkpoint an upstream edge (``teacher``, ``init``) reads: a stage's run folder or a file."""
         src = getattr(self.stage.spec, field)
         if src.from_ is not None:
-            return checkpoint_path(self.pipeline.run_dir(src.from_), src.which)
+            return self.pipeline.weights(src.from_, src.which)
         return Path(src.checkpoint or "").expanduser()
 
     def split(self, name: str) -> Any:
@@ -168,7 +168,7 @@ class StageRun:
     def load_aux(self) -> None:
         """The frozen auxiliary models (``aux``), each from its stage's checkpoint (once)."""
         if len(self.aux) != len(self.stage.aux):
-            self.aux = [(aux, load_run(checkpoint_path(self.pipeline.run_dir(aux.stage), aux.which), model=aux.model,
+            self.aux = [(aux, load_run(self.pipeline.weights(aux.stage, aux.which), model=aux.model,
                                        info=self.info, device=self.device, role=f"aux model {aux.name!r}"))
                         for aux in self.stage.aux]
 

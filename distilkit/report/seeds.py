@@ -34,19 +34,22 @@ def _mean_std(xs: list[float]) -> tuple[float, float]:
     return statistics.fmean(xs), statistics.stdev(xs) if len(xs) > 1 else math.nan
 
 
-def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None) -> list[dict[str, Any]]:
+def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None,
+              compare: dict[str, str] | None = None) -> list[dict[str, Any]]:
     """Per stage (recipe order): seeds, per-seed test scores — the selection score (``main``, SSC: mIoU) and
     the metric's next column (``second``, SSC: IoU) at the best-validation checkpoint, ``main`` at the last
-    step (``last_main``) — their mean and sample std, and the per-seed differences in ``main`` to
-    ``baseline`` with their mean and std."""
+    step (``last_main``) — their mean and sample std, and the per-seed differences in ``main`` to its reference
+    (``compare``'s stage for it, else ``baseline``; ``row["reference"]``) with their mean and std."""
     seeds = sorted(results_by_seed)
     per_stage: dict[str, dict[int, dict[str, Any]]] = {}
     for seed in seeds:
         for result in results_by_seed[seed]:
             per_stage.setdefault(result.name, {})[seed] = stage_row(result.summary)
-    base = per_stage.get(baseline or "", {})
+    compare = compare or {}
     rows = []
     for name, by_seed in per_stage.items():
+        reference = compare.get(name, baseline)
+        base = per_stage.get(reference or "", {})
         got = sorted(by_seed)
         first = by_seed[got[0]]
         view: ScoreView = first["view"]
@@ -56,13 +59,16 @@ def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None) -> li
                 "last_main": lambda r: r["last"][view.main[0]],
                 "val": lambda r: r["val"]}
         row: dict[str, Any] = {"stage": name, "label": first["label"], "seeds": got, "view": view,
+                               "reference": reference if name != reference else None,
                                "objectives": first["objectives"], "split": first["split"],
-                               "group": (first["input"], tuple(o.split("×")[0] for o in first["objective_list"]))}
+                               # weights of one method: the same input and objectives (a stage without any is alone)
+                               "group": (first["input"], tuple(o.split("×")[0] for o in first["objective_list"]))
+                               if first["objective_list"] else ("stage", name)}
         for key, get in pick.items():
             values = [get(by_seed[s]) for s in got]
             row[key] = values
             row[f"{key}_mean"], row[f"{key}_std"] = _mean_std(values)
-        comparable = base and name != baseline and base[min(base)]["view"] == view
+        comparable = base and name != reference and base[min(base)]["view"] == view
         paired = [pick["main"](by_seed[s]) - pick["main"](base[s]) for s in got if s in base] if comparable else []
         row["delta"] = paired
         row["delta_mean"], row["delta_std"] = _mean_std(paired) if paired else (math.nan, math.nan)
@@ -130,19 +136,25 @@ def _view(rows: list[dict[str, Any]]) -> ScoreView | None:
     return rows[0]["view"] if rows else None
 
 
-def _headers(view: ScoreView | None, split: str = "test") -> list[str]:
+def _per_row(rows: list[dict[str, Any]], baseline: str | None) -> bool:
+    """Whether the rows take their differences to different stages (``report.compare``): then a column names each."""
+    return any(r.get("reference") not in (None, baseline) for r in rows)
+
+
+def _headers(view: ScoreView | None, split: str = "test", per_row: bool = False) -> list[str]:
     main = view.main[1] if view else "score"
     second = view.second[1] if view and view.second else "—"
     return [f"val {main} (selects)", f"{split} {main} best", f"{split} {second} best", f"{split} {main} last",
-            f"Δ {split} {main} per seed", f"Δ {split} {main}", "Δ 95 % interval"]
+            *(["Δ to"] if per_row else []), f"Δ {split} {main} per seed", f"Δ {split} {main}", "Δ 95 % interval"]
 
 
-def _cells(row: dict[str, Any]) -> list[str]:
+def _cells(row: dict[str, Any], per_row: bool = False) -> list[str]:
     view: ScoreView = row["view"]
     second = view.second[2] if view.second else 1.0
+    ref = [row.get("reference") or "—"] if per_row else []
     return [_pm(row["val_mean"], row["val_std"], view.main[2]), _pm(row["main_mean"], row["main_std"], view.main[2]),
             _pm(row["second_mean"], row["second_std"], second),
-            _pm(row["last_main_mean"], row["last_main_std"], view.main[2]), *_deltas(row)]
+            _pm(row["last_main_mean"], row["last_main_std"], view.main[2]), *ref, *_deltas(row)]
 
 
 def _mark(row: dict[str, Any]) -> str:
@@ -173,14 +185,16 @@ def seeds_table(rows: list[dict[str, Any]], baseline: str | None, what: str = "d
     from rich.table import Table
 
     seeds = sorted({s for r in rows for s in r["seeds"]})
+    per_row = _per_row(rows, baseline)
+    to = "the stage in 'Δ to'" if per_row else f"'{baseline or '—'}'"
     table = Table(title=f"{what} {', '.join(map(str, seeds))} — {_split(rows)} split, mean ± std over seeds, "
-                        f"{_rule(rows)}; Δ = paired difference to '{baseline or '—'}' with its 95 % t-interval")
-    headers = _headers(_view(rows), _split(rows))
+                        f"{_rule(rows)}; Δ = paired difference to {to} with its 95 % t-interval")
+    headers = _headers(_view(rows), _split(rows), per_row)
     keep = [i for i, h in enumerate(headers) if "per seed" not in h]  # per seed: in the Markdown and the CSV
     for col in (first, "distillation", *[headers[i] for i in keep]):
         table.add_column(col, justify="left" if col in (first, "distillation") else "right")
     for row in rows:
-        cells = _cells(row)
+        cells = _cells(row, per_row)
         table.add_row(_mark(row), row["objectives"], *[cells[i] for i in keep])
     if _weighs(rows):
         table.caption = "◆ = of a method's weights, the one with the best mean validation score (the test split chose nothing)"
@@ -205,9 +219,9 @@ def power_note(rows: list[dict[str, Any]]) -> str:
             "repetitions; smaller effects can go unseen, and an interval that contains 0 is not evidence of no effect.")
 
 
-def _md_rows(rows: list[dict[str, Any]]) -> list[str]:
-    return [f"| {_mark(row)} | {row['objectives']} | {','.join(map(str, row['seeds']))} | " + " | ".join(_cells(row))
-            + " |" for row in rows]
+def _md_rows(rows: list[dict[str, Any]], per_row: bool = False) -> list[str]:
+    return [f"| {_mark(row)} | {row['objectives']} | {','.join(map(str, row['seeds']))} | "
+            + " | ".join(_cells(row, per_row)) + " |" for row in rows]
 
 
 def seeds_markdown(rows: list[dict[str, Any]], baseline: str | None, title: str, first: str = "stage",
@@ -218,26 +232,28 @@ def seeds_markdown(rows: list[dict[str, Any]], baseline: str | None, title: str,
     view = _view(rows)
     main = view.main[1] if view else "score"
     split = _split(rows)
-    cols = [first, "distillation", "seeds", *_headers(view, split)]
+    per_row = _per_row(rows, baseline)
+    to = "the stage in 'Δ to' (the recipe's report.compare)" if per_row else f"'{baseline or '—'}'"
+    cols = [first, "distillation", "seeds", *_headers(view, split, per_row)]
     head = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     power = power_note(rows)
     lines = [f"# {title}", "",
              f"{split.capitalize()} split, {view.title if view else 'scores'}, mean ± sample std over seeds "
              f"{', '.join(map(str, seeds))}; {_rule(rows)}, 'last' = the final step; 'val' = the validation score of "
              f"that checkpoint, the only score used to choose anything. Δ = the paired difference in {split} {main} to "
-             f"'{baseline or '—'}', seed by seed, with its 95 % Student-t interval over the seeds (an interval that "
+             f"{to}, seed by seed, with its 95 % Student-t interval over the seeds (an interval that "
              "contains 0: no measurable effect).", *(["", power] if power else []),
              *(["", *notes] if notes else []), ""]
     if _weighs(rows):
         chosen = [r for r in rows if r.get("chosen")]
         lines += ["## Each method at the weight chosen on validation", "",
                   f"Of a method's weights, the one with the best mean validation {main} over the seeds (◆ below); "
-                  f"its {split} scores are reported as they are.", "", *head, *_md_rows(chosen), "",
-                  "## Every variant", "", *head, *_md_rows(rows)]
+                  f"its {split} scores are reported as they are.", "", *head, *_md_rows(chosen, per_row), "",
+                  "## Every variant", "", *head, *_md_rows(rows, per_row)]
     else:
-        lines += [*head, *_md_rows(rows)]
+        lines += [*head, *_md_rows(rows, per_row)]
     if forest:
-        lines += ["", f"![paired differences to {baseline or '—'} with 95 % intervals]({forest})"]
+        lines += ["", f"![paired differences to {to} with 95 % intervals]({forest})"]
     if image:
         lines += ["", f"![{split} {main} per seed]({image})"]
     return "\n".join(lines + [""])
@@ -303,8 +319,11 @@ def _forest(path: Path, rows: list[dict[str, Any]], baseline: str | None) -> Non
                    edgecolors=colour, s=14, alpha=0.7, linewidths=0.8, zorder=2)
         ax.scatter([scale * row["delta_mean"]], [i], color=colour, s=30, zorder=3)
     ax.axvline(0.0, color="#cb181d", linewidth=1.0)
-    ax.set_yticks(range(len(shown)), [_mark(r).replace("*", "") for r in reversed(shown)], fontsize=8)
+    per_row = _per_row(rows, baseline)
+    ticks = [_mark(r).replace("*", "") + (f" − {r['reference']}" if per_row else "") for r in reversed(shown)]
+    ax.set_yticks(range(len(shown)), ticks, fontsize=8)
     unit = " (points)" if scale == 100 else ""
-    ax.set_xlabel(f"Δ {_split(rows)} {name}{unit} to '{baseline or '—'}', paired by seed")
+    to = "its reference stage" if per_row else f"'{baseline or '—'}'"
+    ax.set_xlabel(f"Δ {_split(rows)} {name}{unit} to {to}, paired by seed")
     ax.set_title("mean and 95 % t-interval of the paired differences; circles: single seeds", fontsize=9)
     plots.save(fig, path)

@@ -79,15 +79,28 @@ class LiDiffAdapter(Adapter):
         """sqrt(1 - abar_t), the local noise scale at integer timesteps t."""
         return (1.0 - self.alphas_cumprod[t]).sqrt()
 
-    def predict_noise(self, x_t: Tensor, t: Tensor, condition: Tensor, guidance: float = 1.0) -> Tensor:
+    def predict_noise(self, x_t: Tensor, t: Tensor, condition: Tensor, guidance: float = 1.0,
+                      encoded: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """eps_hat (B, M, 3) of noisy points (B, M, 3) at timesteps t (B,), given the scan (B, N, 3); with
-        classifier-free guidance eps_u + w (eps_c - eps_u) when ``guidance`` != 1 (the unconditional input
-        is an all-zero scan, as LiDiff's)."""
-        eps = self.net(x_t, t, condition)
+        classifier-free guidance eps_u + w (eps_c - eps_u) when ``guidance`` != 1. The unconditional input is LiDiff's
+        all-zero scan, given as one point at the origin: N copies of it have the same neighbours and features (the
+        same eps_u) but make every nearest-neighbour query degenerate. ``encoded``: :meth:`encode`'s result."""
+        enc_c, enc_u = encoded if encoded is not None else (None, None)
+        eps = self.net(x_t, t, condition, enc_c)
         if guidance != 1.0:
-            eps_u = self.net(x_t, t, torch.zeros_like(condition))
+            eps_u = self.net(x_t, t, self.unconditional(condition), enc_u)
             eps = eps_u + guidance * (eps - eps_u)
         return eps
+
+    @staticmethod
+    def unconditional(condition: Tensor) -> Tensor:
+        """LiDiff's dropped condition, an all-zero scan, as one point (B, 1, 3)."""
+        return condition.new_zeros((condition.shape[0], 1, 3))
+
+    def encode(self, condition: Tensor) -> tuple[Tensor, Tensor]:
+        """The scan encoder's features of the scan and of the unconditional input: they depend on neither x_t nor t,
+        so a sampler computes them once."""
+        return self.net.encoder(condition), self.net.encoder(self.unconditional(condition))
 
     def timesteps(self, steps: int) -> list[int]:
         """The ``steps`` timesteps the sampler evaluates the network at (one each, none at t = 0)."""
@@ -119,9 +132,11 @@ class LiDiffAdapter(Adapter):
         w = self.params.guidance if guidance is None else guidance
         x_init, x = self.start(condition, generator, noise)
         b = x.shape[0]
+        encoded = self.encode(condition)
 
         def eps(x_t: Tensor, t: int) -> Tensor:
-            return self.predict_noise(x_t, torch.full((b,), t, dtype=torch.long, device=x_t.device), condition, w)
+            tt = torch.full((b,), t, dtype=torch.long, device=x_t.device)
+            return self.predict_noise(x_t, tt, condition, w, encoded)
 
         if self.params.sampler == "ddim":
             return ddim(eps, x, self.sigma(torch.arange(len(self.alphas_cumprod), device=x.device)), ts)

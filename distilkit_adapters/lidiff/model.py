@@ -82,8 +82,9 @@ class PointDenoiser(nn.Module):
         self.body = nn.ModuleList(_mlp(channels, channels, channels) for _ in range(blocks))
         self.head = nn.Sequential(nn.Linear(channels, 20), nn.LeakyReLU(0.1), nn.Linear(20, 3))
 
-    def forward(self, x_t: Tensor, t: Tensor, scan: Tensor) -> Tensor:
-        enc = self.encoder(scan)
+    def forward(self, x_t: Tensor, t: Tensor, scan: Tensor, enc: Tensor | None = None) -> Tensor:
+        """``enc``: ``self.encoder(scan)`` when the caller has it already (a sampler encodes its scan once)."""
+        enc = self.encoder(scan) if enc is None else enc
         idx = torch.stack([knn_indices(x, s, self.k_cond) for x, s in zip(x_t, scan)])  # (B, M, k)
         rel = x_t[:, :, None] - _gather(scan, idx)
         cond = self.cond(torch.cat([_gather(enc, idx), rel], dim=-1)).amax(dim=2)  # (B, M, C)

@@ -25,6 +25,16 @@ from torch import Tensor
 EpsFn = Callable[[Tensor, int], Tensor]  # eps_hat(x_t, t) for an integer timestep t
 
 
+def _checked(eps: Tensor, i: int, t: int, n: int) -> Tensor:
+    """``eps`` if finite, else a clear error (a diverged model; the kNN of the next step would fail obscurely)."""
+    if not bool(torch.isfinite(eps).all()):
+        from distilkit.errors import NonFiniteLossError
+
+        raise NonFiniteLossError(f"sampling: the network's noise prediction became non-finite at step {i + 1} of {n} "
+                                 f"(t = {t}): the model's weights have diverged")
+    return eps
+
+
 def ddim_timesteps(steps: int, diffusion_steps: int) -> list[int]:
     """``steps`` distinct timesteps, "trailing" spacing: round(T (n - i) / n) - 1 for i = 0 .. n - 1 (never 0
     unless n = T)."""
@@ -37,7 +47,7 @@ def ddim(eps_fn: EpsFn, x: Tensor, sigmas: Tensor, timesteps: list[int]) -> Tens
     """Deterministic DDIM of the local-noise process from x = x_T: one ``eps_fn`` call per timestep; returns x0_hat
     of the last one. ``sigmas`` (T,) holds sqrt(1 - abar_t)."""
     for i, t in enumerate(timesteps):
-        eps = eps_fn(x, t)
+        eps = _checked(eps_fn(x, t), i, t, len(timesteps))
         x0 = x - sigmas[t].to(x.dtype) * eps
         x = x0 if i + 1 == len(timesteps) else x0 + sigmas[timesteps[i + 1]].to(x.dtype) * eps
     return x
@@ -73,7 +83,7 @@ def sde_dpmsolver_pp(eps_fn: EpsFn, x: Tensor, alphas_cumprod: Tensor, timesteps
     previous: tuple[int, Tensor] | None = None  # (its timestep, its x0_hat)
     for i, s in enumerate(timesteps):
         t = timesteps[i + 1] if i + 1 < n else 0
-        eps = eps_fn(x, s)
+        eps = _checked(eps_fn(x, s), i, s, n)
         d0 = (x - sigma[s].to(x.dtype) * eps) / alpha[s].to(x.dtype)
         z = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
         h = lam[t] - lam[s]
