@@ -285,6 +285,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     b.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
     b.set_defaults(fn=_cmd_bench)
+    dp = sub.add_parser("data", help="work on data folders: rectify a SemanticKITTI folder's completion labels")
+    dsub = dp.add_subparsers(dest="data_command", required=True, metavar="ACTION")
+    rect = dsub.add_parser("rectify", help="SCPNet's label rectification: write sequences/NN/voxels_rectified/ "
+                                           "beside the original voxel labels (which stay untouched)")
+    rect.add_argument("root", help="a SemanticKITTI folder (holds sequences/)")
+    rect.add_argument("--sequences", nargs="+", default=None, help="the sequences (default: every one)")
+    rect.add_argument("--classes", nargs="+", default=None,
+                      help="dynamic classes (default: car truck other-vehicle person bicyclist motorcyclist)")
+    rect.add_argument("--out", default="voxels_rectified", help="the folder written in each sequence")
+    rect.set_defaults(fn=_cmd_data_rectify)
     c = sub.add_parser("complete", help="complete a scan (.bin, .ply, .npy) into a dense scene with a trained "
                                         "point-diffusion model")
     c.add_argument("checkpoint", help="a checkpoint (best.pt / last.pt) or a stage's run folder")
@@ -300,6 +310,20 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--device", default="cpu", help="cpu or cuda")
     c.set_defaults(fn=_cmd_complete)
     return p
+
+
+def _cmd_data_rectify(args: argparse.Namespace) -> int:
+    from distilkit.console import make_console, progress_bar
+    from distilkit.data.rectify import DEFAULT_DYNAMIC, rectify_folder
+
+    console = make_console()
+    with progress_bar(console, "rectifying") as advance:
+        counts = rectify_folder(args.root, args.sequences, args.classes or DEFAULT_DYNAMIC, args.out, advance)
+    for name, (before, left) in counts.items():
+        share = f"{100 * left / before:.1f} % left" if before else "none"
+        console.print(f"{name}: {left:,} of {before:,} voxels left ({share})")
+    console.print(f"written to sequences/*/{args.out}/ under {args.root}")
+    return 0
 
 
 def _cmd_complete(args: argparse.Namespace) -> int:

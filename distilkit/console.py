@@ -42,3 +42,14 @@ def stage_progress(console: Any, name: str) -> Iterator[Callable[[int, int, dict
             progress.update(task, completed=step, total=total, rate=f"{rate:.2f} it/s", terms=terms)
 
         yield on_step
+
+
+@contextlib.contextmanager
+def progress_bar(console: Any, what: str) -> Iterator[Callable[[int, int], None]]:
+    """A rich progress bar for a loop over files: ``advance(done, total)``; count, elapsed time and ETA."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    with Progress(TextColumn(f"[cyan]{what}[/]"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TextColumn("ETA"), TimeRemainingColumn(), console=console, transient=False) as progress:
+        task = progress.add_task(what, total=None)
+        yield lambda done, total: progress.update(task, completed=done, total=total)

@@ -107,7 +107,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         self.items: list[tuple[Path, int, int]] = []  # (sequence dir, frame, sequence length)
         for seq in seqs:
             d = root / "sequences" / seq
-            vox = sorted((d / "voxels").glob("*.label"))
+            vox = sorted((d / params.voxels).glob("*.label"))
             if not vox:
                 continue
             n = len(list((d / "velodyne").glob("*.bin")))
@@ -116,7 +116,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
                 if frame % params.stride == 0:
                     self.items.append((d, frame, n))
         if not self.items:
-            raise DataError(f"{root}: no voxels/*.label files under sequences {seqs} for split {split!r}")
+            raise DataError(f"{root}: no {params.voxels}/*.label files under sequences {seqs} for split {split!r}")
         self.info = kitti_info(params)
         self._poses: dict[Path, np.ndarray] = {}
 
@@ -127,6 +127,19 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         """``<sequence>/<frame>``, as SemanticKITTI names its files (published predictions are stored by it)."""
         d, frame, _ = self.items[i]
         return f"{d.name}/{frame:06d}"
+
+    def _rectified(self, d: Path, frame: int, labels: np.ndarray) -> np.ndarray:
+        """SCPNet's rectification of a frame's full-resolution labels with its own scan's panoptic labels."""
+        from distilkit.data.rectify import dynamic_ids, rectify
+
+        scan = d / "velodyne" / f"{frame:06d}.bin"
+        lab_file = d / "labels" / f"{frame:06d}.label"
+        if not lab_file.is_file():
+            raise DataError(f"{lab_file}: rectification needs the scan's point labels (panoptic), and there are none")
+        xyz = skio.read_points(scan)[:, :3]
+        sem, inst = skio.read_point_labels(lab_file, len(xyz))
+        raw = sem.astype(np.uint32) | (inst.astype(np.uint32) << 16)
+        return rectify(labels, xyz, raw, VoxelGrid.semantickitti(1), dynamic_ids(self.p.rectify_classes))
 
     def _pose(self, d: Path) -> np.ndarray:
         if d not in self._poses:
@@ -151,9 +164,12 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
             pts.append(p)
             labs.append(remap(sem, seg_lut(), str(lab_file)))
             frames.append(np.full(len(p), k, np.uint8))
-        vl = remap(skio.read_voxel_labels(d / "voxels" / f"{frame:06d}.label"), ssc_lut(), f"{d}/voxels/{frame:06d}.label")
+        vox_file = d / self.p.voxels / f"{frame:06d}.label"
+        vl = remap(skio.read_voxel_labels(vox_file), ssc_lut(), str(vox_file))
         inv_file = d / "voxels" / f"{frame:06d}.invalid"
         inv = skio.read_voxel_bits(inv_file) if inv_file.is_file() else np.zeros(vl.shape, bool)
+        if self.p.rectify:
+            vl = self._rectified(d, frame, vl)
         vl, inv = pool_labels(vl, inv, self.p.scale)
         return {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
                 "point_label": np.concatenate(labs).astype(np.uint8), "voxel_label": vl.astype(np.uint8), "invalid": inv}
@@ -169,7 +185,8 @@ def kitti_fingerprint(params: SemanticKittiParams) -> dict[str, Any]:
     lines = []
     for seq in sorted({*params.train_sequences, *params.val_sequences, *params.test_sequences}):
         d = root / "sequences" / seq
-        files = [f for sub in ("velodyne", "labels", "voxels") for f in sorted((d / sub).glob("*"))]
+        folders = dict.fromkeys(("velodyne", "labels", "voxels", params.voxels))
+        files = [f for sub in folders for f in sorted((d / sub).glob("*"))]
         files += [d / name for name in ("poses.txt", "calib.txt") if (d / name).is_file()]
         for f in files:
             st = f.stat()

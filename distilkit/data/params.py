@@ -82,8 +82,24 @@ class SemanticKittiParams(BaseModel):
     scale: int = Field(1, description="grid coarsening of the 256x256x32 voxel files (majority pooling)")
     input_frames: int = Field(1, ge=1)
     stride: int = Field(5, ge=1, description="use every n-th scan (voxel files exist for every 5th)")
+    voxels: str = Field("voxels", description="the folder of each sequence the voxel labels are read from "
+                                             "(`distilkit data rectify` writes voxels_rectified/); .invalid files "
+                                             "always come from voxels/")
+    rectify: bool = Field(False, description="SCPNet's label rectification (Algorithm 1) on the fly: voxels of the "
+                                             "rectify_classes outside the current scan's instance boxes are ignored")
+    rectify_classes: list[str] = Field(
+        default_factory=lambda: ["car", "truck", "other-vehicle", "person", "bicyclist", "motorcyclist"],
+        description="the dynamic classes rectification cleans (SCPNet's: bicycle and motorcycle stay)")
 
     _scale = field_validator("scale")(_check_scale)
+
+    @field_validator("rectify_classes")
+    @classmethod
+    def _known_classes(cls, v: list[str]) -> list[str]:
+        from distilkit.data.rectify import dynamic_ids
+
+        dynamic_ids(v)
+        return v
 
 
 class SceneParams(_SensorParams):
