@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any, Sequence
 
 
@@ -285,6 +286,25 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     b.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
     b.set_defaults(fn=_cmd_bench)
+    ev = sub.add_parser("eval", help="SemanticKITTI's official completion evaluation of a predictions folder "
+                                     "(and VoxFormer's 12.8 / 25.6 m range split)")
+    ev.add_argument("--dataset-root", required=True, help="the SemanticKITTI folder (holds sequences/NN/voxels/)")
+    ev.add_argument("--predictions", required=True, help="the folder holding sequences/NN/predictions/*.label")
+    ev.add_argument("--split", default="valid", choices=["train", "valid", "test"],
+                    help="the official split's sequences (default valid = 08)")
+    ev.add_argument("--sequences", nargs="+", default=None, help="these sequences instead of the split's")
+    ev.add_argument("--out", default=None, help="where to write the scores (default: PREDICTIONS/scores.txt)")
+    ev.set_defaults(fn=_cmd_eval)
+    pr = sub.add_parser("predict", help="write a trained SSC run's predictions of a SemanticKITTI folder in the "
+                                        "submission format (sequences/NN/predictions/NNNNNN.label)")
+    pr.add_argument("run", help="a stage's run folder or checkpoint (trained on a semantickitti folder)")
+    pr.add_argument("--dataset-root", required=True, help="the SemanticKITTI folder to predict")
+    pr.add_argument("--split", default="test", choices=["train", "valid", "test"],
+                    help="the official split's sequences (default test = 11-21)")
+    pr.add_argument("--sequences", nargs="+", default=None, help="these sequences instead of the split's")
+    pr.add_argument("--out", required=True, help="the folder to write sequences/NN/predictions/ into")
+    pr.add_argument("--device", default="cpu", help="cpu or cuda")
+    pr.set_defaults(fn=_cmd_predict)
     dp = sub.add_parser("data", help="work on data folders: rectify a SemanticKITTI folder's completion labels")
     dsub = dp.add_subparsers(dest="data_command", required=True, metavar="ACTION")
     rect = dsub.add_parser("rectify", help="SCPNet's label rectification: write sequences/NN/voxels_rectified/ "
@@ -295,6 +315,15 @@ def build_parser() -> argparse.ArgumentParser:
                       help="dynamic classes (default: car truck other-vehicle person bicyclist motorcyclist)")
     rect.add_argument("--out", default="voxels_rectified", help="the folder written in each sequence")
     rect.set_defaults(fn=_cmd_data_rectify)
+    ex = dsub.add_parser("export-kitti", help="write synthetic streets as a SemanticKITTI folder (scans, panoptic "
+                                              "labels, voxels, invalid masks, poses, calibration)")
+    ex.add_argument("out", help="the folder to write (sequences/ goes inside)")
+    ex.add_argument("--sequences", nargs="+", default=["00", "08"], help="sequence names (default: 00 08)")
+    ex.add_argument("--frames", type=int, default=16, help="scans per sequence (default 16)")
+    ex.add_argument("--stride", type=int, default=5, help="voxel labels every n-th scan (SemanticKITTI: 5)")
+    ex.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="synthetic-lidar parameters, e.g. beams=64 azimuth_steps=2048 gt_frames=10 seed=1")
+    ex.set_defaults(fn=_cmd_data_export)
     c = sub.add_parser("complete", help="complete a scan (.bin, .ply, .npy) into a dense scene with a trained "
                                         "point-diffusion model")
     c.add_argument("checkpoint", help="a checkpoint (best.pt / last.pt) or a stage's run folder")
@@ -312,6 +341,46 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _cmd_eval(args: argparse.Namespace) -> int:
+    import yaml
+    from rich.table import Table
+
+    from distilkit.console import make_console, progress_bar
+    from distilkit.data.classes import CLASS_NAMES
+    from distilkit.files import atomic_write_text
+    from distilkit.metrics.official import SPLITS, evaluate_folder, scores_yaml
+
+    console = make_console()
+    sequences = args.sequences or SPLITS[args.split]
+    with progress_bar(console, "eval") as advance:
+        ev = evaluate_folder(args.dataset_root, args.predictions, sequences, advance)
+    table = Table(title=f"SemanticKITTI completion, sequences {' '.join(sequences)}, {ev.frames} frames (%)")
+    for col in ("box", "IoU", "precision", "recall", "mIoU"):
+        table.add_column(col, justify="left" if col == "box" else "right")
+    for name, s in (("51.2 m (whole grid)", ev.scores), *((f"{r:g} m", v) for r, v in sorted(ev.ranges.items(),
+                                                                                             reverse=True))):
+        table.add_row(name, *(f"{100 * s[k]:.2f}" for k in ("iou", "precision", "recall", "miou")))
+    console.print(table)
+    console.print("  ".join(f"{n} {100 * v:.1f}" for n, v in zip(CLASS_NAMES[1:], ev.scores["class_iou"])))
+    out = Path(args.out) if args.out else Path(args.predictions) / "scores.txt"
+    atomic_write_text(out, yaml.safe_dump(scores_yaml(ev), sort_keys=False))
+    console.print(f"scores: {out}")
+    return 0
+
+
+def _cmd_predict(args: argparse.Namespace) -> int:
+    from distilkit.console import make_console, progress_bar
+    from distilkit.engine.predict import predict_folder
+    from distilkit.metrics.official import SPLITS
+
+    console = make_console()
+    sequences = args.sequences or SPLITS[args.split]
+    with progress_bar(console, "predict") as advance:
+        n = predict_folder(args.run, args.dataset_root, sequences, args.out, args.device, advance)
+    console.print(f"{n} frames of sequences {' '.join(sequences)} predicted into {args.out}/sequences/*/predictions/")
+    return 0
+
+
 def _cmd_data_rectify(args: argparse.Namespace) -> int:
     from distilkit.console import make_console, progress_bar
     from distilkit.data.rectify import DEFAULT_DYNAMIC, rectify_folder
@@ -323,6 +392,33 @@ def _cmd_data_rectify(args: argparse.Namespace) -> int:
         share = f"{100 * left / before:.1f} % left" if before else "none"
         console.print(f"{name}: {left:,} of {before:,} voxels left ({share})")
     console.print(f"written to sequences/*/{args.out}/ under {args.root}")
+    return 0
+
+
+def _cmd_data_export(args: argparse.Namespace) -> int:
+    import yaml
+    from pydantic import ValidationError
+
+    from distilkit.console import make_console, progress_bar
+    from distilkit.data.export import export_kitti
+    from distilkit.data.params import SyntheticParams
+    from distilkit.errors import DistilkitError
+
+    values = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise DistilkitError(f"--set {item!r}: expected KEY=VALUE")
+        values[key] = yaml.safe_load(value)
+    try:
+        params = SyntheticParams(**values)
+    except ValidationError as err:
+        raise DistilkitError(f"--set: {err.errors()[0]['loc'][0]}: {err.errors()[0]['msg']}") from None
+    console = make_console()
+    with progress_bar(console, "export-kitti") as advance:
+        root = export_kitti(args.out, params, args.sequences, args.frames, args.stride, advance)
+    console.print(f"{root}: sequences {' '.join(args.sequences)}, {args.frames} scans each, voxel labels every "
+                  f"{args.stride}th")
     return 0
 
 

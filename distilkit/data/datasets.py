@@ -104,17 +104,15 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         self.p = params
         root = Path(params.root).expanduser()
         seqs = {"train": params.train_sequences, "val": params.val_sequences, "test": params.test_sequences}[split]
-        self.items: list[tuple[Path, int, int]] = []  # (sequence dir, frame, sequence length)
+        # (sequence dir, frame, sequence length, has voxel labels: a test sequence without any is the benchmark's
+        # hidden split, whose every stride-th scan is predicted and never scored)
+        self.items: list[tuple[Path, int, int, bool]] = []
         for seq in seqs:
             d = root / "sequences" / seq
             vox = sorted((d / params.voxels).glob("*.label"))
-            if not vox:
-                continue
-            n = len(list((d / "velodyne").glob("*.bin")))
-            for f in vox:
-                frame = int(f.stem)
-                if frame % params.stride == 0:
-                    self.items.append((d, frame, n))
+            scans = sorted((d / "velodyne").glob("*.bin"))
+            frames = [int(f.stem) for f in vox] if vox else [int(f.stem) for f in scans] if split == "test" else []
+            self.items += [(d, f, len(scans), bool(vox)) for f in frames if f % params.stride == 0]
         if not self.items:
             raise DataError(f"{root}: no {params.voxels}/*.label files under sequences {seqs} for split {split!r}")
         self.info = kitti_info(params)
@@ -125,7 +123,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
 
     def sample_id(self, i: int) -> str:
         """``<sequence>/<frame>``, as SemanticKITTI names its files (published predictions are stored by it)."""
-        d, frame, _ = self.items[i]
+        d, frame = self.items[i][:2]
         return f"{d.name}/{frame:06d}"
 
     def _rectified(self, d: Path, frame: int, labels: np.ndarray) -> np.ndarray:
@@ -147,7 +145,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         return self._poses[d]
 
     def __getitem__(self, i: int) -> dict[str, np.ndarray]:
-        d, frame, n = self.items[i]
+        d, frame, n, labelled = self.items[i]
         pts, labs, frames = [], [], []
         for k in range(self.p.input_frames):
             j = frame + k
@@ -165,6 +163,11 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
             labs.append(remap(sem, seg_lut(), str(lab_file)))
             frames.append(np.full(len(p), k, np.uint8))
         vox_file = d / self.p.voxels / f"{frame:06d}.label"
+        if not labelled:  # hidden test split: nothing to score
+            shape = VoxelGrid.semantickitti(self.p.scale).shape
+            return {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
+                    "point_label": np.concatenate(labs).astype(np.uint8),
+                    "voxel_label": np.full(shape, IGNORE_INDEX, np.uint8), "invalid": np.ones(shape, bool)}
         vl = remap(skio.read_voxel_labels(vox_file), ssc_lut(), str(vox_file))
         inv_file = d / "voxels" / f"{frame:06d}.invalid"
         inv = skio.read_voxel_bits(inv_file) if inv_file.is_file() else np.zeros(vl.shape, bool)

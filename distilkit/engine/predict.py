@@ -1,0 +1,67 @@
+"""``distilkit predict``: a trained SSC run predicts a SemanticKITTI folder's frames in the submission format.
+
+For every frame of the split (the labelled every-5th frames; for the hidden test split every 5th scan), the run's
+model (best checkpoint, else last) predicts the voxel classes; a model at a coarser ``scale`` is upsampled to the
+256 x 256 x 32 grid (each voxel repeated ``scale`` times along each axis); train ids go back to raw ids through the
+inverse learning map, written as ``<out>/sequences/NN/predictions/NNNNNN.label`` (uint16, flat) — what
+``distilkit eval`` and the benchmark's ``validate_submission.py`` read.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from distilkit.data.classes import LEARNING_MAP_INV
+from distilkit.errors import DistilkitError
+
+TO_RAW = np.array([LEARNING_MAP_INV[t] for t in sorted(LEARNING_MAP_INV)], np.uint16)
+
+
+def upsample(labels: np.ndarray, scale: int) -> np.ndarray:
+    """(X, Y, Z) labels of a grid ``scale`` times coarser -> the full grid, each voxel repeated ``scale`` times."""
+    out = labels
+    for axis in range(3):
+        out = np.repeat(out, scale, axis=axis)
+    return out
+
+
+def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequence[str], out: str | Path,
+                   device: str = "cpu", progress: Callable[[int, int], None] | None = None) -> int:
+    """Write the predictions of ``run`` for the frames of ``sequences`` under ``out``; returns the frame count."""
+    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.params import SemanticKittiParams
+    from distilkit.engine.runs import checkpoint_path, load_run, run_config
+    from distilkit.registry import DATASETS
+
+    path = checkpoint_path(Path(run).expanduser(), "any")
+    data = run_config(path).get("data") or {}
+    if data.get("dataset") != "semantickitti":
+        raise DistilkitError(f"{run}: trained on {data.get('dataset')!r}; predict writes SemanticKITTI submissions from "
+                             "models trained on a semantickitti folder")
+    params = SemanticKittiParams(**{**(data.get("params") or {}), "root": str(dataset_root),
+                                    "test_sequences": list(sequences), "rectify": False})
+    dataset = SemanticKittiDataset(params, "test")
+    model = load_run(path, device=torch.device(device))
+    collate = DATASETS.entry("semantickitti").meta["collate"]
+    root = Path(out).expanduser()
+    with torch.no_grad():
+        for i in range(len(dataset)):
+            batch = collate([dataset[i]]).to(torch.device(device))
+            logits: Any = model(batch)[model.PREDICTION_TAP]
+            if not isinstance(logits, torch.Tensor) or logits.dim() != 5:
+                raise DistilkitError(f"{run}: its prediction tap {model.PREDICTION_TAP!r} is not a voxel grid of logits")
+            labels = upsample(logits[0].argmax(dim=0).cpu().numpy(), params.scale)
+            seq, frame = dataset.sample_id(i).split("/")
+            target = root / "sequences" / seq / "predictions" / f"{frame}.label"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            TO_RAW[labels].astype("<u2").reshape(-1).tofile(target)
+            if progress:
+                progress(i + 1, len(dataset))
+    return len(dataset)
+
+
+__all__ = ["TO_RAW", "predict_folder", "upsample"]

@@ -1,0 +1,112 @@
+"""``distilkit eval``: SemanticKITTI's official completion evaluation (``evaluate_completion.py``, data_metrics.md §1.8)
+of a predictions folder against a dataset folder, and VoxFormer's range split (§2.4).
+
+Every ``sequences/NN/voxels/NNNNNN.label`` of the split's sequences is a frame to score; its prediction is
+``<predictions>/sequences/NN/predictions/NNNNNN.label`` (uint16 raw ids, 256 x 256 x 32, flat). Both go through the
+SSC table (raw -> 0..19, 255 ignored); voxels whose target is 255 or that are ``.invalid`` are left out; one
+confusion matrix over the whole split (frames are streamed: memory is one frame); mIoU over classes 1..19 with an
+absent class counting 0. A prediction that maps to 255 where it is scored is an error (the official script crashes
+there). VoxFormer's 25.6 m and 12.8 m boxes in front of the car are scored beside the whole 51.2 m grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from distilkit.data import semantickitti as skio
+from distilkit.data.classes import CLASS_NAMES, IGNORE_INDEX, ssc_lut
+from distilkit.errors import DataError
+from distilkit.metrics.ssc import SSCMetric
+from distilkit.structures import VoxelGrid
+
+SPLITS = {"train": ["00", "01", "02", "03", "04", "05", "06", "07", "09", "10"], "valid": ["08"],
+          "test": [f"{s:02d}" for s in range(11, 22)]}
+RANGES = (12.8, 25.6)  # VoxFormer's boxes; 51.2 m is the whole grid
+VOXELS = 256 * 256 * 32
+
+
+def range_mask(r: float) -> np.ndarray:
+    """(256, 256, 32) bool: VoxFormer's box of range ``r``: x in [0, r), y in [-r/2, r/2) (index slices of §2.4)."""
+    grid = VoxelGrid.semantickitti(1)
+    n = int(round(r / grid.voxel_size))
+    mask = np.zeros(grid.shape, bool)
+    mask[:n, 128 - n // 2: 128 + n // 2, :] = True
+    return mask
+
+
+@dataclass
+class Evaluation:
+    frames: int
+    scores: dict[str, Any]  # the whole grid's iou, precision, recall, miou, class_iou
+    ranges: dict[float, dict[str, Any]]
+
+
+def frames_of(dataset_root: Path, sequences: Sequence[str]) -> list[tuple[str, Path]]:
+    """(sequence, ground-truth label file) of every frame to score, in order."""
+    out = []
+    for seq in sequences:
+        vox = dataset_root / "sequences" / seq / "voxels"
+        if not vox.is_dir():
+            raise DataError(f"{dataset_root}: no sequences/{seq}/voxels/ folder (the split's ground truth)")
+        out += [(seq, f) for f in sorted(vox.glob("*.label"))]
+    if not out:
+        raise DataError(f"{dataset_root}: no sequences/NN/voxels/*.label for sequences {', '.join(sequences)}")
+    return out
+
+
+def _read_prediction(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise DataError(f"{path}: no prediction for this frame (expected a uint16 .label per ground-truth frame)")
+    raw = np.fromfile(path, dtype="<u2")
+    if raw.size != VOXELS:
+        raise DataError(f"{path}: {raw.size} voxels, expected {VOXELS:,} (256 x 256 x 32 uint16)")
+    return raw.astype(np.int64)
+
+
+def evaluate_folder(dataset_root: str | Path, predictions: str | Path, sequences: Sequence[str],
+                    progress: Callable[[int, int], None] | None = None) -> Evaluation:
+    """The official scores of ``predictions`` over the frames of ``sequences`` (see the module docstring)."""
+    root, preds = Path(dataset_root).expanduser(), Path(predictions).expanduser()
+    lut = ssc_lut()
+    total = SSCMetric(len(CLASS_NAMES), IGNORE_INDEX)
+    boxes = {r: (torch.from_numpy(~range_mask(r)), SSCMetric(len(CLASS_NAMES), IGNORE_INDEX)) for r in RANGES}
+    jobs = frames_of(root, sequences)
+    for n, (seq, gt_file) in enumerate(jobs):
+        pred_file = preds / "sequences" / seq / "predictions" / gt_file.name
+        raw_pred = _read_prediction(pred_file)
+        if raw_pred.max() >= len(lut):
+            raise DataError(f"{pred_file}: raw id {int(raw_pred.max())} is not a SemanticKITTI label")
+        target = torch.from_numpy(lut[skio.read_voxel_labels(gt_file).astype(np.int64)].reshape(-1))
+        inv_file = gt_file.with_suffix(".invalid")
+        invalid = torch.from_numpy(skio.read_voxel_bits(inv_file).reshape(-1) if inv_file.is_file()
+                                   else np.zeros(VOXELS, bool))
+        pred = torch.from_numpy(lut[raw_pred])
+        scored = (target != IGNORE_INDEX) & ~invalid
+        bad = int(((pred == IGNORE_INDEX) & scored).sum())
+        if bad:
+            raise DataError(f"{pred_file}: {bad} scored voxels hold raw ids the SSC table ignores (write train ids "
+                            "through learning_map_inv)")
+        total.update(pred, target, invalid)
+        for outside, acc in boxes.values():
+            acc.update(pred, target, invalid | outside.reshape(-1))
+        if progress:
+            progress(n + 1, len(jobs))
+    return Evaluation(len(jobs), total.compute(), {r: acc.compute() for r, (_, acc) in boxes.items()})
+
+
+def scores_yaml(ev: Evaluation) -> dict[str, float]:
+    """The official ``scores.txt`` keys (iou_completion, iou_mean, iou_<class>) and the range split's."""
+    out = {"iou_completion": ev.scores["iou"], "iou_mean": ev.scores["miou"],
+           "precision_completion": ev.scores["precision"], "recall_completion": ev.scores["recall"]}
+    out.update({f"iou_{name}": v for name, v in zip(CLASS_NAMES[1:], ev.scores["class_iou"])})
+    for r, s in ev.ranges.items():
+        out[f"iou_completion_{r:g}m"], out[f"iou_mean_{r:g}m"] = s["iou"], s["miou"]
+    return out
+
+
+__all__ = ["Evaluation", "RANGES", "SPLITS", "evaluate_folder", "frames_of", "range_mask", "scores_yaml"]

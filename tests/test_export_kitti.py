@@ -1,0 +1,128 @@
+"""`distilkit data export-kitti`: synthetic streets as a SemanticKITTI folder, read back by the real-data path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from distilkit.cli import main
+from distilkit.data import semantickitti as sk
+
+SET = ["beams=16", "azimuth_steps=256", "gt_frames=5", "seed=3"]
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    root = tmp_path_factory.mktemp("kitti")
+    assert main(["data", "export-kitti", str(root), "--frames", "11", "--set", *SET]) == 0
+    return root
+
+
+def test_the_folder_has_semantickittis_layout_and_reads_back(exported) -> None:
+    seq = exported / "sequences" / "08"
+    assert sorted(f.name for f in (seq / "voxels").iterdir()) == [f"{t:06d}.{e}" for t in (0, 5, 10)
+                                                                 for e in ("bin", "invalid", "label")]
+    assert len(list((seq / "velodyne").glob("*.bin"))) == 11 == len(list((seq / "labels").glob("*.label")))
+    pts = sk.read_points(seq / "velodyne" / "000003.bin")
+    sem, inst = sk.read_point_labels(seq / "labels" / "000003.label", len(pts))
+    assert pts.shape[1] == 4 and (np.linalg.norm(pts[:, :3], axis=1) < 60.5).all()  # the sensor frame
+    assert set(np.unique(sem)) <= set(range(260)) and (inst[sem >= 252] > 0).all()  # moving objects: instances
+    poses = sk.read_poses(seq / "poses.txt", sk.read_calib(seq / "calib.txt"))
+    assert poses.shape == (11, 4, 4) and np.allclose(poses[:, :3, :3], np.eye(3), atol=1e-9)
+    assert np.allclose(poses[:, :3, 3], [[j * 1.0, 0, 0] for j in range(11)], atol=1e-6)  # 1 m a frame along x
+    raw = sk.read_voxel_labels(seq / "voxels" / "000005.label")
+    assert raw.shape == (256, 256, 32) and raw.dtype == np.uint16 and raw.any()
+    inv = sk.read_voxel_bits(seq / "voxels" / "000005.invalid")
+    packed = np.fromfile(seq / "voxels" / "000005.invalid", np.uint8)
+    assert np.array_equal(np.unpackbits(packed).astype(bool).reshape(256, 256, 32), inv)  # np.packbits' order
+    assert not (inv & (raw > 0)).any()  # an occupied voxel is never invalid
+
+
+def test_the_dataset_fuses_exported_scans_through_the_poses(exported) -> None:
+    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.params import SemanticKittiParams
+
+    params = SemanticKittiParams(root=str(exported), train_sequences=["00"], val_sequences=["08"], input_frames=2,
+                                 scale=4)
+    ds = SemanticKittiDataset(params, "val")
+    assert len(ds) == 3 and ds.sample_id(1) == "08/000005"
+    s = ds[1]
+    scan6 = sk.read_points(exported / "sequences" / "08" / "velodyne" / "000006.bin")
+    assert np.allclose(s["points"][s["point_frame"] == 1][:, :3], scan6[:, :3] + [1.0, 0.0, 0.0], atol=1e-4)
+    assert s["voxel_label"].shape == (64, 64, 8) and (s["voxel_label"] != 0).any()
+
+
+def test_moving_objects_leave_traces_that_rectification_removes(exported, capsys) -> None:
+    from distilkit.data.rectify import rectify_folder
+
+    counts = rectify_folder(exported, ["00", "08"])
+    before = sum(b for b, _ in counts.values())
+    left = sum(a for _, a in counts.values())
+    assert before > 0 and left < before
+    static = sk.read_voxel_labels(exported / "sequences" / "08" / "voxels" / "000000.label")
+    fixed = sk.read_voxel_labels(exported / "sequences" / "08" / "voxels_rectified" / "000000.label")
+    from distilkit.data.classes import remap, ssc_lut
+
+    dyn = np.isin(remap(static, ssc_lut()), [1, 4, 5, 6, 7, 8])
+    assert np.array_equal(fixed[~dyn], static[~dyn])
+
+
+def test_bad_export_arguments_are_named(tmp_path, capsys) -> None:
+    assert main(["data", "export-kitti", str(tmp_path), "--sequences", "eight"]) == 2
+    assert "sequence names are numbers" in capsys.readouterr().err
+    assert main(["data", "export-kitti", str(tmp_path), "--set", "beams=1"]) == 2
+    assert "beams" in capsys.readouterr().err
+
+
+def test_a_recipe_trains_scpnet_on_the_exported_folder(exported, tmp_path) -> None:
+    from distilkit.engine.pipeline import Pipeline
+    from distilkit.recipe import recipe_from_dict
+
+    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 2}
+    recipe = {"schema_version": 1, "name": "kitti", "seed": 0,
+              "data": {"dataset": "semantickitti",
+                       "params": {"root": str(exported), "train_sequences": ["00"], "val_sequences": ["08"],
+                                  "scale": 4, "input_frames": 2, "rectify": True}},
+              "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params},
+                                    "train": {"steps": 2, "batch_size": 1, "eval_every": 2}}}}
+    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    scores = result.summary["test"]["best"]  # the scores block; report_split says which split it holds
+    assert result.summary["report_split"] == "val" and 0 <= scores["miou"] <= 1 and 0 <= scores["iou"] <= 1
+
+
+def test_predict_writes_the_submission_format_and_eval_reads_it(exported, tmp_path, capsys) -> None:
+    """A model at scale 4 predicts the validation sequence and a hidden test sequence (scans only) in the
+    submission format, upsampled to 256 x 256 x 32; `distilkit eval` scores the validation one."""
+    import shutil
+
+    from distilkit.data.classes import LEARNING_MAP_INV
+    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.predict import upsample
+    from distilkit.recipe import recipe_from_dict
+
+    root = tmp_path / "kitti"
+    shutil.copytree(exported, root)
+    hidden = root / "sequences" / "11"
+    shutil.copytree(root / "sequences" / "08", hidden)
+    for f in (hidden / "voxels").glob("*.label"):
+        f.unlink()  # the benchmark's test split has scans and input voxels, no labels
+    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 1}
+    recipe = {"schema_version": 1, "name": "kitti", "seed": 0,
+              "data": {"dataset": "semantickitti", "params": {"root": str(root), "train_sequences": ["00"],
+                                                              "val_sequences": ["08"], "scale": 4}},
+              "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params},
+                                    "train": {"steps": 1, "batch_size": 1, "eval_every": 1}}}}
+    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    out = tmp_path / "preds"
+    assert main(["predict", str(result.run_dir), "--dataset-root", str(root), "--sequences", "08", "11",
+                 "--out", str(out)]) == 0
+    files = sorted(p.relative_to(out).as_posix() for p in out.rglob("*.label"))
+    assert files == [f"sequences/{s}/predictions/{t:06d}.label" for s in ("08", "11") for t in (0, 5, 10)]
+    raw = np.fromfile(out / "sequences" / "11" / "predictions" / "000005.label", "<u2")
+    assert raw.size == 256 * 256 * 32 and set(np.unique(raw)) <= set(LEARNING_MAP_INV.values())
+    blocks = raw.reshape(64, 4, 64, 4, 8, 4)
+    assert (blocks == blocks[:, :1, :, :1, :, :1]).all()  # upsampled: constant over each 4 x 4 x 4 block
+    assert main(["eval", "--dataset-root", str(root), "--predictions", str(out), "--sequences", "08"]) == 0
+    assert "3 frames" in capsys.readouterr().out
+    small = np.arange(8).reshape(2, 2, 2)
+    assert upsample(small, 2)[3, 2, 1] == small[1, 1, 0] and upsample(small, 2).shape == (4, 4, 4)
