@@ -185,8 +185,19 @@ def test_semantickitti_folder_dataset(tmp_path) -> None:
     assert s["invalid"][60].all() and not s["invalid"][10].any()
     p0, p1 = s["points"][s["point_frame"] == 0], s["points"][s["point_frame"] == 1]
     assert np.allclose(p1[:, 0], p0[:, 0] + 1.0) and np.allclose(p1[:, 1:], p0[:, 1:])
-    with pytest.raises(DataError, match="no voxels"):
+    with pytest.raises(DataError, match="sequences/00: missing .expected sequences/00/velodyne/\\*.bin and "
+                                        "sequences/00/voxels/\\*.label") as err:
         SemanticKittiDataset(SemanticKittiParams(root=str(root)), "train")
+    assert "sequences/10: missing" in str(err.value) and "sequences/08" not in str(err.value)
+    (root / "sequences" / "08" / "poses.txt").unlink()
+    (root / "sequences" / "08" / "velodyne" / "000000.bin").unlink()
+    with pytest.raises(DataError) as err:
+        SemanticKittiDataset(SemanticKittiParams(root=str(root), val_sequences=["08"], input_frames=2,
+                                                 rectify=True), "val")
+    lines = str(err.value).splitlines()
+    assert lines[0].endswith("is not a complete SemanticKITTI folder:") and sorted(lines[1:]) == sorted([
+        "  sequences/08/velodyne/000000.bin: missing (the scan of a labelled frame)",
+        "  sequences/08/poses.txt: missing (fusing 2 scans needs it)"])
 
 
 def _boxes_over_trajectory(scene, n_frames: int):

@@ -97,6 +97,26 @@ def pool_labels(labels: np.ndarray, invalid: np.ndarray, scale: int) -> tuple[np
     return out.astype(np.uint8), inv
 
 
+def folder_problems(d: Path, frames: list[int], labelled: bool, p: SemanticKittiParams) -> list[str]:
+    """What a sequence folder lacks for ``frames``, each as 'what: expected where' (relative to the root)."""
+    where = f"sequences/{d.name}"
+    if not d.is_dir():
+        return [f"{where}: missing (expected {where}/velodyne/*.bin"
+                + (f" and {where}/{p.voxels}/*.label)" if labelled else ")")]
+    if labelled and not frames:
+        return [f"{where}/{p.voxels}: no *.label voxel labels"]
+    out = []
+    for f in frames:
+        if not (d / "velodyne" / f"{f:06d}.bin").is_file():
+            out.append(f"{where}/velodyne/{f:06d}.bin: missing (the scan of a labelled frame)")
+        if p.rectify and labelled and not (d / "labels" / f"{f:06d}.label").is_file():
+            out.append(f"{where}/labels/{f:06d}.label: missing (rectify reads the scan's panoptic labels)")
+    if p.input_frames > 1:
+        out += [f"{where}/{name}: missing (fusing {p.input_frames} scans needs it)" for name in ("poses.txt", "calib.txt")
+                if not (d / name).is_file()]
+    return out
+
+
 class SemanticKittiDataset(torch.utils.data.Dataset):
     """A SemanticKITTI-format folder: scans, point labels, SSC voxel labels and invalid masks."""
 
@@ -107,14 +127,20 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         # (sequence dir, frame, sequence length, has voxel labels: a test sequence without any is the benchmark's
         # hidden split, whose every stride-th scan is predicted and never scored)
         self.items: list[tuple[Path, int, int, bool]] = []
+        problems: list[str] = []
         for seq in seqs:
             d = root / "sequences" / seq
             vox = sorted((d / params.voxels).glob("*.label"))
             scans = sorted((d / "velodyne").glob("*.bin"))
             frames = [int(f.stem) for f in vox] if vox else [int(f.stem) for f in scans] if split == "test" else []
-            self.items += [(d, f, len(scans), bool(vox)) for f in frames if f % params.stride == 0]
-        if not self.items:
-            raise DataError(f"{root}: no {params.voxels}/*.label files under sequences {seqs} for split {split!r}")
+            frames = [f for f in frames if f % params.stride == 0]
+            problems += folder_problems(d, frames, bool(vox) or split != "test", params)
+            self.items += [(d, f, len(scans), bool(vox)) for f in frames]
+        if problems or not self.items:
+            shown = problems[:12] + ([f"... and {len(problems) - 12} more"] if len(problems) > 12 else [])
+            raise DataError(f"{root}: split {split!r} (sequences {', '.join(seqs) or 'none'}) is not a complete "
+                            "SemanticKITTI folder:\n  " + "\n  ".join(shown or [f"no frames with a stride of "
+                                                                                   f"{params.stride}"]))
         self.info = kitti_info(params)
         self._poses: dict[Path, np.ndarray] = {}
 
