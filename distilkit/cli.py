@@ -294,6 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the official split's sequences (default valid = 08)")
     ev.add_argument("--sequences", nargs="+", default=None, help="these sequences instead of the split's")
     ev.add_argument("--out", default=None, help="where to write the scores (default: PREDICTIONS/scores.txt)")
+    ev.add_argument("--classes", default="semantickitti", choices=["semantickitti", "semanticposs"],
+                    help="the labels' class table and official splits (semanticposs: 11 classes, valid = test = 02)")
     ev.set_defaults(fn=_cmd_eval)
     pr = sub.add_parser("predict", help="write a trained SSC run's predictions of a SemanticKITTI folder in the "
                                         "submission format (sequences/NN/predictions/NNNNNN.label)")
@@ -346,14 +348,18 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     from distilkit.console import make_console, progress_bar
-    from distilkit.data.classes import CLASS_NAMES
     from distilkit.files import atomic_write_text
     from distilkit.metrics.official import SPLITS, evaluate_folder, scores_yaml
 
+    from distilkit.data.info import ClassTable
+    from distilkit.metrics.official import POSS_SPLITS
+
     console = make_console()
-    sequences = args.sequences or SPLITS[args.split]
+    poss = args.classes == "semanticposs"
+    sequences = args.sequences or (POSS_SPLITS if poss else SPLITS)[args.split]
+    table = ClassTable.semanticposs() if poss else ClassTable.semantickitti()
     with progress_bar(console, "eval") as advance:
-        ev = evaluate_folder(args.dataset_root, args.predictions, sequences, advance)
+        ev = evaluate_folder(args.dataset_root, args.predictions, sequences, advance, table)
     table = Table(title=f"SemanticKITTI completion, sequences {' '.join(sequences)}, {ev.frames} frames (%)")
     for col in ("box", "IoU", "precision", "recall", "mIoU"):
         table.add_column(col, justify="left" if col == "box" else "right")
@@ -361,7 +367,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                                                                                              reverse=True))):
         table.add_row(name, *(f"{100 * s[k]:.2f}" for k in ("iou", "precision", "recall", "miou")))
     console.print(table)
-    console.print("  ".join(f"{n} {100 * v:.1f}" for n, v in zip(CLASS_NAMES[1:], ev.scores["class_iou"])))
+    console.print("  ".join(f"{n} {100 * v:.1f}" for n, v in zip(ev.names[1:], ev.scores["class_iou"])))
     out = Path(args.out) if args.out else Path(args.predictions) / "scores.txt"
     atomic_write_text(out, yaml.safe_dump(scores_yaml(ev), sort_keys=False))
     console.print(f"scores: {out}")

@@ -36,14 +36,15 @@ def _write(root, pred_root, seed: int) -> None:
             sk.write_voxel_labels(pred_dir / f"{frame}.label", raw_pred)
 
 
-def naive_evaluate_completion(root, pred_root, sequences, box: int | None = None) -> dict[str, float]:
+def naive_evaluate_completion(root, pred_root, sequences, box: int | None = None,
+                              learning_map: dict[int, int] = LEARNING_MAP, k: int = 20) -> dict[str, float]:
     """evaluate_completion.py written out: LUT both, mask = target != 255 and not invalid, one 20 x 20 confusion
     over every frame (rows prediction), class IoU with 1e-15, completion scores with float32 eps; ``box``: VoxFormer's
     range box (the target outside set to 255)."""
-    lut = np.zeros(400, np.int64)
-    for k, v in LEARNING_MAP.items():
-        lut[k] = v if v != 0 or k == 0 else 255
-    conf = np.zeros((20, 20), np.int64)
+    lut = np.full(400, 255, np.int64)  # ids missing from the map are ignored, as the official LUT's zeros become 255
+    for raw, v in learning_map.items():
+        lut[raw] = v if v != 0 or raw == 0 else 255
+    conf = np.zeros((k, k), np.int64)
     for seq in sequences:
         for f in sorted((root / "sequences" / seq / "voxels").glob("*.label")):
             target = lut[np.fromfile(f, np.uint16).astype(np.int64)].reshape(SHAPE)
@@ -60,8 +61,7 @@ def naive_evaluate_completion(root, pred_root, sequences, box: int | None = None
     eps = np.finfo(np.float32).eps
     return {"iou_mean": float(iou[1:].mean()), "iou_completion": float(conf[1:, 1:].sum() / (conf.sum() - conf[0, 0])),
             "precision_completion": float(conf[1:, 1:].sum() / (conf[1:, :].sum() + eps)),
-            "recall_completion": float(conf[1:, 1:].sum() / (conf[:, 1:].sum() + eps)), "iou_car": float(iou[1]),
-            "iou_other-vehicle": float(iou[5])}
+            "recall_completion": float(conf[1:, 1:].sum() / (conf[:, 1:].sum() + eps)), "class_iou": iou[1:].tolist()}
 
 
 def test_eval_equals_the_official_script_on_random_data(tmp_path, capsys) -> None:
@@ -71,7 +71,9 @@ def test_eval_equals_the_official_script_on_random_data(tmp_path, capsys) -> Non
     got = yaml.safe_load((preds / "scores.txt").read_text())
     want = naive_evaluate_completion(root, preds, ["08", "09"])
     for key, value in want.items():
-        assert got[key] == pytest.approx(value, rel=1e-12, abs=1e-15), key
+        if key != "class_iou":
+            assert got[key] == pytest.approx(value, rel=1e-12, abs=1e-15), key
+    assert got["iou_car"] == pytest.approx(want["class_iou"][0], rel=1e-12)
     assert got["iou_other-vehicle"] == 0.0 < got["iou_car"]  # never predicted: counts 0 in the mean
     for r, box in ((25.6, 256), (12.8, 128)):
         ranged = naive_evaluate_completion(root, preds, ["08", "09"], box)
@@ -99,3 +101,50 @@ def test_eval_names_what_is_missing_or_malformed(tmp_path, capsys) -> None:
     assert "learning_map_inv" in capsys.readouterr().err
     assert main(["eval", "--dataset-root", str(root), "--predictions", str(preds), "--sequences", "07"]) == 2
     assert "no sequences/07/voxels/" in capsys.readouterr().err
+
+
+def test_eval_of_a_semanticposs_folder_uses_its_class_table(tmp_path) -> None:
+    """SemanticPOSS (JS3C-Net's labels): 11 classes + empty, trashcan (14) and cone/stone (16) ignored."""
+    from distilkit.data.classes import POSS_LEARNING_MAP, POSS_LEARNING_MAP_INV
+
+    rng = np.random.default_rng(2)
+    root, preds = tmp_path / "poss", tmp_path / "preds"
+    raw_ids = np.array(sorted(POSS_LEARNING_MAP), np.uint16)
+    to_raw = np.array([POSS_LEARNING_MAP_INV[t] for t in range(12)], np.uint16)
+    for d in (root / "sequences" / "02" / "voxels", preds / "sequences" / "02" / "predictions"):
+        d.mkdir(parents=True)
+    gt = np.where(rng.random(SHAPE) < 0.7, 0, rng.choice(raw_ids, size=SHAPE)).astype(np.uint16)
+    sk.write_voxel_labels(root / "sequences" / "02" / "voxels" / "000000.label", gt)
+    sk.write_voxel_bits(root / "sequences" / "02" / "voxels" / "000000.invalid", rng.random(SHAPE) < 0.1)
+    sk.write_voxel_labels(preds / "sequences" / "02" / "predictions" / "000000.label",
+                          to_raw[rng.integers(0, 12, SHAPE)])
+    assert main(["eval", "--dataset-root", str(root), "--predictions", str(preds), "--classes", "semanticposs"]) == 0
+    got = yaml.safe_load((preds / "scores.txt").read_text())
+    want = naive_evaluate_completion(root, preds, ["02"], learning_map=POSS_LEARNING_MAP, k=12)
+    assert got["iou_mean"] == pytest.approx(want["iou_mean"], rel=1e-12)
+    assert got["iou_completion"] == pytest.approx(want["iou_completion"], rel=1e-12)
+    assert [got[f"iou_{n}"] for n in ("people", "ground")] == pytest.approx([want["class_iou"][0], want["class_iou"][10]])
+    assert "iou_car" in got and "iou_road" not in got
+
+
+def test_a_semanticposs_folder_reads_with_its_own_labels(tmp_path) -> None:
+    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.params import SemanticPossParams
+    from distilkit.registry import DATASETS
+
+    seq = tmp_path / "sequences" / "02"
+    for sub in ("velodyne", "labels", "voxels"):
+        (seq / sub).mkdir(parents=True)
+    np.zeros((3, 4), np.float32).tofile(seq / "velodyne" / "000000.bin")
+    sk.write_point_labels(seq / "labels" / "000000.label", np.array([4, 14, 22]), np.zeros(3, np.int64))
+    raw = np.zeros(SHAPE, np.uint16)
+    raw[0, 0, 0], raw[1, 0, 0], raw[2, 0, 0], raw[3, 0, 0] = 7, 14, 22, 5  # car, trashcan, ground, 2+-person
+    sk.write_voxel_labels(seq / "voxels" / "000000.label", raw)
+    params = DATASETS.entry("semanticposs-ssc").meta["params"](root=str(tmp_path))
+    assert isinstance(params, SemanticPossParams) and params.val_sequences == ["02"]
+    ds = SemanticKittiDataset(params, "val")
+    s = ds[0]
+    assert s["voxel_label"][:4, 0, 0].tolist() == [3, 255, 11, 1] and s["point_label"].tolist() == [1, 0, 11]
+    assert DATASETS.entry("semanticposs-ssc").meta["info"](params).num_classes == 12
+    with pytest.raises(Exception, match="'road'"):
+        DATASETS.entry("semanticposs-ssc").meta["params"](root=str(tmp_path), rectify_classes=["road"])

@@ -40,19 +40,31 @@ IGNORE_INDEX = 255
 SCRIBBLE_UNLABELLED = 254  # ScribbleSC: occupied, but no scribble label (distinct from empty = 0)
 
 
-def ssc_lut() -> np.ndarray:
-    """Raw id -> SSC train id; everything that maps to 0 except raw 0 becomes 255 (§1.7)."""
-    lut = np.zeros(max(LEARNING_MAP) + 100, dtype=np.int32)
-    lut[list(LEARNING_MAP)] = list(LEARNING_MAP.values())
+# SemanticPOSS (JS3C-Net's SSC setup, data_metrics.md §6): 11 semantic classes + empty on the same 256x256x32 grid
+POSS_CLASS_NAMES: list[str] = ["empty", "people", "rider", "car", "trunk", "plants", "traffic-sign", "pole",
+                               "building", "fence", "bike", "ground"]
+POSS_LEARNING_MAP: dict[int, int] = {0: 0, 4: 1, 5: 1, 6: 2, 7: 3, 8: 4, 9: 5, 10: 6, 11: 6, 12: 6, 13: 7, 14: 0, 15: 8,
+                                     16: 0, 17: 9, 21: 10, 22: 11}
+POSS_LEARNING_MAP_INV: dict[int, int] = {0: 0, 1: 4, 2: 6, 3: 7, 4: 8, 5: 9, 6: 10, 7: 13, 8: 15, 9: 17, 10: 21, 11: 22}
+POSS_CLASS_COLOURS: list[tuple[int, int, int]] = [
+    (0, 0, 0), (255, 30, 30), (255, 40, 200), (100, 150, 245), (135, 60, 0), (0, 175, 0), (255, 0, 0),
+    (255, 240, 150), (255, 200, 0), (255, 120, 50), (100, 230, 245), (255, 0, 255)]
+
+
+def ssc_lut(learning_map: dict[int, int] | None = None) -> np.ndarray:
+    """Raw id -> SSC train id; everything that maps to 0 except raw 0 becomes 255 (§1.7). ``learning_map``: another
+    data set's (default SemanticKITTI's)."""
+    lut = seg_lut(learning_map)
     lut[lut == 0] = IGNORE_INDEX
     lut[0] = 0
     return lut
 
 
-def seg_lut() -> np.ndarray:
+def seg_lut(learning_map: dict[int, int] | None = None) -> np.ndarray:
     """Raw id -> segmentation train id (0 = unlabelled / ignored for point segmentation)."""
-    lut = np.zeros(max(LEARNING_MAP) + 100, dtype=np.int32)
-    lut[list(LEARNING_MAP)] = list(LEARNING_MAP.values())
+    table = LEARNING_MAP if learning_map is None else learning_map
+    lut = np.zeros(max(max(table) + 1, 360), dtype=np.int32)
+    lut[list(table)] = list(table.values())
     return lut
 
 

@@ -17,7 +17,7 @@ from distilkit.data.camera import CAMERA_FIELDS, add_camera, rig
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES, remap, seg_lut, ssc_lut
 from distilkit.data.info import DataInfo, FieldGroup
 from distilkit.data.lidar import LIDAR_INPUTS, LIDAR_TARGETS, collate_lidar
-from distilkit.data.params import SceneParams, SemanticKittiParams, SyntheticParams
+from distilkit.data.params import SceneParams, SemanticKittiParams, SemanticPossParams, SyntheticParams
 from distilkit.data.probe import cloud_plan, grid_plan
 from distilkit.data.render import CAMERA_VERSION
 from distilkit.data.synthetic import GENERATOR_VERSION
@@ -79,11 +79,12 @@ def collate_street(samples: list[dict[str, np.ndarray]]) -> Batch:
 
 
 def kitti_info(params: SemanticKittiParams) -> DataInfo:
-    return DataInfo(VoxelGrid.semantickitti(params.scale), fields=LIDAR_INPUTS | LIDAR_TARGETS,
+    return DataInfo(VoxelGrid.semantickitti(params.scale), params.table(), fields=LIDAR_INPUTS | LIDAR_TARGETS,
                     input_frames=params.input_frames)
 
 
-def pool_labels(labels: np.ndarray, invalid: np.ndarray, scale: int) -> tuple[np.ndarray, np.ndarray]:
+def pool_labels(labels: np.ndarray, invalid: np.ndarray, scale: int,
+                num_classes: int = NUM_CLASSES) -> tuple[np.ndarray, np.ndarray]:
     """Coarsen a (X,Y,Z) label grid by ``scale``: majority of non-empty valid labels, else empty/255."""
     if scale == 1:
         return labels, invalid
@@ -91,7 +92,7 @@ def pool_labels(labels: np.ndarray, invalid: np.ndarray, scale: int) -> tuple[np
     blocks = labels.reshape(x // scale, scale, y // scale, scale, z // scale, scale).transpose(0, 2, 4, 1, 3, 5)
     blocks = blocks.reshape(x // scale, y // scale, z // scale, -1)
     inv = invalid.reshape(x // scale, scale, y // scale, scale, z // scale, scale).all(axis=(1, 3, 5))
-    counts = np.stack([(blocks == c).sum(-1) for c in range(1, NUM_CLASSES)], -1)
+    counts = np.stack([(blocks == c).sum(-1) for c in range(1, num_classes)], -1)
     out = np.where(counts.max(-1) > 0, counts.argmax(-1) + 1, 0)
     out = np.where((blocks == IGNORE_INDEX).all(-1), IGNORE_INDEX, out)
     return out.astype(np.uint8), inv
@@ -122,6 +123,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
 
     def __init__(self, params: SemanticKittiParams, split: str) -> None:
         self.p = params
+        self.table = params.table()
         root = Path(params.root).expanduser()
         seqs = {"train": params.train_sequences, "val": params.val_sequences, "test": params.test_sequences}[split]
         # (sequence dir, frame, sequence length, has voxel labels: a test sequence without any is the benchmark's
@@ -163,7 +165,8 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         xyz = skio.read_points(scan)[:, :3]
         sem, inst = skio.read_point_labels(lab_file, len(xyz))
         raw = sem.astype(np.uint32) | (inst.astype(np.uint32) << 16)
-        return rectify(labels, xyz, raw, VoxelGrid.semantickitti(1), dynamic_ids(self.p.rectify_classes))
+        return rectify(labels, xyz, raw, VoxelGrid.semantickitti(1), dynamic_ids(self.p.rectify_classes, self.table.names),
+                       learning_map=dict(self.table.learning_map))
 
     def _pose(self, d: Path) -> np.ndarray:
         if d not in self._poses:
@@ -186,7 +189,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
                 p = p.copy()
                 p[:, :3] = p[:, :3] @ rel[:3, :3].T + rel[:3, 3]
             pts.append(p)
-            labs.append(remap(sem, seg_lut(), str(lab_file)))
+            labs.append(remap(sem, seg_lut(self.table.learning_map), str(lab_file)))
             frames.append(np.full(len(p), k, np.uint8))
         vox_file = d / self.p.voxels / f"{frame:06d}.label"
         if not labelled:  # hidden test split: nothing to score
@@ -194,12 +197,12 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
             return {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
                     "point_label": np.concatenate(labs).astype(np.uint8),
                     "voxel_label": np.full(shape, IGNORE_INDEX, np.uint8), "invalid": np.ones(shape, bool)}
-        vl = remap(skio.read_voxel_labels(vox_file), ssc_lut(), str(vox_file))
+        vl = remap(skio.read_voxel_labels(vox_file), ssc_lut(self.table.learning_map), str(vox_file))
         inv_file = d / "voxels" / f"{frame:06d}.invalid"
         inv = skio.read_voxel_bits(inv_file) if inv_file.is_file() else np.zeros(vl.shape, bool)
         if self.p.rectify:
             vl = self._rectified(d, frame, vl)
-        vl, inv = pool_labels(vl, inv, self.p.scale)
+        vl, inv = pool_labels(vl, inv, self.p.scale, self.table.num_classes)
         return {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
                 "point_label": np.concatenate(labs).astype(np.uint8), "voxel_label": vl.astype(np.uint8), "invalid": inv}
 
@@ -241,15 +244,19 @@ DATASETS.add(
     has_split=lambda p, split: True, probe=grid_plan,
     field_groups={"camera": FieldGroup(CAMERA_FIELDS, CAMERA_VERSION)},
 )
-DATASETS.add(
-    "semantickitti", _kitti_factory,
-    description="a SemanticKITTI-format folder: velodyne/, labels/, voxels/*.label|.invalid, poses.txt, calib.txt",
-    paper="Behley et al., SemanticKITTI, ICCV 2019",
-    params=SemanticKittiParams,
-    info=kitti_info, collate=collate_lidar, version=1,
-    has_split=lambda p, split: split != "test" or bool(p.test_sequences), probe=grid_plan,
-    fingerprint=kitti_fingerprint,
-)
+for _name, _params, _description, _paper in (
+        ("semantickitti", SemanticKittiParams, "a SemanticKITTI-format folder: velodyne/, labels/, "
+         "voxels/*.label|.invalid, poses.txt, calib.txt (scans fused through the poses, SSC targets)",
+         "Behley et al., SemanticKITTI, ICCV 2019"),
+        ("semantickitti-ssc", SemanticKittiParams, "the same as semantickitti (the name the SSC benchmark goes by)",
+         "Behley et al., SemanticKITTI, ICCV 2019"),
+        ("semanticposs-ssc", SemanticPossParams, "a SemanticPOSS folder in SemanticKITTI's layout with JS3C-Net's "
+         "completion labels: 11 classes + empty, train 00/01/03/04/05, valid 02", "Pan et al., SemanticPOSS, IV "
+         "2020; completion labels: Yan et al., JS3C-Net, AAAI 2021")):
+    DATASETS.add(_name, _kitti_factory, description=_description, paper=_paper, params=_params,
+                 info=kitti_info, collate=collate_lidar, version=1,
+                 has_split=lambda p, split: split != "test" or bool(p.test_sequences), probe=grid_plan,
+                 fingerprint=kitti_fingerprint)
 
 
 def _scenes_factory(params: Any, split: str, progress: Any = None) -> Any:

@@ -7,7 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Mapping
 
-from distilkit.data.classes import CLASS_COLOURS, CLASS_NAMES, IGNORE_INDEX, LEARNING_MAP
+from distilkit.data.classes import (CLASS_COLOURS, CLASS_NAMES, IGNORE_INDEX, LEARNING_MAP, LEARNING_MAP_INV,
+                                   POSS_CLASS_COLOURS, POSS_CLASS_NAMES, POSS_LEARNING_MAP, POSS_LEARNING_MAP_INV)
 from distilkit.structures import VoxelGrid
 
 
@@ -20,6 +21,7 @@ class ClassTable:
     colours: tuple[tuple[int, int, int], ...]
     learning_map: Mapping[int, int] = field(default_factory=dict)
     ignore_index: int = IGNORE_INDEX
+    learning_map_inv: Mapping[int, int] = field(default_factory=dict)  # train id -> the raw id predictions are written with
 
     def __post_init__(self) -> None:
         if len(self.colours) != len(self.names):
@@ -32,7 +34,13 @@ class ClassTable:
     @classmethod
     def semantickitti(cls) -> "ClassTable":
         """SemanticKITTI's 20 SSC classes (0 = empty), colours and learning map (semantic-kitti.yaml)."""
-        return cls(tuple(CLASS_NAMES), tuple(CLASS_COLOURS), dict(LEARNING_MAP))
+        return cls(tuple(CLASS_NAMES), tuple(CLASS_COLOURS), dict(LEARNING_MAP), learning_map_inv=dict(LEARNING_MAP_INV))
+
+    @classmethod
+    def semanticposs(cls) -> "ClassTable":
+        """SemanticPOSS's 12 SSC classes (0 = empty) and learning map (JS3C-Net's SemanticPOSS.yaml)."""
+        return cls(tuple(POSS_CLASS_NAMES), tuple(POSS_CLASS_COLOURS), dict(POSS_LEARNING_MAP),
+                   learning_map_inv=dict(POSS_LEARNING_MAP_INV))
 
 
 @dataclass(frozen=True)

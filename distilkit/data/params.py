@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -93,13 +93,31 @@ class SemanticKittiParams(BaseModel):
 
     _scale = field_validator("scale")(_check_scale)
 
-    @field_validator("rectify_classes")
-    @classmethod
-    def _known_classes(cls, v: list[str]) -> list[str]:
+    classes: Literal["semantickitti"] = Field("semantickitti", description="the class table of the labels")
+
+    @model_validator(mode="after")
+    def _known_classes(self) -> "SemanticKittiParams":
         from distilkit.data.rectify import dynamic_ids
 
-        dynamic_ids(v)
-        return v
+        dynamic_ids(self.rectify_classes, self.table().names)
+        return self
+
+    def table(self) -> Any:
+        """The :class:`~distilkit.data.info.ClassTable` of the labels."""
+        from distilkit.data.info import ClassTable
+
+        return ClassTable.semanticposs() if self.classes == "semanticposs" else ClassTable.semantickitti()
+
+
+class SemanticPossParams(SemanticKittiParams):
+    """``semanticposs-ssc``: a SemanticPOSS folder in SemanticKITTI's layout with JS3C-Net's completion labels (11
+    classes + empty on the same 256 x 256 x 32 grid; data_metrics.md §6)."""
+
+    train_sequences: list[str] = ["00", "01", "03", "04", "05"]
+    val_sequences: list[str] = ["02"]
+    rectify_classes: list[str] = Field(default_factory=lambda: ["people", "rider", "car"],
+                                       description="the dynamic classes rectification cleans")
+    classes: Literal["semanticposs"] = Field("semanticposs", description="the class table of the labels")
 
 
 class SceneParams(_SensorParams):

@@ -25,25 +25,27 @@ DEFAULT_DYNAMIC = ("car", "truck", "other-vehicle", "person", "bicyclist", "moto
 IGNORE_RAW = 1  # the raw id written for a removed voxel: "outlier", which the SSC table maps to 255 (ignored)
 
 
-def dynamic_ids(names: Sequence[str]) -> list[int]:
-    """Train ids of class names (SemanticKITTI's table); an unknown name is an error that lists the known ones."""
-    unknown = [n for n in names if n not in CLASS_NAMES[1:]]
+def dynamic_ids(names: Sequence[str], class_names: Sequence[str] = tuple(CLASS_NAMES)) -> list[int]:
+    """Train ids of class names (default: SemanticKITTI's table); an unknown name is an error listing the known."""
+    known = list(class_names)
+    unknown = [n for n in names if n not in known[1:]]
     if unknown:
-        raise ValueError(f"rectification classes {unknown} are not SemanticKITTI classes ({', '.join(CLASS_NAMES[1:])})")
-    return [CLASS_NAMES.index(n) for n in names]
+        raise ValueError(f"rectification classes {unknown} are not classes of the labels ({', '.join(known[1:])})")
+    return [known.index(n) for n in names]
 
 
 def rectify(voxel_label: np.ndarray, xyz: np.ndarray, point_raw: np.ndarray, grid: VoxelGrid,
-            classes: Sequence[int] = tuple(dynamic_ids(DEFAULT_DYNAMIC)), fill: int = IGNORE_INDEX) -> np.ndarray:
+            classes: Sequence[int] = tuple(dynamic_ids(DEFAULT_DYNAMIC)), fill: int = IGNORE_INDEX,
+            learning_map: dict[int, int] | None = None) -> np.ndarray:
     """Rectified copy of ``voxel_label`` (X, Y, Z train ids on ``grid``) from the current scan's points ``xyz``
-    (N, 3) in the grid's frame and their raw SemanticKITTI labels ``point_raw`` (N,) uint32: semantic id in the low
-    16 bits, instance id in the high 16 bits."""
+    (N, 3) in the grid's frame and their raw labels ``point_raw`` (N,) uint32: semantic id in the low 16 bits,
+    instance id in the high 16 bits; ``learning_map``: the raw ids' train ids (default SemanticKITTI's)."""
     if voxel_label.shape != tuple(grid.shape):
         raise ValueError(f"rectify: labels of shape {voxel_label.shape} do not fit the grid {tuple(grid.shape)}")
     if len(xyz) != len(point_raw):
         raise ValueError(f"rectify: {len(xyz)} points but {len(point_raw)} labels")
     raw = np.asarray(point_raw).astype(np.uint32)
-    semantic = remap(raw & 0xFFFF, seg_lut(), "point labels")
+    semantic = remap(raw & 0xFFFF, seg_lut(learning_map), "point labels")
     instance = raw >> 16
     idx = np.floor((np.asarray(xyz, np.float64) - np.asarray(grid.origin)) / grid.voxel_size).astype(np.int64)
     inside = ((idx >= 0) & (idx < np.asarray(grid.shape))).all(axis=1)

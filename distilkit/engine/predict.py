@@ -18,7 +18,8 @@ import torch
 from distilkit.data.classes import LEARNING_MAP_INV
 from distilkit.errors import DistilkitError
 
-TO_RAW = np.array([LEARNING_MAP_INV[t] for t in sorted(LEARNING_MAP_INV)], np.uint16)
+TO_RAW = np.array([LEARNING_MAP_INV[t] for t in sorted(LEARNING_MAP_INV)], np.uint16)  # SemanticKITTI's
+FOLDER_DATASETS = ("semantickitti", "semantickitti-ssc", "semanticposs-ssc")
 
 
 def upsample(labels: np.ndarray, scale: int) -> np.ndarray:
@@ -33,20 +34,22 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
                    device: str = "cpu", progress: Callable[[int, int], None] | None = None) -> int:
     """Write the predictions of ``run`` for the frames of ``sequences`` under ``out``; returns the frame count."""
     from distilkit.data.datasets import SemanticKittiDataset
-    from distilkit.data.params import SemanticKittiParams
     from distilkit.engine.runs import checkpoint_path, load_run, run_config
     from distilkit.registry import DATASETS
 
     path = checkpoint_path(Path(run).expanduser(), "any")
     data = run_config(path).get("data") or {}
-    if data.get("dataset") != "semantickitti":
-        raise DistilkitError(f"{run}: trained on {data.get('dataset')!r}; predict writes SemanticKITTI submissions from "
-                             "models trained on a semantickitti folder")
-    params = SemanticKittiParams(**{**(data.get("params") or {}), "root": str(dataset_root),
-                                    "test_sequences": list(sequences), "rectify": False})
+    if data.get("dataset") not in FOLDER_DATASETS:
+        raise DistilkitError(f"{run}: trained on {data.get('dataset')!r}; predict writes SemanticKITTI-format "
+                             f"submissions from models trained on a folder ({', '.join(FOLDER_DATASETS)})")
+    entry = DATASETS.entry(data["dataset"])
+    params = entry.meta["params"](**{**(data.get("params") or {}), "root": str(dataset_root),
+                                     "test_sequences": list(sequences), "rectify": False})
     dataset = SemanticKittiDataset(params, "test")
     model = load_run(path, device=torch.device(device))
-    collate = DATASETS.entry("semantickitti").meta["collate"]
+    collate = entry.meta["collate"]
+    inverse = dataset.table.learning_map_inv
+    to_raw = np.array([inverse[t] for t in range(dataset.table.num_classes)], np.uint16)
     root = Path(out).expanduser()
     with torch.no_grad():
         for i in range(len(dataset)):
@@ -58,7 +61,7 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
             seq, frame = dataset.sample_id(i).split("/")
             target = root / "sequences" / seq / "predictions" / f"{frame}.label"
             target.parent.mkdir(parents=True, exist_ok=True)
-            TO_RAW[labels].astype("<u2").reshape(-1).tofile(target)
+            to_raw[labels].astype("<u2").reshape(-1).tofile(target)
             if progress:
                 progress(i + 1, len(dataset))
     return len(dataset)

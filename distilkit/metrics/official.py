@@ -19,12 +19,14 @@ import numpy as np
 
 from distilkit.data import semantickitti as skio
 from distilkit.data.classes import CLASS_NAMES, IGNORE_INDEX, ssc_lut
+from distilkit.data.info import ClassTable
 from distilkit.errors import DataError
 from distilkit.metrics.ssc import ssc_scores
 from distilkit.structures import VoxelGrid
 
 SPLITS = {"train": ["00", "01", "02", "03", "04", "05", "06", "07", "09", "10"], "valid": ["08"],
           "test": [f"{s:02d}" for s in range(11, 22)]}
+POSS_SPLITS = {"train": ["00", "01", "03", "04", "05"], "valid": ["02"], "test": ["02"]}  # JS3C-Net: valid = test
 RANGES = (12.8, 25.6)  # VoxFormer's boxes; 51.2 m is the whole grid
 VOXELS = 256 * 256 * 32
 
@@ -43,6 +45,7 @@ class Evaluation:
     frames: int
     scores: dict[str, Any]  # the whole grid's iou, precision, recall, miou, class_iou
     ranges: dict[float, dict[str, Any]]
+    names: tuple[str, ...] = tuple(CLASS_NAMES)  # the class table's names (0 = empty)
 
 
 def frames_of(dataset_root: Path, sequences: Sequence[str]) -> list[tuple[str, Path]]:
@@ -74,10 +77,12 @@ def _regions() -> np.ndarray:
 
 
 def evaluate_folder(dataset_root: str | Path, predictions: str | Path, sequences: Sequence[str],
-                    progress: Callable[[int, int], None] | None = None) -> Evaluation:
-    """The official scores of ``predictions`` over the frames of ``sequences`` (see the module docstring)."""
+                    progress: Callable[[int, int], None] | None = None, table: ClassTable | None = None) -> Evaluation:
+    """The official scores of ``predictions`` over the frames of ``sequences`` (see the module docstring);
+    ``table``: the labels' class table (default SemanticKITTI's; SemanticPOSS's for its folders)."""
     root, preds = Path(dataset_root).expanduser(), Path(predictions).expanduser()
-    lut, k = ssc_lut(), len(CLASS_NAMES)
+    table = table or ClassTable.semantickitti()
+    lut, k = ssc_lut(dict(table.learning_map)), table.num_classes
     regions = _regions()
     conf = np.zeros((3, k, k), np.int64)  # per region code
     jobs = frames_of(root, sequences)
@@ -101,17 +106,18 @@ def evaluate_folder(dataset_root: str | Path, predictions: str | Path, sequences
         if progress:
             progress(n + 1, len(jobs))
     boxes = {RANGES[1]: conf[1:].sum(axis=0), RANGES[0]: conf[2]}
-    return Evaluation(len(jobs), ssc_scores(conf.sum(axis=0)), {r: ssc_scores(c) for r, c in boxes.items()})
+    return Evaluation(len(jobs), ssc_scores(conf.sum(axis=0)), {r: ssc_scores(c) for r, c in boxes.items()},
+                      tuple(table.names))
 
 
 def scores_yaml(ev: Evaluation) -> dict[str, float]:
     """The official ``scores.txt`` keys (iou_completion, iou_mean, iou_<class>) and the range split's."""
     out = {"iou_completion": ev.scores["iou"], "iou_mean": ev.scores["miou"],
            "precision_completion": ev.scores["precision"], "recall_completion": ev.scores["recall"]}
-    out.update({f"iou_{name}": v for name, v in zip(CLASS_NAMES[1:], ev.scores["class_iou"])})
+    out.update({f"iou_{name}": v for name, v in zip(ev.names[1:], ev.scores["class_iou"])})
     for r, s in ev.ranges.items():
         out[f"iou_completion_{r:g}m"], out[f"iou_mean_{r:g}m"] = s["iou"], s["miou"]
     return out
 
 
-__all__ = ["Evaluation", "RANGES", "SPLITS", "evaluate_folder", "frames_of", "range_mask", "scores_yaml"]
+__all__ = ["Evaluation", "POSS_SPLITS", "RANGES", "SPLITS", "evaluate_folder", "frames_of", "range_mask", "scores_yaml"]
