@@ -314,8 +314,11 @@ def build_parser() -> argparse.ArgumentParser:
     rect.add_argument("root", help="a SemanticKITTI folder (holds sequences/)")
     rect.add_argument("--sequences", nargs="+", default=None, help="the sequences (default: every one)")
     rect.add_argument("--classes", nargs="+", default=None,
-                      help="dynamic classes (default: car truck other-vehicle person bicyclist motorcyclist)")
+                      help="dynamic classes (default SemanticKITTI: car truck other-vehicle person bicyclist "
+                           "motorcyclist)")
     rect.add_argument("--out", default="voxels_rectified", help="the folder written in each sequence")
+    rect.add_argument("--labels", default="semantickitti", choices=["semantickitti", "semanticposs"],
+                      help="the folder's class table (semanticposs: people, rider and car by default)")
     rect.set_defaults(fn=_cmd_data_rectify)
     ex = dsub.add_parser("export-kitti", help="write synthetic streets as a SemanticKITTI folder (scans, panoptic "
                                               "labels, voxels, invalid masks, poses, calibration)")
@@ -389,11 +392,13 @@ def _cmd_predict(args: argparse.Namespace) -> int:
 
 def _cmd_data_rectify(args: argparse.Namespace) -> int:
     from distilkit.console import make_console, progress_bar
-    from distilkit.data.rectify import DEFAULT_DYNAMIC, rectify_folder
+    from distilkit.data.info import ClassTable
+    from distilkit.data.rectify import rectify_folder
 
     console = make_console()
+    table = ClassTable.semanticposs() if args.labels == "semanticposs" else ClassTable.semantickitti()
     with progress_bar(console, "rectifying") as advance:
-        counts = rectify_folder(args.root, args.sequences, args.classes or DEFAULT_DYNAMIC, args.out, advance)
+        counts = rectify_folder(args.root, args.sequences, args.classes, args.out, advance, table)
     for name, (before, left) in counts.items():
         share = f"{100 * left / before:.1f} % left" if before else "none"
         console.print(f"{name}: {left:,} of {before:,} voxels left ({share})")

@@ -166,3 +166,25 @@ def test_data_rectify_writes_beside_the_originals_and_the_dataset_reads_either(t
     (seq / "labels" / "000000.label").unlink()
     assert main(["data", "rectify", str(tmp_path)]) == 2
     assert "needs the scan's point labels" in capsys.readouterr().err
+
+
+def test_a_semanticposs_folder_is_rectified_with_its_own_table(tmp_path, capsys) -> None:
+    """SemanticPOSS raw ids (car = 7, building = 15): its moving classes by default, its raw ids written back."""
+    from distilkit.cli import main
+    from distilkit.data import semantickitti as sk
+
+    seq = tmp_path / "sequences" / "02"
+    for sub in ("velodyne", "labels", "voxels"):
+        (seq / sub).mkdir(parents=True)
+    xyz = np.array([[10.1, 0.1, -1.0], [10.3, 0.1, -1.0]], np.float32)
+    np.concatenate([xyz, np.zeros((2, 1), np.float32)], 1).tofile(seq / "velodyne" / "000000.bin")
+    sk.write_point_labels(seq / "labels" / "000000.label", np.array([7, 7]), np.array([1, 1]))
+    raw = np.zeros((256, 256, 32), np.uint16)
+    iy, iz = int((0.1 + 25.6) / 0.2), int((-1.0 + 2.0) / 0.2)
+    raw[40:52, iy, iz] = 7   # the car at x = 10.0-10.4 m and its trace from x = 8 m
+    raw[100, 100, 10] = 15  # building
+    sk.write_voxel_labels(seq / "voxels" / "000000.label", raw)
+    assert main(["data", "rectify", str(tmp_path), "--labels", "semanticposs"]) == 0
+    assert "car: 2 of 12 voxels left" in capsys.readouterr().out
+    out = sk.read_voxel_labels(seq / "voxels_rectified" / "000000.label")
+    assert out[50, iy, iz] == 7 and out[51, iy, iz] == 7 and (out[40:50, iy, iz] == 1).all() and out[100, 100, 10] == 15

@@ -116,7 +116,7 @@ class SemanticPossParams(SemanticKittiParams):
     train_sequences: list[str] = ["00", "01", "03", "04", "05"]
     val_sequences: list[str] = ["02"]
     rectify_classes: list[str] = Field(default_factory=lambda: ["people", "rider", "car"],
-                                       description="the dynamic classes rectification cleans")
+                                       description="the dynamic classes rectification cleans (POSS_DYNAMIC)")
     classes: Literal["semanticposs"] = Field("semanticposs", description="the class table of the labels")
 
 

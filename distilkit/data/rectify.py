@@ -14,7 +14,7 @@ indexes with an int 0/1 array, which wipes x-slices 0 and 1 instead of the class
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -22,6 +22,7 @@ from distilkit.data.classes import CLASS_NAMES, IGNORE_INDEX, remap, seg_lut
 from distilkit.structures import VoxelGrid
 
 DEFAULT_DYNAMIC = ("car", "truck", "other-vehicle", "person", "bicyclist", "motorcyclist")  # SCPNet's [1,4,5,6,7,8]
+POSS_DYNAMIC = ("people", "rider", "car")  # SemanticPOSS's moving classes
 IGNORE_RAW = 1  # the raw id written for a removed voxel: "outlier", which the SSC table maps to 255 (ignored)
 
 
@@ -65,15 +66,23 @@ def rectify(voxel_label: np.ndarray, xyz: np.ndarray, point_raw: np.ndarray, gri
 
 
 def rectify_folder(root: str | Path, sequences: Sequence[str] | None = None,
-                   classes: Sequence[str] = DEFAULT_DYNAMIC, out: str = "voxels_rectified",
-                   progress: Callable[[int, int], None] | None = None) -> dict[str, tuple[int, int]]:
-    """Rectify every ``voxels/NNNNNN.label`` of a SemanticKITTI folder with its scan's panoptic labels, writing
+                   classes: Sequence[str] | None = None, out: str = "voxels_rectified",
+                   progress: Callable[[int, int], None] | None = None, table: Any = None) -> dict[str, tuple[int, int]]:
+    """Rectify every ``voxels/NNNNNN.label`` of a SemanticKITTI-layout folder with its scan's panoptic labels, writing
     ``sequences/SS/<out>/NNNNNN.label`` beside the originals, which stay untouched: raw ids like theirs, a removed
-    voxel as raw 1 ("outlier", which the SSC table ignores), every other voxel's raw id as it was. Returns, per
-    class name, (voxels before, voxels left)."""
+    voxel as raw 1 (which both data sets' SSC tables ignore), every other voxel's raw id as it was. ``table``: the
+    labels' :class:`~distilkit.data.info.ClassTable` (default SemanticKITTI's; ``classes`` default to its moving
+    classes). Returns, per class name, (voxels before, voxels left)."""
     from distilkit.data import semantickitti as skio
-    from distilkit.data.classes import LEARNING_MAP_INV, ssc_lut
+    from distilkit.data.classes import ssc_lut
+    from distilkit.data.info import ClassTable
     from distilkit.errors import DataError
+
+    table = table or ClassTable.semantickitti()
+    names = list(table.names)
+    if classes is None:
+        classes = POSS_DYNAMIC if names == list(ClassTable.semanticposs().names) else DEFAULT_DYNAMIC
+    learning_map = dict(table.learning_map)
 
     base = Path(root).expanduser()
     seqs = sorted(sequences) if sequences else sorted(p.name for p in (base / "sequences").glob("*") if p.is_dir())
@@ -85,10 +94,10 @@ def rectify_folder(root: str | Path, sequences: Sequence[str] | None = None,
         jobs += [(d, f) for f in sorted((d / "voxels").glob("*.label"))]
     if not jobs:
         raise DataError(f"{base}: no sequences/*/voxels/*.label under the sequences {seqs}")
-    ids = dynamic_ids(classes)
+    ids = dynamic_ids(classes, names)
     grid = VoxelGrid.semantickitti(1)
-    counts = {CLASS_NAMES[c]: [0, 0] for c in ids}
-    inverse = np.array([LEARNING_MAP_INV.get(i, 0) for i in range(256)], np.uint16)
+    counts = {names[c]: [0, 0] for c in ids}
+    inverse = np.array([table.learning_map_inv.get(i, 0) for i in range(256)], np.uint16)
     inverse[IGNORE_INDEX] = IGNORE_RAW
     for n, (d, vox) in enumerate(jobs):
         frame = vox.stem
@@ -98,11 +107,12 @@ def rectify_folder(root: str | Path, sequences: Sequence[str] | None = None,
         xyz = skio.read_points(d / "velodyne" / f"{frame}.bin")[:, :3]
         sem, inst = skio.read_point_labels(lab_file, len(xyz))
         raw_vox = skio.read_voxel_labels(vox)
-        labels = remap(raw_vox, ssc_lut(), str(vox))
-        fixed = rectify(labels, xyz, sem.astype(np.uint32) | (inst.astype(np.uint32) << 16), grid, ids)
+        labels = remap(raw_vox, ssc_lut(learning_map), str(vox))
+        fixed = rectify(labels, xyz, sem.astype(np.uint32) | (inst.astype(np.uint32) << 16), grid, ids,
+                        learning_map=learning_map)
         for c in ids:
-            counts[CLASS_NAMES[c]][0] += int((labels == c).sum())
-            counts[CLASS_NAMES[c]][1] += int((fixed == c).sum())
+            counts[names[c]][0] += int((labels == c).sum())
+            counts[names[c]][1] += int((fixed == c).sum())
         out_raw = np.where(fixed == labels, raw_vox, inverse[fixed]).astype(np.uint16)
         (d / out).mkdir(exist_ok=True)
         skio.write_voxel_labels(d / out / vox.name, out_raw)
@@ -111,4 +121,4 @@ def rectify_folder(root: str | Path, sequences: Sequence[str] | None = None,
     return {k: (v[0], v[1]) for k, v in counts.items()}
 
 
-__all__ = ["DEFAULT_DYNAMIC", "dynamic_ids", "rectify", "rectify_folder"]
+__all__ = ["DEFAULT_DYNAMIC", "POSS_DYNAMIC", "dynamic_ids", "rectify", "rectify_folder"]
