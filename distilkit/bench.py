@@ -477,7 +477,8 @@ def kitti_cases(device: torch.device, quick: bool) -> list[Case]:
     from distilkit.data.datasets import SemanticKittiDataset
     from distilkit.data.export import export_kitti
     from distilkit.data.params import SemanticKittiParams, SyntheticParams
-    from distilkit.engine.predict import TO_RAW
+    from distilkit.data.info import ClassTable
+    from distilkit.engine.predict import raw_ids
     from distilkit.metrics.official import evaluate_folder
     from distilkit.structures import VoxelGrid
 
@@ -519,7 +520,7 @@ def kitti_cases(device: torch.device, quick: bool) -> list[Case]:
     labels = np.zeros(grid.shape, np.int64)
 
     def write() -> Tensor:
-        TO_RAW[labels].astype("<u2").reshape(-1).tofile(preds / "write-test.label")
+        raw_ids(ClassTable.semantickitti())[labels].astype("<u2").reshape(-1).tofile(preds / "write-test.label")
         return torch.tensor(0.0)
 
     return [Case("kitti: read+voxelise vs fused sample", f"{n_points:,}-pt scan; 5 scans, 256x256x32",

@@ -288,11 +288,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(fn=_cmd_bench)
     ev = sub.add_parser("eval", help="SemanticKITTI's official completion evaluation of a predictions folder "
                                      "(and VoxFormer's 12.8 / 25.6 m range split)")
-    ev.add_argument("--dataset-root", required=True, help="the SemanticKITTI folder (holds sequences/NN/voxels/)")
+    _folder_split_args(ev, "the SemanticKITTI folder (holds sequences/NN/voxels/)", "valid", "08")
     ev.add_argument("--predictions", required=True, help="the folder holding sequences/NN/predictions/*.label")
-    ev.add_argument("--split", default="valid", choices=["train", "valid", "test"],
-                    help="the official split's sequences (default valid = 08)")
-    ev.add_argument("--sequences", nargs="+", default=None, help="these sequences instead of the split's")
     ev.add_argument("--out", default=None, help="where to write the scores (default: PREDICTIONS/scores.txt)")
     ev.add_argument("--classes", default="semantickitti", choices=["semantickitti", "semanticposs"],
                     help="the labels' class table and official splits (semanticposs: 11 classes, valid = test = 02)")
@@ -300,10 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     pr = sub.add_parser("predict", help="write a trained SSC run's predictions of a SemanticKITTI folder in the "
                                         "submission format (sequences/NN/predictions/NNNNNN.label)")
     pr.add_argument("run", help="a stage's run folder or checkpoint (trained on a semantickitti folder)")
-    pr.add_argument("--dataset-root", required=True, help="the SemanticKITTI folder to predict")
-    pr.add_argument("--split", default="test", choices=["train", "valid", "test"],
-                    help="the official split's sequences (default test = 11-21)")
-    pr.add_argument("--sequences", nargs="+", default=None, help="these sequences instead of the split's")
+    _folder_split_args(pr, "the SemanticKITTI folder to predict", "test", "11-21")
     pr.add_argument("--out", required=True, help="the folder to write sequences/NN/predictions/ into")
     pr.add_argument("--device", default="cpu", help="cpu or cuda")
     pr.set_defaults(fn=_cmd_predict)
@@ -344,6 +338,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--device", default="cpu", help="cpu or cuda")
     c.set_defaults(fn=_cmd_complete)
     return p
+
+
+def _folder_split_args(parser: argparse.ArgumentParser, root_help: str, split: str, split_sequences: str) -> None:
+    """``--dataset-root``, and ``--split`` (an official split) or ``--sequences`` (eval and predict)."""
+    parser.add_argument("--dataset-root", required=True, help=root_help)
+    parser.add_argument("--split", default=split, choices=["train", "valid", "test"],
+                        help=f"the official split's sequences (default {split} = {split_sequences})")
+    parser.add_argument("--sequences", nargs="+", default=None, help="these sequences instead of the split's")
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:

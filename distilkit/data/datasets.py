@@ -156,17 +156,10 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
 
     def _rectified(self, d: Path, frame: int, labels: np.ndarray) -> np.ndarray:
         """SCPNet's rectification of a frame's full-resolution labels with its own scan's panoptic labels."""
-        from distilkit.data.rectify import dynamic_ids, rectify
+        from distilkit.data.rectify import dynamic_ids, rectify_frame
 
-        scan = d / "velodyne" / f"{frame:06d}.bin"
-        lab_file = d / "labels" / f"{frame:06d}.label"
-        if not lab_file.is_file():
-            raise DataError(f"{lab_file}: rectification needs the scan's point labels (panoptic), and there are none")
-        xyz = skio.read_points(scan)[:, :3]
-        sem, inst = skio.read_point_labels(lab_file, len(xyz))
-        raw = sem.astype(np.uint32) | (inst.astype(np.uint32) << 16)
-        return rectify(labels, xyz, raw, VoxelGrid.semantickitti(1), dynamic_ids(self.p.rectify_classes, self.table.names),
-                       learning_map=dict(self.table.learning_map))
+        return rectify_frame(d, frame, labels, dynamic_ids(self.p.rectify_classes, self.table.names),
+                             dict(self.table.learning_map))
 
     def _pose(self, d: Path) -> np.ndarray:
         if d not in self._poses:

@@ -65,6 +65,22 @@ def rectify(voxel_label: np.ndarray, xyz: np.ndarray, point_raw: np.ndarray, gri
     return out
 
 
+def rectify_frame(d: Path, frame: int, labels: np.ndarray, classes: Sequence[int],
+                  learning_map: dict[int, int] | None = None) -> np.ndarray:
+    """:func:`rectify` of frame ``frame``'s full-resolution labels in sequence folder ``d``, with its own scan and
+    panoptic labels (``velodyne/``, ``labels/``); a missing label file is an error that names it."""
+    from distilkit.data import semantickitti as skio
+    from distilkit.errors import DataError
+
+    lab_file = d / "labels" / f"{frame:06d}.label"
+    if not lab_file.is_file():
+        raise DataError(f"{lab_file}: rectification needs the scan's point labels (panoptic), and there are none")
+    xyz = skio.read_points(d / "velodyne" / f"{frame:06d}.bin")[:, :3]
+    sem, inst = skio.read_point_labels(lab_file, len(xyz))
+    raw = sem.astype(np.uint32) | (inst.astype(np.uint32) << 16)
+    return rectify(labels, xyz, raw, VoxelGrid.semantickitti(1), classes, learning_map=learning_map)
+
+
 def rectify_folder(root: str | Path, sequences: Sequence[str] | None = None,
                    classes: Sequence[str] | None = None, out: str = "voxels_rectified",
                    progress: Callable[[int, int], None] | None = None, table: Any = None) -> dict[str, tuple[int, int]]:
@@ -95,21 +111,13 @@ def rectify_folder(root: str | Path, sequences: Sequence[str] | None = None,
     if not jobs:
         raise DataError(f"{base}: no sequences/*/voxels/*.label under the sequences {seqs}")
     ids = dynamic_ids(classes, names)
-    grid = VoxelGrid.semantickitti(1)
     counts = {names[c]: [0, 0] for c in ids}
     inverse = np.array([table.learning_map_inv.get(i, 0) for i in range(256)], np.uint16)
     inverse[IGNORE_INDEX] = IGNORE_RAW
     for n, (d, vox) in enumerate(jobs):
-        frame = vox.stem
-        lab_file = d / "labels" / f"{frame}.label"
-        if not lab_file.is_file():
-            raise DataError(f"{lab_file}: rectification needs the scan's point labels (panoptic), and there are none")
-        xyz = skio.read_points(d / "velodyne" / f"{frame}.bin")[:, :3]
-        sem, inst = skio.read_point_labels(lab_file, len(xyz))
         raw_vox = skio.read_voxel_labels(vox)
         labels = remap(raw_vox, ssc_lut(learning_map), str(vox))
-        fixed = rectify(labels, xyz, sem.astype(np.uint32) | (inst.astype(np.uint32) << 16), grid, ids,
-                        learning_map=learning_map)
+        fixed = rectify_frame(d, int(vox.stem), labels, ids, learning_map)
         for c in ids:
             counts[names[c]][0] += int((labels == c).sum())
             counts[names[c]][1] += int((fixed == c).sum())
@@ -121,4 +129,4 @@ def rectify_folder(root: str | Path, sequences: Sequence[str] | None = None,
     return {k: (v[0], v[1]) for k, v in counts.items()}
 
 
-__all__ = ["DEFAULT_DYNAMIC", "POSS_DYNAMIC", "dynamic_ids", "rectify", "rectify_folder"]
+__all__ = ["DEFAULT_DYNAMIC", "POSS_DYNAMIC", "dynamic_ids", "rectify", "rectify_folder", "rectify_frame"]

@@ -15,10 +15,15 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from distilkit.data.classes import LEARNING_MAP_INV
 from distilkit.errors import DistilkitError
 
-TO_RAW = np.array([LEARNING_MAP_INV[t] for t in sorted(LEARNING_MAP_INV)], np.uint16)  # SemanticKITTI's
+
+
+def raw_ids(table: Any) -> np.ndarray:
+    """(K,) uint16: the raw id each train id of a :class:`~distilkit.data.info.ClassTable` is written with."""
+    return np.array([table.learning_map_inv[t] for t in range(table.num_classes)], np.uint16)
+
+
 FOLDER_DATASETS = ("semantickitti", "semantickitti-ssc", "semanticposs-ssc")
 
 
@@ -48,8 +53,7 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
     dataset = SemanticKittiDataset(params, "test")
     model = load_run(path, device=torch.device(device))
     collate = entry.meta["collate"]
-    inverse = dataset.table.learning_map_inv
-    to_raw = np.array([inverse[t] for t in range(dataset.table.num_classes)], np.uint16)
+    to_raw = raw_ids(dataset.table)
     root = Path(out).expanduser()
     with torch.no_grad():
         for i in range(len(dataset)):
@@ -67,4 +71,4 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
     return len(dataset)
 
 
-__all__ = ["TO_RAW", "predict_folder", "upsample"]
+__all__ = ["predict_folder", "raw_ids", "upsample"]

@@ -32,12 +32,11 @@ VOXELS = 256 * 256 * 32
 
 
 def range_mask(r: float) -> np.ndarray:
-    """(256, 256, 32) bool: VoxFormer's box of range ``r``: x in [0, r), y in [-r/2, r/2) (index slices of §2.4)."""
-    grid = VoxelGrid.semantickitti(1)
-    n = int(round(r / grid.voxel_size))
-    mask = np.zeros(grid.shape, bool)
-    mask[:n, 128 - n // 2: 128 + n // 2, :] = True
-    return mask
+    """(256, 256, 32) bool: VoxFormer's box of range ``r`` on the full grid, x in [0, r), y in [-r/2, r/2) (the index
+    slices of §2.4; :func:`~distilkit.metrics.registered.range_box`, which the in-training metric uses)."""
+    from distilkit.metrics.registered import range_box
+
+    return range_box(VoxelGrid.semantickitti(1), r).numpy()
 
 
 @dataclass
