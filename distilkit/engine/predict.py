@@ -18,7 +18,6 @@ import torch
 from distilkit.errors import DistilkitError
 
 
-
 def raw_ids(table: Any) -> np.ndarray:
     """(K,) uint16: the raw id each train id of a :class:`~distilkit.data.info.ClassTable` is written with."""
     return np.array([table.learning_map_inv[t] for t in range(table.num_classes)], np.uint16)
