@@ -501,7 +501,7 @@ def kitti_cases(device: torch.device, quick: bool) -> list[Case]:
         occupied[tuple(idx[inside].T)] = True
         return occupied.sum().float() + float(sem.sum() % 7)
 
-    dataset = SemanticKittiDataset(SemanticKittiParams(root=str(root), val_sequences=["08"], input_frames=5), "val")
+    dataset = SemanticKittiDataset(SemanticKittiParams(root=str(root), val=["08"], input_frames=5), "val")
 
     def fused() -> Tensor:
         s = dataset[0]

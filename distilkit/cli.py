@@ -354,14 +354,13 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
     from distilkit.console import make_console, progress_bar
     from distilkit.files import atomic_write_text
-    from distilkit.metrics.official import SPLITS, evaluate_folder, scores_yaml
-
     from distilkit.data.info import ClassTable
-    from distilkit.metrics.official import POSS_SPLITS
+    from distilkit.data.params import KITTI_SPLITS, POSS_SPLITS
+    from distilkit.metrics.official import evaluate_folder, scores_yaml
 
     console = make_console()
     poss = args.classes == "semanticposs"
-    sequences = args.sequences or (POSS_SPLITS if poss else SPLITS)[args.split]
+    sequences = args.sequences or list((POSS_SPLITS if poss else KITTI_SPLITS)[args.split])
     table = ClassTable.semanticposs() if poss else ClassTable.semantickitti()
     with progress_bar(console, "eval") as advance:
         ev = evaluate_folder(args.dataset_root, args.predictions, sequences, advance, table)
@@ -382,12 +381,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _cmd_predict(args: argparse.Namespace) -> int:
     from distilkit.console import make_console, progress_bar
     from distilkit.engine.predict import predict_folder
-    from distilkit.metrics.official import SPLITS
 
     console = make_console()
-    sequences = args.sequences or SPLITS[args.split]
     with progress_bar(console, "predict") as advance:
-        n = predict_folder(args.run, args.dataset_root, sequences, args.out, args.device, advance)
+        n, sequences = predict_folder(args.run, args.dataset_root, args.sequences or args.split, args.out, args.device,
+                                      advance)
     console.print(f"{n} frames of sequences {' '.join(sequences)} predicted into {args.out}/sequences/*/predictions/")
     return 0
 

@@ -177,7 +177,7 @@ def test_semantickitti_folder_dataset(tmp_path) -> None:
     from distilkit.data.params import SemanticKittiParams
 
     root = _fake_kitti(tmp_path)
-    ds = SemanticKittiDataset(SemanticKittiParams(root=str(root), val_sequences=["08"], scale=4, input_frames=2), "val")
+    ds = SemanticKittiDataset(SemanticKittiParams(root=str(root), val=["08"], scale=4, input_frames=2), "val")
     assert len(ds) == 1
     s = ds[0]
     assert s["voxel_label"].shape == (64, 64, 8)
@@ -192,7 +192,7 @@ def test_semantickitti_folder_dataset(tmp_path) -> None:
     (root / "sequences" / "08" / "poses.txt").unlink()
     (root / "sequences" / "08" / "velodyne" / "000000.bin").unlink()
     with pytest.raises(DataError) as err:
-        SemanticKittiDataset(SemanticKittiParams(root=str(root), val_sequences=["08"], input_frames=2,
+        SemanticKittiDataset(SemanticKittiParams(root=str(root), val=["08"], input_frames=2,
                                                  rectify=True), "val")
     lines = str(err.value).splitlines()
     assert lines[0].endswith("is not a complete SemanticKITTI folder:") and sorted(lines[1:]) == sorted([

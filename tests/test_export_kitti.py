@@ -42,7 +42,7 @@ def test_the_dataset_fuses_exported_scans_through_the_poses(exported) -> None:
     from distilkit.data.datasets import SemanticKittiDataset
     from distilkit.data.params import SemanticKittiParams
 
-    params = SemanticKittiParams(root=str(exported), train_sequences=["00"], val_sequences=["08"], input_frames=2,
+    params = SemanticKittiParams(root=str(exported), train=["00"], val=["08"], input_frames=2,
                                  scale=4)
     ds = SemanticKittiDataset(params, "val")
     assert len(ds) == 3 and ds.sample_id(1) == "08/000005"
@@ -81,7 +81,7 @@ def test_a_recipe_trains_scpnet_on_the_exported_folder(exported, tmp_path) -> No
     params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 2}
     recipe = {"schema_version": 1, "name": "kitti", "seed": 0,
               "data": {"dataset": "semantickitti",
-                       "params": {"root": str(exported), "train_sequences": ["00"], "val_sequences": ["08"],
+                       "params": {"root": str(exported), "train": ["00"], "val": ["08"],
                                   "scale": 4, "input_frames": 2, "rectify": True}},
               "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params},
                                     "train": {"steps": 2, "batch_size": 1, "eval_every": 2}}}}
@@ -108,8 +108,8 @@ def test_predict_writes_the_submission_format_and_eval_reads_it(exported, tmp_pa
         f.unlink()  # the benchmark's test split has scans and input voxels, no labels
     params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 1}
     recipe = {"schema_version": 1, "name": "kitti", "seed": 0,
-              "data": {"dataset": "semantickitti", "params": {"root": str(root), "train_sequences": ["00"],
-                                                              "val_sequences": ["08"], "scale": 4}},
+              "data": {"dataset": "semantickitti", "params": {"root": str(root), "train": ["00"],
+                                                              "val": ["08"], "scale": 4}},
               "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params},
                                     "train": {"steps": 1, "batch_size": 1, "eval_every": 1}}}}
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
@@ -126,3 +126,48 @@ def test_predict_writes_the_submission_format_and_eval_reads_it(exported, tmp_pa
     assert "3 frames" in capsys.readouterr().out
     small = np.arange(8).reshape(2, 2, 2)
     assert upsample(small, 2)[3, 2, 1] == small[1, 1, 0] and upsample(small, 2).shape == (4, 4, 4)
+
+
+def test_roles_take_an_official_split_or_sequences_and_older_names_still_read() -> None:
+    from pydantic import ValidationError
+
+    from distilkit.data.params import KITTI_SPLITS, SemanticKittiParams, SemanticPossParams
+
+    default = SemanticKittiParams(root="r")
+    assert default.sequences("train") == list(KITTI_SPLITS["train"]) and default.sequences("val") == ["08"]
+    assert default.sequences("test") == []  # the hidden test split is predicted, not scored, unless asked for
+    assert SemanticKittiParams(root="r", test="test").sequences("test") == [f"{s}" for s in range(11, 22)]
+    assert SemanticPossParams(root="r").sequences("val") == ["02"] and SemanticPossParams(root="r", val="test").sequences("val") == ["02"]
+    older = SemanticKittiParams(root="r", train_sequences=["00"], val_sequences=[], test_sequences=["08"])
+    assert (older.train, older.val, older.test) == (["00"], None, ["08"])
+    for bad, said in (({"val": [8]}, "string"), ({"val": "validation"}, "valid"), ({"train": None}, "train"),
+                      ({"val": ["8a"]}, "digit strings"), ({"val": ["08"], "val_sequences": ["08"]}, "older name")):
+        with pytest.raises(ValidationError, match=said):
+            SemanticKittiParams(root="r", **bad)
+
+
+def test_a_stage_trains_without_a_validation_split(exported, tmp_path) -> None:
+    """val: none -> no evaluation during training, the last checkpoint is the model; with no test split either,
+    nothing is scored (a stage trained on everything for a submission) and predictions are still published."""
+    from distilkit.engine.pipeline import Pipeline
+    from distilkit.recipe import recipe_from_dict
+
+    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 1}
+
+    def recipe(test):
+        return {"schema_version": 1, "name": "noval", "seed": 0,
+                "data": {"dataset": "semantickitti-ssc",
+                         "params": {"root": str(exported), "train": ["00", "08"], "val": None, "test": test,
+                                    "scale": 4}},
+                "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params}, "publish": ["train"],
+                                      "train": {"steps": 2, "batch_size": 1, "eval_every": 1}}}}
+
+    (alone,) = Pipeline(recipe_from_dict(recipe(None)), tmp_path / "runs", quiet=True).run()
+    assert alone.summary["report_split"] is None and alone.summary["test"] == {} and alone.summary["last"] is None
+    assert (alone.run_dir / "checkpoints" / "last.pt").is_file() and not (alone.run_dir / "checkpoints" / "best.pt").exists()
+    assert not (alone.run_dir / "preview.npz").exists() and (alone.run_dir / "report.md").is_file()
+    assert len(list((alone.run_dir / "predictions" / "train").glob("*"))) > 0
+    assert not any('"eval"' in line for line in (alone.run_dir / "metrics.jsonl").read_text().splitlines())
+    (tested,) = Pipeline(recipe_from_dict(recipe(["08"])), tmp_path / "runs", quiet=True).run()
+    assert tested.summary["report_split"] == "test" and tested.summary["test"]["best_step"] == 2
+    assert tested.summary["test"]["best"] == tested.summary["test"]["last"]  # no validation: best is the last

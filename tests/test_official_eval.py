@@ -141,7 +141,7 @@ def test_a_semanticposs_folder_reads_with_its_own_labels(tmp_path) -> None:
     raw[0, 0, 0], raw[1, 0, 0], raw[2, 0, 0], raw[3, 0, 0] = 7, 14, 22, 5  # car, trashcan, ground, 2+-person
     sk.write_voxel_labels(seq / "voxels" / "000000.label", raw)
     params = DATASETS.entry("semanticposs-ssc").meta["params"](root=str(tmp_path))
-    assert isinstance(params, SemanticPossParams) and params.val_sequences == ["02"]
+    assert isinstance(params, SemanticPossParams) and params.sequences("val") == ["02"]
     ds = SemanticKittiDataset(params, "val")
     s = ds[0]
     assert s["voxel_label"][:4, 0, 0].tolist() == [3, 255, 11, 1] and s["point_label"].tolist() == [1, 0, 11]

@@ -155,10 +155,10 @@ def test_data_rectify_writes_beside_the_originals_and_the_dataset_reads_either(t
     out = capsys.readouterr().out
     assert "car: 10 of 40 voxels left (25.0 % left)" in out and "person: 0 of 1 voxels left" in out
     assert (seq / "voxels" / "000000.label").read_bytes() == original  # untouched
-    on_the_fly = SemanticKittiDataset(SemanticKittiParams(root=str(tmp_path), val_sequences=["08"], rectify=True), "val")
-    written = SemanticKittiDataset(SemanticKittiParams(root=str(tmp_path), val_sequences=["08"],
+    on_the_fly = SemanticKittiDataset(SemanticKittiParams(root=str(tmp_path), val=["08"], rectify=True), "val")
+    written = SemanticKittiDataset(SemanticKittiParams(root=str(tmp_path), val=["08"],
                                                        voxels="voxels_rectified"), "val")
-    plain = SemanticKittiDataset(SemanticKittiParams(root=str(tmp_path), val_sequences=["08"]), "val")
+    plain = SemanticKittiDataset(SemanticKittiParams(root=str(tmp_path), val=["08"]), "val")
     a, b, c = on_the_fly[0]["voxel_label"], written[0]["voxel_label"], plain[0]["voxel_label"]
     assert np.array_equal(a, b) and not np.array_equal(a, c)
     assert (a[50:60, iy, iz] == CAR).all() and (a[20:50, iy, iz] == 255).all() and a[30, 30, 3] == 255

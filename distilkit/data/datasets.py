@@ -125,7 +125,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         self.p = params
         self.table = params.table()
         root = Path(params.root).expanduser()
-        seqs = {"train": params.train_sequences, "val": params.val_sequences, "test": params.test_sequences}[split]
+        seqs = params.sequences(split)
         # (sequence dir, frame, sequence length, has voxel labels: a test sequence without any is the benchmark's
         # hidden split, whose every stride-th scan is predicted and never scored)
         self.items: list[tuple[Path, int, int, bool]] = []
@@ -208,7 +208,7 @@ def kitti_fingerprint(params: SemanticKittiParams) -> dict[str, Any]:
 
     root = Path(params.root).expanduser()
     lines = []
-    for seq in sorted({*params.train_sequences, *params.val_sequences, *params.test_sequences}):
+    for seq in sorted({s for role in ("train", "val", "test") for s in params.sequences(role)}):
         d = root / "sequences" / seq
         folders = dict.fromkeys(("velodyne", "labels", "voxels", params.voxels))
         files = [f for sub in folders for f in sorted((d / sub).glob("*"))]
@@ -248,7 +248,7 @@ for _name, _params, _description, _paper in (
          "2020; completion labels: Yan et al., JS3C-Net, AAAI 2021")):
     DATASETS.add(_name, _kitti_factory, description=_description, paper=_paper, params=_params,
                  info=kitti_info, collate=collate_lidar, version=1,
-                 has_split=lambda p, split: split != "test" or bool(p.test_sequences), probe=grid_plan,
+                 has_split=lambda p, split: bool(p.sequences(split)), probe=grid_plan,
                  fingerprint=kitti_fingerprint)
 
 

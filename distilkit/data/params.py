@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -46,6 +46,22 @@ class CameraParams(BaseModel):
         return v
 
 
+class FolderCameraParams(BaseModel):
+    """A SemanticKITTI folder's left colour camera (``image_2/NNNNNN.png``, calibration ``P2`` and ``Tr`` of
+    ``calib.txt``), its images resized to ``width`` x ``height`` (the intrinsics scale with them)."""
+
+    model_config = ConfigDict(extra="forbid")
+    height: int = Field(370, ge=8, description="image rows after resizing (KITTI's images: 370 to 376)")
+    width: int = Field(1220, ge=8, description="image columns after resizing (KITTI's images: 1226 to 1242)")
+    previous: list[Annotated[int, Field(ge=1)]] = Field(
+        default_factory=list, description="earlier frames given with the current image, in frames back "
+                                          "(VoxFormer-T: [12, 9, 6, 3]; the first frames of a sequence repeat frame 0)")
+    max_depth: float = Field(80.0, gt=0, description="the depth target: the current scan's points projected into "
+                                                     "the image, up to this distance (0 elsewhere)")
+
+    _distinct = field_validator("previous")(CameraParams._distinct.__func__)  # type: ignore[attr-defined]
+
+
 class SyntheticParams(_SensorParams):
     """``synthetic-lidar``: procedural street scenes cast with a spinning LiDAR."""
 
@@ -70,15 +86,34 @@ class SyntheticParams(_SensorParams):
     _scale = field_validator("scale")(_check_scale)
 
 
+SplitRef = Union[Literal["train", "valid", "test"], list[str], None]
+KITTI_SPLITS: dict[str, tuple[str, ...]] = {  # semantic-kitti.yaml (data_metrics.md §1.1)
+    "train": ("00", "01", "02", "03", "04", "05", "06", "07", "09", "10"), "valid": ("08",),
+    "test": tuple(f"{s:02d}" for s in range(11, 22))}
+POSS_SPLITS: dict[str, tuple[str, ...]] = {  # JS3C-Net's SemanticPOSS: 02 is validation and test
+    "train": ("00", "01", "03", "04", "05"), "valid": ("02",), "test": ("02",)}
+ROLES = ("train", "val", "test")
+_LEGACY = {f"{role}_sequences": role for role in ROLES}  # the names of distilkit 0.x
+
+
+def _split_field(default: Any, what: str) -> Any:
+    return Field(default, description=f"{what}: an official split's name (train, valid, test), a list of sequences "
+                                      "(['00', '01']) or none")
+
+
 class SemanticKittiParams(BaseModel):
-    """``semantickitti``: a SemanticKITTI-format folder (``sequences/NN/...``)."""
+    """``semantickitti-ssc``: a SemanticKITTI-format folder (``sequences/NN/...``). ``train``, ``val`` and ``test``
+    say which sequences each role of a run reads: an official split by name or a list of sequences."""
 
     model_config = ConfigDict(extra="forbid")
+    SPLITS: ClassVar[dict[str, tuple[str, ...]]] = KITTI_SPLITS
     root: str = Field(..., description="folder that holds sequences/")
-    train_sequences: list[str] = ["00", "01", "02", "03", "04", "05", "06", "07", "09", "10"]
-    val_sequences: list[str] = ["08"]
-    test_sequences: list[str] = Field(default_factory=list, description="labelled held-out sequences for test "
-                                      "scores (none: the validation split is reported, and says so)")
+    train: SplitRef = _split_field("train", "the sequences trained on")
+    val: SplitRef = _split_field("valid", "the sequences that select the best checkpoint (none: no validation; the "
+                                          "last checkpoint is the model)")
+    test: SplitRef = _split_field(None, "labelled held-out sequences for test scores (none: the validation split is "
+                                        "reported, and says so; the official test split 11-21 has no labels: "
+                                        "`distilkit predict` writes its submission)")
     scale: int = Field(1, description="grid coarsening of the 256x256x32 voxel files (majority pooling)")
     input_frames: int = Field(1, ge=1)
     stride: int = Field(5, ge=1, description="use every n-th scan (voxel files exist for every 5th)")
@@ -90,17 +125,50 @@ class SemanticKittiParams(BaseModel):
     rectify_classes: list[str] = Field(
         default_factory=lambda: ["car", "truck", "other-vehicle", "person", "bicyclist", "motorcyclist"],
         description="the dynamic classes rectification cleans (SCPNet's: bicycle and motorcycle stay)")
+    camera: FolderCameraParams | None = Field(None, description="also read image_2/ and calib.txt's P2 for camera "
+                                                                "models ({} for the defaults); none: LiDAR only")
 
     _scale = field_validator("scale")(_check_scale)
 
     classes: Literal["semantickitti"] = Field("semantickitti", description="the class table of the labels")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _legacy_names(cls, data: Any) -> Any:
+        """``train_sequences``/``val_sequences``/``test_sequences`` (older recipes) are the roles' sequence lists."""
+        if isinstance(data, dict) and any(k in data for k in _LEGACY):
+            data = dict(data)
+            for old, role in _LEGACY.items():
+                if old in data:
+                    if role in data:
+                        raise ValueError(f"{old} and {role} both given: {old} is the older name of {role}")
+                    data[role] = data.pop(old) or None
+        return data
+
+    @field_validator("train", "val", "test")
+    @classmethod
+    def _sequence_names(cls, v: Any) -> Any:
+        if isinstance(v, list):
+            bad = [s for s in v if not (isinstance(s, str) and s.isdigit())]
+            if bad:
+                raise ValueError(f"sequence names are digit strings such as '00' or '08' (quote them in YAML), "
+                                 f"got {bad}")
+            return v or None
+        return v
 
     @model_validator(mode="after")
     def _known_classes(self) -> "SemanticKittiParams":
         from distilkit.data.rectify import dynamic_ids
 
         dynamic_ids(self.rectify_classes, self.table().names)
+        if self.train is None:
+            raise ValueError("train: none given (an official split's name or a list of sequences)")
         return self
+
+    def sequences(self, role: str) -> list[str]:
+        """The sequences role ``role`` (train, val, test) reads: [] when the recipe gives it none."""
+        ref = getattr(self, role)
+        return [] if ref is None else list(self.SPLITS[ref]) if isinstance(ref, str) else list(ref)
 
     def table(self) -> Any:
         """The :class:`~distilkit.data.info.ClassTable` of the labels."""
@@ -111,10 +179,10 @@ class SemanticKittiParams(BaseModel):
 
 class SemanticPossParams(SemanticKittiParams):
     """``semanticposs-ssc``: a SemanticPOSS folder in SemanticKITTI's layout with JS3C-Net's completion labels (11
-    classes + empty on the same 256 x 256 x 32 grid; data_metrics.md §6)."""
+    classes + empty on the same 256 x 256 x 32 grid; data_metrics.md §6). Official splits: train 00, 01, 03, 04, 05;
+    valid (and test) 02."""
 
-    train_sequences: list[str] = ["00", "01", "03", "04", "05"]
-    val_sequences: list[str] = ["02"]
+    SPLITS: ClassVar[dict[str, tuple[str, ...]]] = POSS_SPLITS
     rectify_classes: list[str] = Field(default_factory=lambda: ["people", "rider", "car"],
                                        description="the dynamic classes rectification cleans (POSS_DYNAMIC)")
     classes: Literal["semanticposs"] = Field("semanticposs", description="the class table of the labels")

@@ -124,10 +124,11 @@ class EvalHook(Hook):
 
 
 class CheckpointHook(Hook):
-    """``last.pt`` at every evaluation and every ``checkpoint_every`` steps (model, optimizers, RNG, best)."""
+    """``last.pt`` at every evaluation, every ``checkpoint_every`` steps and at the last step (model, optimizers, RNG,
+    best)."""
 
     def after_step(self, loop: Loop) -> None:
-        if loop.evaluated or loop.step % loop.spec.checkpoint_every == 0:
+        if loop.evaluated or loop.step % loop.spec.checkpoint_every == 0 or loop.step == loop.total:
             loop.save("last")
 
 

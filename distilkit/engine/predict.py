@@ -34,9 +34,10 @@ def upsample(labels: np.ndarray, scale: int) -> np.ndarray:
     return out
 
 
-def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequence[str], out: str | Path,
-                   device: str = "cpu", progress: Callable[[int, int], None] | None = None) -> int:
-    """Write the predictions of ``run`` for the frames of ``sequences`` under ``out``; returns the frame count."""
+def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequence[str] | str, out: str | Path,
+                   device: str = "cpu", progress: Callable[[int, int], None] | None = None) -> tuple[int, list[str]]:
+    """Write the predictions of ``run`` for the frames of ``sequences`` (a list, or the name of an official split of
+    the run's dataset: train, valid, test) under ``out``; returns the frame count and the sequences."""
     from distilkit.data.datasets import SemanticKittiDataset
     from distilkit.engine.runs import checkpoint_path, load_run, run_config
     from distilkit.registry import DATASETS
@@ -47,8 +48,9 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
         raise DistilkitError(f"{run}: trained on {data.get('dataset')!r}; predict writes SemanticKITTI-format "
                              f"submissions from models trained on a folder ({', '.join(FOLDER_DATASETS)})")
     entry = DATASETS.entry(data["dataset"])
-    params = entry.meta["params"](**{**(data.get("params") or {}), "root": str(dataset_root),
-                                     "test_sequences": list(sequences), "rectify": False})
+    kept = {k: v for k, v in (data.get("params") or {}).items() if k not in ("test", "test_sequences")}
+    params = entry.meta["params"](**{**kept, "root": str(dataset_root), "rectify": False,
+                                     "test": sequences if isinstance(sequences, str) else list(sequences)})
     dataset = SemanticKittiDataset(params, "test")
     model = load_run(path, device=torch.device(device))
     collate = entry.meta["collate"]
@@ -67,7 +69,7 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
             to_raw[labels].astype("<u2").reshape(-1).tofile(target)
             if progress:
                 progress(i + 1, len(dataset))
-    return len(dataset)
+    return len(dataset), params.sequences("test")
 
 
 __all__ = ["predict_folder", "raw_ids", "upsample"]

@@ -115,9 +115,9 @@ class StageRun:
             if loop.step < self.trainer.total_steps:
                 self.pipeline.console.print(f"stage {self.name} stopped after {loop.step} steps (checkpoint kept)")
                 return None
-            split = "test" if self.pipeline.has_split("test") else "val"
+            split = self.report_split()
             best = self.best_model()  # read once: scored on the test split, previewed on a validation scene
-            test = self.score(split, best)
+            test = self.score(split, best) if split is not None else {}
             self.write_preview(best)
             self.publish_predictions(best[0] if best is not None else None)
         except (RuntimeError, MemoryError) as exc:  # out of memory: one line that says what to lower
@@ -126,6 +126,11 @@ class StageRun:
             kept = self.checkpoints.kept() if self.trainer is not None else "no checkpoint had been written yet"
             raise out_of_memory(self.stage, self.info, exc, kept) from None
         return self.publish(loop, split, test)
+
+    def report_split(self) -> str | None:
+        """The split scores are reported on: test, else validation (and the summary says so), else none (a stage
+        trained on everything, e.g. for a benchmark submission)."""
+        return next((s for s in ("test", "val") if self.pipeline.has_split(s)), None)
 
     def _prepare_folder(self) -> None:
         """The folder, without a killed writer's temporary files, and the stage's resolved configuration."""
@@ -199,9 +204,10 @@ class StageRun:
         from distilkit.registry import HOOKS
 
         assert self.stage.metric is not None
-        own: list[Hook] = [LogHook(), ProgressHook(on_step), EvalHook(self.stage.metric.key,
-                                                                      self.stage.metric.higher_is_better),
-                           CheckpointHook()]
+        own: list[Hook] = [LogHook(), ProgressHook(on_step)]
+        if self.pipeline.has_split("val"):  # no validation split: nothing selects a best checkpoint
+            own.append(EvalHook(self.stage.metric.key, self.stage.metric.higher_is_better))
+        own.append(CheckpointHook())
         return own + [HOOKS.get(h.name)(h.params) for h in self.stage.hooks]
 
     # -- loop --------------------------------------------------------------------------------
@@ -237,7 +243,7 @@ class StageRun:
             loop.step += 1
             loop.evaluated = False
             loop.emit("after_step")
-        if loop.last_scores is None:
+        if loop.last_scores is None and self.pipeline.has_split("val"):
             loop.last_scores = self.evaluate(self.split("val"))
         loop.seconds = time.perf_counter() - loop.t0
         loop.emit("after_train")
@@ -329,8 +335,11 @@ class StageRun:
         assert self.trainer is not None and self.stage.metric is not None
         if not self.world.main:
             return None
+        shown = next((s for s in ("val", "test") if self.pipeline.has_split(s)), None)
+        if shown is None:
+            return None
         model = best[0] if best is not None else self.trainer.student
-        view = preview(model, self.split("val"), self.device, self.pipeline.collate, self.stage.metric.cls,
+        view = preview(model, self.split(shown), self.device, self.pipeline.collate, self.stage.metric.cls,
                        seed=self.seed, prepare=self.prepare)
         if view is None:
             return None
@@ -364,7 +373,7 @@ class StageRun:
         self.world.barrier()
         return wanted
 
-    def publish(self, loop: Loop, split: str, test: dict[str, Any]) -> StageResult:
+    def publish(self, loop: Loop, split: str | None, test: dict[str, Any]) -> StageResult:
         """``summary.json`` (the stage is finished) and the run report, by the main process."""
         assert self.trainer is not None and self.stage.metric is not None
         stage, p = self.stage, self.pipeline

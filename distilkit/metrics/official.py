@@ -24,9 +24,6 @@ from distilkit.errors import DataError
 from distilkit.metrics.ssc import ssc_scores
 from distilkit.structures import VoxelGrid
 
-SPLITS = {"train": ["00", "01", "02", "03", "04", "05", "06", "07", "09", "10"], "valid": ["08"],
-          "test": [f"{s:02d}" for s in range(11, 22)]}
-POSS_SPLITS = {"train": ["00", "01", "03", "04", "05"], "valid": ["02"], "test": ["02"]}  # JS3C-Net: valid = test
 RANGES = (12.8, 25.6)  # VoxFormer's boxes; 51.2 m is the whole grid
 VOXELS = 256 * 256 * 32
 
@@ -119,4 +116,4 @@ def scores_yaml(ev: Evaluation) -> dict[str, float]:
     return out
 
 
-__all__ = ["Evaluation", "POSS_SPLITS", "RANGES", "SPLITS", "evaluate_folder", "frames_of", "range_mask", "scores_yaml"]
+__all__ = ["Evaluation", "RANGES", "evaluate_folder", "frames_of", "range_mask", "scores_yaml"]

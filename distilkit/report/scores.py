@@ -60,6 +60,14 @@ class ScoreView:
         return f"{column[2] * value:.2f}" if column[2] != 1.0 else f"{value:.4g}"
 
 
+UNSCORED = "no split"  # a stage trained on everything (no validation or test split): scores are "—"
+
+
+def _step(step: int | None) -> int | str:
+    """A checkpoint's step as shown ("—" where no checkpoint was chosen)."""
+    return "—" if step is None or step < 0 else step
+
+
 def _frames(n: int | None) -> str:
     """The input column of summaries written before adapters described their input."""
     return f"{n} frame{'s' if n != 1 else ''}" if n else ""
@@ -81,15 +89,17 @@ def stage_row(summary: dict[str, Any]) -> dict[str, Any]:
             "best": {k: best.get(k, nan) for k, _, _ in view.columns},
             "last": {k: last.get(k, nan) for k, _, _ in view.columns},
             "val": val.get(view.select, nan),
-            "best_step": test.get("best_step", summary.get("best", {}).get("step")),
+            "best_step": _step(test.get("best_step", summary.get("best", {}).get("step"))),
             "steps": summary.get("steps"), "class_scores": best.get(view.per_class[0], []) if view.per_class else [],
-            "split": summary.get("report_split", "val")}
+            "split": summary.get("report_split", "val") or UNSCORED}
 
 
 def header(view: ScoreView, split: str) -> str:
+    if split == UNSCORED:
+        return f"{UNSCORED}: the data has neither a validation nor a test split, so nothing was scored"
     main = view.main[1]
     return (f"{split} split, {view.title}: 'best' = the checkpoint with the best validation {main}"
             f"{' (lowest)' if view.lower_is_better else ''} (its step shown), 'last' = the final step")
 
 
-__all__ = ["ScoreView", "header", "stage_row"]
+__all__ = ["UNSCORED", "ScoreView", "header", "stage_row"]
