@@ -315,13 +315,17 @@ def build_parser() -> argparse.ArgumentParser:
                       help="the folder's class table (semanticposs: people, rider and car by default)")
     rect.set_defaults(fn=_cmd_data_rectify)
     ex = dsub.add_parser("export-kitti", help="write synthetic streets as a SemanticKITTI folder (scans, panoptic "
-                                              "labels, voxels, invalid masks, poses, calibration)")
+                                              "labels, voxels, invalid and occluded masks, poses, calibration, "
+                                              "with --camera images)")
     ex.add_argument("out", help="the folder to write (sequences/ goes inside)")
     ex.add_argument("--sequences", nargs="+", default=["00", "08"], help="sequence names (default: 00 08)")
     ex.add_argument("--frames", type=int, default=16, help="scans per sequence (default 16)")
     ex.add_argument("--stride", type=int, default=5, help="voxel labels every n-th scan (SemanticKITTI: 5)")
     ex.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
-                    help="synthetic-lidar parameters, e.g. beams=64 azimuth_steps=2048 gt_frames=10 seed=1")
+                    help="synthetic-lidar parameters, e.g. beams=64 azimuth_steps=2048 gt_frames=10 seed=1 "
+                         "'camera={height: 96, width: 320}'")
+    ex.add_argument("--camera", action="store_true",
+                    help="also render image_2/ (the synthetic camera's defaults unless --set camera=... says more)")
     ex.set_defaults(fn=_cmd_data_export)
     c = sub.add_parser("complete", help="complete a scan (.bin, .ply, .npy) into a dense scene with a trained "
                                         "point-diffusion model")
@@ -421,6 +425,8 @@ def _cmd_data_export(args: argparse.Namespace) -> int:
         if not sep:
             raise DistilkitError(f"--set {item!r}: expected KEY=VALUE")
         values[key] = yaml.safe_load(value)
+    if args.camera and values.get("camera") is None:
+        values["camera"] = {}
     try:
         params = SyntheticParams(**values)
     except ValidationError as err:

@@ -21,7 +21,7 @@ def exported(tmp_path_factory):
 def test_the_folder_has_semantickittis_layout_and_reads_back(exported) -> None:
     seq = exported / "sequences" / "08"
     assert sorted(f.name for f in (seq / "voxels").iterdir()) == [f"{t:06d}.{e}" for t in (0, 5, 10)
-                                                                 for e in ("bin", "invalid", "label")]
+                                                                 for e in ("bin", "invalid", "label", "occluded")]
     assert len(list((seq / "velodyne").glob("*.bin"))) == 11 == len(list((seq / "labels").glob("*.label")))
     pts = sk.read_points(seq / "velodyne" / "000003.bin")
     sem, inst = sk.read_point_labels(seq / "labels" / "000003.label", len(pts))

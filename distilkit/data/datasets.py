@@ -6,6 +6,7 @@ as their collate; their :class:`~distilkit.data.info.DataInfo` names the fields 
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any, Callable
 
@@ -79,8 +80,22 @@ def collate_street(samples: list[dict[str, np.ndarray]]) -> Batch:
 
 
 def kitti_info(params: SemanticKittiParams) -> DataInfo:
-    return DataInfo(VoxelGrid.semantickitti(params.scale), params.table(), fields=LIDAR_INPUTS | LIDAR_TARGETS,
+    """A folder's facts: its class table and grid, and with ``camera`` the left colour camera (KITTI's nominal
+    calibration at the requested image size; every sample carries its sequence's own)."""
+    cam = params.camera
+    return DataInfo(VoxelGrid.semantickitti(params.scale), params.table(),
+                    fields=LIDAR_INPUTS | LIDAR_TARGETS | (CAMERA_FIELDS if cam else frozenset())
+                    | ({"occluded"} if params.occluded else frozenset()),
+                    cameras=(dataclasses.replace(rig(cam, 0.0), depth="sparse"),) if cam is not None else (),
                     input_frames=params.input_frames)
+
+
+def pool_all(mask: np.ndarray, scale: int) -> np.ndarray:
+    """Coarsen an (X,Y,Z) bool grid by ``scale``: a coarse voxel is set when all its fine voxels are."""
+    if scale == 1:
+        return mask
+    x, y, z = mask.shape
+    return mask.reshape(x // scale, scale, y // scale, scale, z // scale, scale).all(axis=(1, 3, 5))
 
 
 def pool_labels(labels: np.ndarray, invalid: np.ndarray, scale: int,
@@ -91,7 +106,7 @@ def pool_labels(labels: np.ndarray, invalid: np.ndarray, scale: int,
     x, y, z = labels.shape
     blocks = labels.reshape(x // scale, scale, y // scale, scale, z // scale, scale).transpose(0, 2, 4, 1, 3, 5)
     blocks = blocks.reshape(x // scale, y // scale, z // scale, -1)
-    inv = invalid.reshape(x // scale, scale, y // scale, scale, z // scale, scale).all(axis=(1, 3, 5))
+    inv = pool_all(invalid, scale)
     counts = np.stack([(blocks == c).sum(-1) for c in range(1, num_classes)], -1)
     out = np.where(counts.max(-1) > 0, counts.argmax(-1) + 1, 0)
     out = np.where((blocks == IGNORE_INDEX).all(-1), IGNORE_INDEX, out)
@@ -112,9 +127,17 @@ def folder_problems(d: Path, frames: list[int], labelled: bool, p: SemanticKitti
             out.append(f"{where}/velodyne/{f:06d}.bin: missing (the scan of a labelled frame)")
         if p.rectify and labelled and not (d / "labels" / f"{f:06d}.label").is_file():
             out.append(f"{where}/labels/{f:06d}.label: missing (rectify reads the scan's panoptic labels)")
-    if p.input_frames > 1:
-        out += [f"{where}/{name}: missing (fusing {p.input_frames} scans needs it)" for name in ("poses.txt", "calib.txt")
-                if not (d / name).is_file()]
+    if p.occluded and labelled:
+        out += [f"{where}/voxels/{f:06d}.occluded: missing (occluded: true reads it)" for f in frames
+                if not (d / "voxels" / f"{f:06d}.occluded").is_file()]
+    if p.camera is not None:
+        wanted = sorted({max(f - k, 0) for f in frames for k in (0, *p.camera.previous)})
+        out += [f"{where}/image_2/{j:06d}.png: missing (the camera's image)" for j in wanted
+                if not (d / "image_2" / f"{j:06d}.png").is_file()]
+    needs = {"poses.txt": p.input_frames > 1 or bool(p.camera and p.camera.previous),
+             "calib.txt": p.input_frames > 1 or p.camera is not None}
+    out += [f"{where}/{name}: missing ({'the camera' if p.input_frames == 1 else f'fusing {p.input_frames} scans'} "
+            "needs it)" for name, needed in needs.items() if needed and not (d / name).is_file()]
     return out
 
 
@@ -145,6 +168,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
                                                                                    f"{params.stride}"]))
         self.info = kitti_info(params)
         self._poses: dict[Path, np.ndarray] = {}
+        self._calibs: dict[Path, dict[str, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.items)
@@ -161,12 +185,32 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         return rectify_frame(d, frame, labels, dynamic_ids(self.p.rectify_classes, self.table.names),
                              dict(self.table.learning_map))
 
+    def _calib(self, d: Path) -> dict[str, np.ndarray]:
+        if d not in self._calibs:
+            self._calibs[d] = skio.read_calib(d / "calib.txt")
+        return self._calibs[d]
+
     def _pose(self, d: Path) -> np.ndarray:
         if d not in self._poses:
-            self._poses[d] = skio.read_poses(d / "poses.txt", skio.read_calib(d / "calib.txt"))
+            self._poses[d] = skio.read_poses(d / "poses.txt", self._calib(d))
         return self._poses[d]
 
     def __getitem__(self, i: int) -> dict[str, np.ndarray]:
+        sample = self._lidar(i)
+        cam = self.p.camera
+        if cam is not None:
+            from distilkit.data.camera import frame_offsets
+            from distilkit.data.kitti_camera import camera_sample
+
+            d, frame = self.items[i][:2]
+            scan = sample["points"][sample["point_frame"] == 0]
+            sample.update(camera_sample(d, frame, frame_offsets(cam), cam.height, cam.width, cam.max_depth,
+                                        self._pose(d) if cam.previous else None, self._calib(d), scan))
+        return sample
+
+    def _lidar(self, i: int) -> dict[str, np.ndarray]:
+        """The fused scans, their point labels and the voxel targets of item ``i`` (full-resolution labels pooled
+        to the dataset's scale)."""
         d, frame, n, labelled = self.items[i]
         pts, labs, frames = [], [], []
         for k in range(self.p.input_frames):
@@ -189,15 +233,21 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
             shape = VoxelGrid.semantickitti(self.p.scale).shape
             return {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
                     "point_label": np.concatenate(labs).astype(np.uint8),
-                    "voxel_label": np.full(shape, IGNORE_INDEX, np.uint8), "invalid": np.ones(shape, bool)}
+                    "voxel_label": np.full(shape, IGNORE_INDEX, np.uint8), "invalid": np.ones(shape, bool),
+                    **({"occluded": np.zeros(shape, bool)} if self.p.occluded else {})}
         vl = remap(skio.read_voxel_labels(vox_file), ssc_lut(self.table.learning_map), str(vox_file))
         inv_file = d / "voxels" / f"{frame:06d}.invalid"
         inv = skio.read_voxel_bits(inv_file) if inv_file.is_file() else np.zeros(vl.shape, bool)
         if self.p.rectify:
             vl = self._rectified(d, frame, vl)
-        vl, inv = pool_labels(vl, inv, self.p.scale, self.table.num_classes)
-        return {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
-                "point_label": np.concatenate(labs).astype(np.uint8), "voxel_label": vl.astype(np.uint8), "invalid": inv}
+        vl, pooled = pool_labels(vl, inv, self.p.scale, self.table.num_classes)
+        out = {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
+               "point_label": np.concatenate(labs).astype(np.uint8), "voxel_label": vl.astype(np.uint8),
+               "invalid": pooled}
+        if self.p.occluded:  # occluded from the current viewpoint (not used by the official evaluation)
+            occ = skio.read_voxel_bits(d / "voxels" / f"{frame:06d}.occluded")
+            out["occluded"] = pool_all(occ, self.p.scale)
+        return out
 
 
 def kitti_fingerprint(params: SemanticKittiParams) -> dict[str, Any]:
@@ -210,7 +260,8 @@ def kitti_fingerprint(params: SemanticKittiParams) -> dict[str, Any]:
     lines = []
     for seq in sorted({s for role in ("train", "val", "test") for s in params.sequences(role)}):
         d = root / "sequences" / seq
-        folders = dict.fromkeys(("velodyne", "labels", "voxels", params.voxels))
+        folders = dict.fromkeys(("velodyne", "labels", "voxels", params.voxels,
+                                 *(("image_2",) if params.camera is not None else ())))
         files = [f for sub in folders for f in sorted((d / sub).glob("*"))]
         files += [d / name for name in ("poses.txt", "calib.txt") if (d / name).is_file()]
         for f in files:
@@ -247,7 +298,7 @@ for _name, _params, _description, _paper in (
          "completion labels: 11 classes + empty, train 00/01/03/04/05, valid 02", "Pan et al., SemanticPOSS, IV "
          "2020; completion labels: Yan et al., JS3C-Net, AAAI 2021")):
     DATASETS.add(_name, _kitti_factory, description=_description, paper=_paper, params=_params,
-                 info=kitti_info, collate=collate_lidar, version=1,
+                 info=kitti_info, collate=collate_street, version=1,
                  has_split=lambda p, split: bool(p.sequences(split)), probe=grid_plan,
                  fingerprint=kitti_fingerprint)
 

@@ -6,12 +6,16 @@ Each sequence is one drive along a synthetic street (``frames`` scans, the ego m
 * ``velodyne/NNNNNN.bin``: float32 x, y, z, remission in the sensor frame;
 * ``labels/NNNNNN.label``: uint32, raw semantic id in the low 16 bits, instance id in the high 16 (moving objects
   carry the moving-* ids, as SemanticKITTI's);
-* ``voxels/NNNNNN.label|.invalid|.bin`` for every ``stride``-th frame: the scans t .. t + ``gt_frames`` (as many as the
-  sequence has) fused in frame t and voxelised on the 256 x 256 x 32 grid (majority raw id, uint16), the voxels no
-  ray of them traversed (packed bits, ``np.packbits`` order) and the current scan's occupancy (packed bits) — moving
-  objects leave traces, as in the real data;
+* ``voxels/NNNNNN.label|.invalid|.bin|.occluded`` for every ``stride``-th frame: the scans t .. t + ``gt_frames`` (as
+  many as the sequence has) fused in frame t and voxelised on the 256 x 256 x 32 grid (majority raw id, uint16), the
+  voxels no ray of them traversed (packed bits, ``np.packbits`` order), the current scan's occupancy (packed bits) and
+  the voxels neither it occupies nor its rays cross (hidden from the current viewpoint) — moving objects leave
+  traces, as in the real data;
+* ``image_2/NNNNNN.png`` for every frame when the synthetic parameters have a ``camera`` (rendered as the
+  ``synthetic-lidar`` camera renders, at its image size);
 * ``poses.txt`` (camera-0 poses, KITTI's convention) and ``calib.txt`` whose ``Tr`` is the LiDAR-to-camera transform
-  (KITTI's axes, cam2's offset), so that ``inv(Tr) · P · Tr`` gives the LiDAR poses back.
+  (KITTI's axes, cam2's offset; ``P2``'s intrinsics are the written images'), so that ``inv(Tr) · P · Tr`` gives the
+  LiDAR poses back.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from distilkit.data import semantickitti as skio
-from distilkit.data.camera import CAMERA_IN_LIDAR, KITTI_CENTRE, KITTI_FOCAL, LIDAR_TO_CAMERA_AXES
+from distilkit.data.camera import CAMERA_IN_LIDAR, KITTI_CENTRE, KITTI_FOCAL, LIDAR_TO_CAMERA_AXES, intrinsics
 from distilkit.data.params import SyntheticParams
 from distilkit.data.raycast import ray_directions
 from distilkit.errors import DistilkitError
@@ -42,10 +46,14 @@ def _row(m: np.ndarray) -> str:
     return " ".join(f"{v:.9e}" for v in m[:3, :4].reshape(-1))
 
 
-def write_calib(path: Path, tr: np.ndarray) -> None:
+def write_calib(path: Path, tr: np.ndarray, k: np.ndarray | None = None) -> None:
+    """``calib.txt``: P0..P3 = K [I | 0] (KITTI's cam2 intrinsics, or ``k``: those of the images written), ``Tr``."""
     p = np.zeros((3, 4))
-    p[0, 0] = p[1, 1] = KITTI_FOCAL
-    p[:2, 2], p[2, 2] = KITTI_CENTRE, 1.0
+    if k is None:
+        p[0, 0] = p[1, 1] = KITTI_FOCAL
+        p[:2, 2], p[2, 2] = KITTI_CENTRE, 1.0
+    else:
+        p[:, :3] = k
     path.write_text("".join(f"P{i}: {_row(p)}\n" for i in range(4)) + f"Tr: {_row(tr)}\n")
 
 
@@ -62,6 +70,14 @@ def export_sequence(seq_dir: Path, seed: int, p: SyntheticParams, frames: int, s
     origins = [np.array([x0 + p.ego_speed * j, EGO_LANE_Y, SENSOR_HEIGHT], np.float32) for j in range(frames)]
     scans = [cast_scan(scene, origins[j], j, dirs, rng, p.max_range, p.range_noise) for j in range(frames)]
     tr = lidar_to_camera()
+    if p.camera is not None:
+        from distilkit.data.kitti_camera import write_image
+        from distilkit.data.render import render
+
+        (seq_dir / "image_2").mkdir(exist_ok=True)
+        for j in range(frames):  # the camera of frame j, the traffic where it was then; the images' own stream
+            image, _ = render(scene, origins[0], j, p.camera, p.ego_speed, np.random.default_rng([seed, 0xCA, j]))
+            write_image(seq_dir / "image_2" / f"{j:06d}.png", image)
     poses = []
     for j, s in enumerate(scans):
         local = s.xyz - origins[j][None, :]  # heading 0: the sensor frame is the world shifted
@@ -81,11 +97,13 @@ def export_sequence(seq_dir: Path, seed: int, p: SyntheticParams, frames: int, s
         skio.write_voxel_bits(seq_dir / "voxels" / f"{t:06d}.invalid", ~seen & (voxel_raw == 0))
         occupied = voxelize_majority(fused[0], np.ones(len(fused[0]), np.int64), grid) > 0
         skio.write_voxel_bits(seq_dir / "voxels" / f"{t:06d}.bin", occupied)
+        current = traversed([np.zeros(3, np.float32)], fused[:1], grid)
+        skio.write_voxel_bits(seq_dir / "voxels" / f"{t:06d}.occluded", ~current & ~occupied)
         written += 1
         if progress:
             progress()
     (seq_dir / "poses.txt").write_text("".join(_row(m) + "\n" for m in poses))
-    write_calib(seq_dir / "calib.txt", tr)
+    write_calib(seq_dir / "calib.txt", tr, intrinsics(p.camera) if p.camera is not None else None)
     return written
 
 

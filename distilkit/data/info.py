@@ -54,6 +54,7 @@ class Camera:
     lidar_to_camera: tuple[tuple[float, ...], ...]
     size: tuple[int, int]
     frames: tuple[int, ...] = (0,)
+    depth: str = "dense"  # the depth target: "dense" (rendered; 0 = sky) or "sparse" (LiDAR points; 0 = unknown)
 
 
 @dataclass(frozen=True)

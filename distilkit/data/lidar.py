@@ -5,7 +5,8 @@ A sample is a dict of numpy arrays:
 * ``points`` (M,4) x, y, z, intensity in the current sensor frame; ``point_frame`` (M,) frame
   offset (0 = current scan); ``point_label`` (M,) segmentation train id (0 = unlabelled);
 * ``voxel_label`` (X,Y,Z) SSC train ids (0 = empty, 255 = ignore); ``invalid`` (X,Y,Z) bool;
-* optionally ``scribble`` (X,Y,Z) ScribbleSC labels (0 empty, 1-19, 254 unlabelled, 255 invalid).
+* optionally ``scribble`` (X,Y,Z) ScribbleSC labels (0 empty, 1-19, 254 unlabelled, 255 invalid) and ``occluded``
+  (X,Y,Z) bool (SemanticKITTI's ``.occluded``: hidden from the current viewpoint).
 
 :func:`collate_lidar` concatenates points with a ``point_batch`` index (inputs) and stacks the grids
 (targets), adding ``voxel_target`` = ``voxel_label`` with invalid voxels set to 255 (the training target).
@@ -40,6 +41,8 @@ def collate_lidar(samples: list[dict[str, np.ndarray]]) -> Batch:
         "voxel_label": torch.stack([torch.from_numpy(s["voxel_label"].astype(np.int64)) for s in samples]),
         "invalid": torch.stack([torch.from_numpy(s["invalid"].astype(bool)) for s in samples]),
     }
+    if all("occluded" in s for s in samples):  # SemanticKITTI's .occluded, where the data reads it
+        targets["occluded"] = torch.stack([torch.from_numpy(s["occluded"].astype(bool)) for s in samples])
     if all("scribble" in s for s in samples):  # ScribbleSC labels: 0 empty, 1-19, 254 unlabelled, 255 invalid
         targets["scribble"] = torch.stack([torch.from_numpy(s["scribble"].astype(np.int64)) for s in samples])
     targets["voxel_target"] = targets["voxel_label"].masked_fill(targets["invalid"], IGNORE_INDEX)

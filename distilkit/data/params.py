@@ -127,6 +127,9 @@ class SemanticKittiParams(BaseModel):
         description="the dynamic classes rectification cleans (SCPNet's: bicycle and motorcycle stay)")
     camera: FolderCameraParams | None = Field(None, description="also read image_2/ and calib.txt's P2 for camera "
                                                                 "models ({} for the defaults); none: LiDAR only")
+    occluded: bool = Field(False, description="also read voxels/*.occluded (voxels hidden from the current "
+                                              "viewpoint; the official evaluation does not use them) as the target "
+                                              "`occluded`")
 
     _scale = field_validator("scale")(_check_scale)
 

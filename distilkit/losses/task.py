@@ -240,7 +240,10 @@ class OccupancyCE(TaskLoss):
 class _DepthParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     sky_depth: float | None = Field(None, gt=0, description="pixels with no surface count as this far (metres; "
-                                                            "e.g. the camera's max_depth); none: left out")
+                                                            "e.g. the camera's max_depth); none: left out. Only "
+                                                            "on dense depth maps: where the data's depth is sparse "
+                                                            "LiDAR depth (a real folder), 0 means unknown and is "
+                                                            "always left out")
 
 
 class DepthL1(TaskLoss):
@@ -253,7 +256,9 @@ class DepthL1(TaskLoss):
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.losses.proposal import depth_l1
 
-        return depth_l1(taps["student"], taps["target"], self.params.sky_depth)
+        info = self.context.info if self.context is not None else None
+        sparse = info is not None and bool(info.cameras) and info.cameras[0].depth == "sparse"
+        return depth_l1(taps["student"], taps["target"], None if sparse else self.params.sky_depth)
 
 
 TASK_LOSSES.add("occupancy_ce", OccupancyCE, description="weighted empty/occupied CE at the proposals' resolution",
