@@ -171,3 +171,54 @@ def test_a_stage_trains_without_a_validation_split(exported, tmp_path) -> None:
     (tested,) = Pipeline(recipe_from_dict(recipe(["08"])), tmp_path / "runs", quiet=True).run()
     assert tested.summary["report_split"] == "test" and tested.summary["test"]["best_step"] == 2
     assert tested.summary["test"]["best"] == tested.summary["test"]["last"]  # no validation: best is the last
+
+
+def test_the_scan_dataset_gives_every_scan_with_its_point_labels(exported, tmp_path) -> None:
+    """semantickitti-scan: 11 scans a sequence, each fused with the next through the poses, point labels from
+    labels/, voxel targets on the every-5th frames and ignored on the others; a missing label file is named."""
+    import shutil
+
+    from distilkit.data.classes import IGNORE_INDEX, remap, seg_lut
+    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.params import SemanticKittiScanParams
+    from distilkit.errors import DataError
+    from distilkit.registry import DATASETS
+
+    params = DATASETS.entry("semantickitti-scan").meta["params"](root=str(exported), train=["00"], val=["08"],
+                                                                   input_frames=2, scale=4)
+    assert isinstance(params, SemanticKittiScanParams) and params.stride == 1
+    ds = SemanticKittiDataset(params, "val")
+    assert len(ds) == 11 and [ds.sample_id(i) for i in (0, 3, 10)] == ["08/000000", "08/000003", "08/000010"]
+    seq = exported / "sequences" / "08"
+    s3, s5 = ds[3], ds[5]
+    scan4 = sk.read_points(seq / "velodyne" / "000004.bin")
+    assert np.allclose(s3["points"][s3["point_frame"] == 1][:, :3], scan4[:, :3] + [1.0, 0.0, 0.0], atol=1e-4)
+    sem, _ = sk.read_point_labels(seq / "labels" / "000003.label")
+    assert np.array_equal(s3["point_label"][s3["point_frame"] == 0], remap(sem, seg_lut()))
+    assert (s3["voxel_label"] == IGNORE_INDEX).all() and s3["invalid"].all()  # no voxel file for frame 3
+    assert (s5["voxel_label"] != IGNORE_INDEX).any()
+    root = tmp_path / "k"
+    shutil.copytree(seq, root / "sequences" / "08")
+    (root / "sequences" / "08" / "labels" / "000007.label").unlink()
+    with pytest.raises(DataError, match=r"sequences/08/labels/000007.label: missing \(the scan's point labels\)"):
+        SemanticKittiDataset(SemanticKittiScanParams(root=str(root), train=["08"]), "train")
+
+
+def test_a_multi_frame_teacher_trains_on_every_scan_and_predicts_the_benchmark_frames(exported, tmp_path) -> None:
+    from distilkit.engine.pipeline import Pipeline
+    from distilkit.recipe import recipe_from_dict
+
+    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 2}
+    recipe = {"schema_version": 1, "name": "scans", "seed": 0,
+              "data": {"dataset": "semantickitti-scan",
+                       "params": {"root": str(exported), "train": ["00"], "val": ["08"], "scale": 4,
+                                  "input_frames": 2}},
+              "stages": {"teacher": {"model": {"adapter": "scpnet", "params": params},
+                                     "train": {"steps": 2, "batch_size": 2, "eval_every": 2}}}}
+    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    assert 0 <= result.summary["test"]["best"]["miou"] <= 1
+    out = tmp_path / "preds"
+    assert main(["predict", str(result.run_dir), "--dataset-root", str(exported), "--sequences", "08",
+                 "--out", str(out)]) == 0
+    assert sorted(p.name for p in (out / "sequences" / "08" / "predictions").iterdir()) == [
+        f"{t:06d}.label" for t in (0, 5, 10)]

@@ -18,7 +18,8 @@ from distilkit.data.camera import CAMERA_FIELDS, add_camera, rig
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES, remap, seg_lut, ssc_lut
 from distilkit.data.info import DataInfo, FieldGroup
 from distilkit.data.lidar import LIDAR_INPUTS, LIDAR_TARGETS, collate_lidar
-from distilkit.data.params import SceneParams, SemanticKittiParams, SemanticPossParams, SyntheticParams
+from distilkit.data.params import (SceneParams, SemanticKittiParams, SemanticKittiScanParams, SemanticPossParams,
+                                   SyntheticParams)
 from distilkit.data.probe import cloud_plan, grid_plan
 from distilkit.data.render import CAMERA_VERSION
 from distilkit.data.synthetic import GENERATOR_VERSION
@@ -141,8 +142,28 @@ def folder_problems(d: Path, frames: list[int], labelled: bool, p: SemanticKitti
     return out
 
 
+def scan_problems(d: Path, frames: list[int], voxel_frames: set[int], split: str, p: SemanticKittiParams) -> list[str]:
+    """:func:`folder_problems` of a scan dataset: every frame's scan and (but in a test sequence without labels/)
+    point labels; the voxel frames' extra files where the parameters read them."""
+    where = f"sequences/{d.name}"
+    if not d.is_dir():
+        return [f"{where}: missing (expected {where}/velodyne/*.bin and {where}/labels/*.label)"]
+    if not frames:
+        return [f"{where}/velodyne: no *.bin scans"]
+    out = folder_problems(d, frames, False, p)
+    if split != "test" or (d / "labels").is_dir():
+        out += [f"{where}/labels/{f:06d}.label: missing (the scan's point labels)" for f in frames
+                if not (d / "labels" / f"{f:06d}.label").is_file()]
+    if p.occluded:
+        out += [f"{where}/voxels/{f:06d}.occluded: missing (occluded: true reads it)" for f in sorted(voxel_frames)
+                if f in frames and not (d / "voxels" / f"{f:06d}.occluded").is_file()]
+    return out
+
+
 class SemanticKittiDataset(torch.utils.data.Dataset):
-    """A SemanticKITTI-format folder: scans, point labels, SSC voxel labels and invalid masks."""
+    """A SemanticKITTI-format folder: scans, point labels, SSC voxel labels and invalid masks (the labelled
+    every-5th frames; with ``semantickitti-scan``'s parameters every scan, its voxel targets ignored where the frame
+    has none)."""
 
     def __init__(self, params: SemanticKittiParams, split: str) -> None:
         self.p = params
@@ -157,6 +178,11 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
             d = root / "sequences" / seq
             vox = sorted((d / params.voxels).glob("*.label"))
             scans = sorted((d / "velodyne").glob("*.bin"))
+            if params.EVERY_SCAN:  # semantickitti-scan: every stride-th scan, voxel targets where the frame has them
+                frames = [int(f.stem) for f in scans if int(f.stem) % params.stride == 0]
+                problems += scan_problems(d, frames, {int(f.stem) for f in vox}, split, params)
+                self.items += [(d, f, len(scans), (d / params.voxels / f"{f:06d}.label").is_file()) for f in frames]
+                continue
             frames = [int(f.stem) for f in vox] if vox else [int(f.stem) for f in scans] if split == "test" else []
             frames = [f for f in frames if f % params.stride == 0]
             problems += folder_problems(d, frames, bool(vox) or split != "test", params)
@@ -229,7 +255,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
             labs.append(remap(sem, seg_lut(self.table.learning_map), str(lab_file)))
             frames.append(np.full(len(p), k, np.uint8))
         vox_file = d / self.p.voxels / f"{frame:06d}.label"
-        if not labelled:  # hidden test split: nothing to score
+        if not labelled:  # hidden test split, or a scan between voxel frames: nothing to score
             shape = VoxelGrid.semantickitti(self.p.scale).shape
             return {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
                     "point_label": np.concatenate(labs).astype(np.uint8),
@@ -294,6 +320,10 @@ for _name, _params, _description, _paper in (
          "Behley et al., SemanticKITTI, ICCV 2019"),
         ("semantickitti-ssc", SemanticKittiParams, "the same as semantickitti (the name the SSC benchmark goes by)",
          "Behley et al., SemanticKITTI, ICCV 2019"),
+        ("semantickitti-scan", SemanticKittiScanParams, "every scan of a SemanticKITTI folder (stride 1) with its "
+         "point labels, fused with the next input_frames - 1 scans through the poses (SCPNet's multi-frame teacher); "
+         "the voxel targets of the labelled every-5th frames, ignored on the others",
+         "Behley et al., SemanticKITTI, ICCV 2019; Xia et al., SCPNet, CVPR 2023"),
         ("semanticposs-ssc", SemanticPossParams, "a SemanticPOSS folder in SemanticKITTI's layout with JS3C-Net's "
          "completion labels: 11 classes + empty, train 00/01/03/04/05, valid 02", "Pan et al., SemanticPOSS, IV "
          "2020; completion labels: Yan et al., JS3C-Net, AAAI 2021")):

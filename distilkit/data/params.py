@@ -107,6 +107,7 @@ class SemanticKittiParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     SPLITS: ClassVar[dict[str, tuple[str, ...]]] = KITTI_SPLITS
+    EVERY_SCAN: ClassVar[bool] = False  # True: every stride-th scan is a sample, not only the voxel frames
     root: str = Field(..., description="folder that holds sequences/")
     train: SplitRef = _split_field("train", "the sequences trained on")
     val: SplitRef = _split_field("valid", "the sequences that select the best checkpoint (none: no validation; the "
@@ -178,6 +179,14 @@ class SemanticKittiParams(BaseModel):
         from distilkit.data.info import ClassTable
 
         return ClassTable.semanticposs() if self.classes == "semanticposs" else ClassTable.semantickitti()
+
+
+class SemanticKittiScanParams(SemanticKittiParams):
+    """``semantickitti-scan``: every scan of the folder with its point labels (fused with the next ``input_frames``
+    - 1 through the poses); the voxel targets of the frames that have them (every 5th), ignored on the others."""
+
+    EVERY_SCAN: ClassVar[bool] = True
+    stride: int = Field(1, ge=1, description="use every n-th scan (1: all of them)")
 
 
 class SemanticPossParams(SemanticKittiParams):

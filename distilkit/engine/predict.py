@@ -23,7 +23,7 @@ def raw_ids(table: Any) -> np.ndarray:
     return np.array([table.learning_map_inv[t] for t in range(table.num_classes)], np.uint16)
 
 
-FOLDER_DATASETS = ("semantickitti", "semantickitti-ssc", "semanticposs-ssc")
+FOLDER_DATASETS = ("semantickitti", "semantickitti-ssc", "semantickitti-scan", "semanticposs-ssc")
 
 
 def upsample(labels: np.ndarray, scale: int) -> np.ndarray:
@@ -47,8 +47,10 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
     if data.get("dataset") not in FOLDER_DATASETS:
         raise DistilkitError(f"{run}: trained on {data.get('dataset')!r}; predict writes SemanticKITTI-format "
                              f"submissions from models trained on a folder ({', '.join(FOLDER_DATASETS)})")
-    entry = DATASETS.entry(data["dataset"])
-    kept = {k: v for k, v in (data.get("params") or {}).items() if k not in ("test", "test_sequences")}
+    # a model trained on every scan predicts the benchmark's frames (the every-5th voxel frames) like the others
+    entry = DATASETS.entry("semantickitti-ssc" if data["dataset"] == "semantickitti-scan" else data["dataset"])
+    kept = {k: v for k, v in (data.get("params") or {}).items()
+            if k not in ("test", "test_sequences") and not (data["dataset"] == "semantickitti-scan" and k == "stride")}
     params = entry.meta["params"](**{**kept, "root": str(dataset_root), "rectify": False,
                                      "test": sequences if isinstance(sequences, str) else list(sequences)})
     dataset = SemanticKittiDataset(params, "test")

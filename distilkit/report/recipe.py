@@ -147,13 +147,16 @@ def _plot(path: Path, results: list[Any], rows: list[dict[str, Any]]) -> None:
     from distilkit.report import plots
 
     fig, (ax1, ax2) = plots.figure(2, width=5.5)
+    positive = False
     for r in results:
         task = plots.task_loss(plots.read_log(r.run_dir)[0])
         if task:
             ax1.plot(*task["task loss"], label=r.summary.get("label", r.name))
+            positive = positive or any(v > 0 for v in task["task loss"][1])
     ax1.set_xlabel("step")
     ax1.set_ylabel("task loss (without distillation terms)")
-    ax1.set_yscale("log")
+    if positive:  # a log axis needs a positive value (a batch of unlabelled scans has a task loss of 0)
+        ax1.set_yscale("log")
     ax1.legend(fontsize=8)
     ax1.set_title("training loss")
     view, members = _groups(rows)[0] if rows else (None, [])
