@@ -471,7 +471,8 @@ def kitti_cases(device: torch.device, quick: bool) -> list[Case]:
     HDL-64E-sized scans, ~120k points; --quick: 32 beams): reading and voxelising one scan with its labels
     ('fast') against reading a training sample that fuses 5 scans through the poses with its full-resolution voxel
     labels ('naive' column: the whole sample); and `distilkit eval` of one frame ('fast') against one frame
-    predicted and written by `distilkit predict`'s writer ('naive'). Times per frame: a split of 4,071 frames (sequence
+    predicted and written by `distilkit predict`'s writer ('naive'); a one-scan sample against the same with the
+    camera's current and third-previous image decoded, resized and the scan projected as depth. Times per frame: a split of 4,071 frames (sequence
     08) takes 4,071 x the eval time, streaming one frame at a time."""
     from distilkit.data import semantickitti as skio
     from distilkit.data.datasets import SemanticKittiDataset
@@ -523,8 +524,26 @@ def kitti_cases(device: torch.device, quick: bool) -> list[Case]:
         raw_ids(ClassTable.semantickitti())[labels].astype("<u2").reshape(-1).tofile(preds / "write-test.label")
         return torch.tensor(0.0)
 
+    from distilkit.data.kitti_camera import write_image
+
+    (seq / "image_2").mkdir(exist_ok=True)
+    noise = np.random.default_rng(0).integers(0, 256, (376, 1241, 3), dtype=np.uint8)  # incompressible: a worst case
+    for j in range(6):
+        write_image(seq / "image_2" / f"{j:06d}.png", noise)
+    single = SemanticKittiDataset(SemanticKittiParams(root=str(root), val=["08"]), "val")
+    camera = SemanticKittiDataset(SemanticKittiParams(root=str(root), val=["08"], camera={"previous": [3]}), "val")
+
+    def lidar_sample() -> Tensor:
+        return torch.tensor(float(len(single[0]["points"])))
+
+    def camera_sample() -> Tensor:
+        s = camera[0]
+        return torch.tensor(float(s["image"].shape[0] + (s["depth"] > 0).sum()))
+
     return [Case("kitti: read+voxelise vs fused sample", f"{n_points:,}-pt scan; 5 scans, 256x256x32",
                  read_voxelise, fused, [], same_value=False),
+            Case("kitti: LiDAR sample vs + camera", "1 scan vs + 2 images 1241x376 -> 1220x370, sparse depth",
+                 lidar_sample, camera_sample, [], same_value=False),
             Case("kitti: eval vs predict-write, 1 frame", "256x256x32 uint16", evaluate, write, [], same_value=False)]
 
 

@@ -316,7 +316,8 @@ DATASETS.add(
 )
 for _name, _params, _description, _paper in (
         ("semantickitti", SemanticKittiParams, "a SemanticKITTI-format folder: velodyne/, labels/, "
-         "voxels/*.label|.invalid, poses.txt, calib.txt (scans fused through the poses, SSC targets)",
+         "voxels/*.label|.invalid (|.occluded), poses.txt, calib.txt (scans fused through the poses, SSC targets); "
+         "with `camera` also image_2/ and P2 (the camera batch fields, sparse LiDAR depth)",
          "Behley et al., SemanticKITTI, ICCV 2019"),
         ("semantickitti-ssc", SemanticKittiParams, "the same as semantickitti (the name the SSC benchmark goes by)",
          "Behley et al., SemanticKITTI, ICCV 2019"),
