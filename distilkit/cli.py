@@ -146,13 +146,13 @@ def _cmd_list(args: argparse.Namespace) -> int:
     from distilkit.registry import ALL_REGISTRIES, plugin_errors
 
     if args.markdown:
-        if args.kind != "objectives":
+        if args.kind not in ("objectives", "datasets"):
             from distilkit.errors import DistilkitError
 
-            raise DistilkitError("--markdown is available for `distilkit list objectives`")
-        from distilkit.schema_doc import objectives_markdown
+            raise DistilkitError("--markdown is available for `distilkit list objectives` and `list datasets`")
+        from distilkit.schema_doc import datasets_markdown, objectives_markdown
 
-        print(objectives_markdown())
+        print(objectives_markdown() if args.kind == "objectives" else datasets_markdown())
         return 0
     console = make_console()
     for kind, reg in ALL_REGISTRIES.items():
@@ -276,7 +276,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      "schedules, connectors, hooks and recorders")
     ls.add_argument("kind", nargs="?", choices=["adapters", "objectives", "task losses", "datasets", "metrics",
                                                 "optimizers", "schedules", "connectors", "hooks", "recorders"])
-    ls.add_argument("--markdown", action="store_true", help="objectives as Markdown (docs/objectives.md)")
+    ls.add_argument("--markdown", action="store_true",
+                    help="objectives or datasets as Markdown (docs/objectives.md, docs/datasets.md)")
     ls.set_defaults(fn=_cmd_list)
     s = sub.add_parser("schema", help="print the recipe JSON schema (for editor completion)")
     s.add_argument("--markdown", action="store_true", help="print the recipe reference as Markdown instead")
@@ -301,7 +302,8 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--out", required=True, help="the folder to write sequences/NN/predictions/ into")
     pr.add_argument("--device", default="cpu", help="cpu or cuda")
     pr.set_defaults(fn=_cmd_predict)
-    dp = sub.add_parser("data", help="work on data folders: rectify a SemanticKITTI folder's completion labels")
+    dp = sub.add_parser("data", help="work on data folders: rectify a SemanticKITTI folder's completion labels, "
+                                     "export synthetic streets as one")
     dsub = dp.add_subparsers(dest="data_command", required=True, metavar="ACTION")
     rect = dsub.add_parser("rectify", help="SCPNet's label rectification: write sequences/NN/voxels_rectified/ "
                                            "beside the original voxel labels (which stay untouched)")

@@ -49,8 +49,7 @@ def recipe_reference_markdown() -> str:
         required = set(sec.get("required", []))
         for field, prop in sec.get("properties", {}).items():
             default = "*required*" if field in required else f"`{json.dumps(prop.get('default'))}`" if "default" in prop else ""
-            desc = (prop.get("description") or "").replace("|", "\\|")
-            out.append(f"| `{field}` | {_type(prop)} | {default} | {desc} |")
+            out.append(f"| `{field}` | {_cell(_type(prop))} | {default} | {_cell(prop.get('description') or '')} |")
         out.append("")
     return "\n".join(out)
 
@@ -82,4 +81,41 @@ def objectives_markdown() -> str:
                 out.append(f"| `{name}` | `{json.dumps(prop.get('default'))}` | {prop.get('description', '')} |")
             out.append("")
         out += ["```yaml", "distill:", f"  - {{name: {e.name}, weight: {e.meta['default_weight']:g}}}", "```", ""]
+    return "\n".join(out)
+
+
+def _cell(text: str) -> str:
+    """Text for a Markdown table cell (its pipes escaped)."""
+    return text.replace("|", "\\|")
+
+
+def datasets_markdown() -> str:
+    """docs/datasets.md: every registered dataset's description, paper, batch fields and parameters (with those of
+    nested parameter blocks such as ``camera``)."""
+    from distilkit.registry import DATASETS
+
+    out = ["# Datasets", "",
+           "Generated from the dataset registry by `distilkit list datasets --markdown`; a test keeps it in sync.",
+           "A recipe names one under `data.dataset` and sets its parameters under `data.params`; unknown parameters "
+           "are errors.", "", "| name | description |", "|---|---|"]
+    entries = list(DATASETS)
+    out += [f"| [`{e.name}`](#{e.name}) | {_cell(e.description)} |" for e in entries]
+    out.append("")
+    for e in entries:
+        params = e.meta["params"]
+        schema = params.model_json_schema()
+        defs = schema.get("$defs", {})
+        doc = " ".join((params.__doc__ or "").split())
+        out += [f"## {e.name}", "", e.description + ".", "", f"- **Paper:** {e.paper}", "", doc, ""]
+        blocks = [("", schema)] + [(name, defs[name]) for name in sorted(defs)]
+        for name, block in blocks:
+            if name:
+                out += [f"`{name}` ({' '.join((block.get('description') or '').split())})", ""]
+            out += ["| parameter | type | default | description |", "|---|---|---|---|"]
+            required = set(block.get("required", []))
+            for field, prop in block.get("properties", {}).items():
+                default = ("*required*" if field in required
+                           else f"`{json.dumps(prop.get('default'))}`" if "default" in prop else "")
+                out.append(f"| `{field}` | {_cell(_type(prop))} | {default} | {_cell(prop.get('description') or '')} |")
+            out.append("")
     return "\n".join(out)

@@ -231,3 +231,11 @@ def test_bench_camera_times_the_camera_student_with_and_without_rgo2d(capsys) ->
     (row,) = run_bench(["camera"], quick=True, repeat=1)
     assert "camera student: no KD vs RGO²D" in capsys.readouterr().out
     assert row["fast_ms"] > 0 and row["naive_ms"] > 0 and math.isfinite(row["value"])
+
+
+def test_the_datasets_page_is_in_sync(capsys) -> None:
+    assert main(["list", "datasets", "--markdown"]) == 0
+    generated = capsys.readouterr().out
+    assert "| `val` |" in generated and "FolderCameraParams" in generated and "\\| \"valid\"" in generated
+    assert (ROOT / "docs" / "datasets.md").read_text() == generated, \
+        "docs/datasets.md is stale: run `distilkit list datasets --markdown > docs/datasets.md`"

@@ -222,3 +222,17 @@ def test_a_multi_frame_teacher_trains_on_every_scan_and_predicts_the_benchmark_f
                  "--out", str(out)]) == 0
     assert sorted(p.name for p in (out / "sequences" / "08" / "predictions").iterdir()) == [
         f"{t:06d}.label" for t in (0, 5, 10)]
+
+
+def test_point_labels_and_calibration_round_trip(tmp_path) -> None:
+    from distilkit.data.export import lidar_to_camera, write_calib
+
+    rng = np.random.default_rng(4)
+    sem, inst = rng.integers(0, 1 << 16, 500), rng.integers(0, 1 << 16, 500)
+    sk.write_point_labels(tmp_path / "a.label", sem, inst)
+    got_sem, got_inst = sk.read_point_labels(tmp_path / "a.label", 500)
+    assert np.array_equal(got_sem, sem) and np.array_equal(got_inst, inst)
+    k = np.array([[92.5, 0.0, 78.25], [0.0, 91.75, 23.5], [0.0, 0.0, 1.0]])
+    write_calib(tmp_path / "calib.txt", lidar_to_camera(), k)
+    calib = sk.read_calib(tmp_path / "calib.txt")
+    assert np.allclose(calib["P2"][:3, :3], k, rtol=1e-9) and np.allclose(calib["Tr"], lidar_to_camera(), atol=1e-9)

@@ -116,7 +116,8 @@ class SemanticKittiParams(BaseModel):
                                         "reported, and says so; the official test split 11-21 has no labels: "
                                         "`distilkit predict` writes its submission)")
     scale: int = Field(1, description="grid coarsening of the 256x256x32 voxel files (majority pooling)")
-    input_frames: int = Field(1, ge=1)
+    input_frames: int = Field(1, ge=1, description="scans fused into the input: the current one and the next "
+                                                   "input_frames - 1, through the poses")
     stride: int = Field(5, ge=1, description="use every n-th scan (voxel files exist for every 5th)")
     voxels: str = Field("voxels", description="the folder of each sequence the voxel labels are read from "
                                              "(`distilkit data rectify` writes voxels_rectified/); .invalid files "
