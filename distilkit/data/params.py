@@ -25,6 +25,17 @@ class _SensorParams(BaseModel):
     ego_speed: float = Field(1.0, ge=0, description="metres per frame (KITTI: about 1 m at 10 Hz)")
 
 
+def _previous_field(example: str) -> Any:
+    return Field(default_factory=list, description="earlier frames given with the current image, in frames back "
+                                                   f"(VoxFormer-T: [12, 9, 6, 3]){example}")
+
+
+def _distinct_frames(cls: Any, v: list[int]) -> list[int]:
+    if len(set(v)) != len(v):
+        raise ValueError(f"previous frames must be distinct, got {v}")
+    return v
+
+
 class CameraParams(BaseModel):
     """A pinhole camera mounted like KITTI's left colour camera (cam2: 1241 x 376 pixels, f = 718.9 px, about
     0.27 m ahead of and 0.08 m below the LiDAR), its image scaled to ``width`` x ``height``."""
@@ -32,18 +43,11 @@ class CameraParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     height: int = Field(48, ge=8, description="image rows (KITTI: 376)")
     width: int = Field(160, ge=8, description="image columns (KITTI: 1241); the focal length scales with it")
-    previous: list[Annotated[int, Field(ge=1)]] = Field(
-        default_factory=list, description="earlier frames given with the current image, in frames back "
-                                          "(VoxFormer-T: [12, 9, 6, 3]); empty: the current image only")
+    previous: list[Annotated[int, Field(ge=1)]] = _previous_field("; empty: the current image only")
     max_depth: float = Field(80.0, gt=0, description="farther surfaces are sky in the image and 0 in the depth map")
     noise: float = Field(0.02, ge=0, description="std of Gaussian pixel noise (intensities in 0..1)")
 
-    @field_validator("previous")
-    @classmethod
-    def _distinct(cls, v: list[int]) -> list[int]:
-        if len(set(v)) != len(v):
-            raise ValueError(f"previous frames must be distinct, got {v}")
-        return v
+    _distinct = field_validator("previous")(classmethod(_distinct_frames))
 
 
 class FolderCameraParams(BaseModel):
@@ -53,13 +57,11 @@ class FolderCameraParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     height: int = Field(370, ge=8, description="image rows after resizing (KITTI's images: 370 to 376)")
     width: int = Field(1220, ge=8, description="image columns after resizing (KITTI's images: 1226 to 1242)")
-    previous: list[Annotated[int, Field(ge=1)]] = Field(
-        default_factory=list, description="earlier frames given with the current image, in frames back "
-                                          "(VoxFormer-T: [12, 9, 6, 3]; the first frames of a sequence repeat frame 0)")
+    previous: list[Annotated[int, Field(ge=1)]] = _previous_field("; the first frames of a sequence repeat frame 0")
     max_depth: float = Field(80.0, gt=0, description="the depth target: the current scan's points projected into "
                                                      "the image, up to this distance (0 elsewhere)")
 
-    _distinct = field_validator("previous")(CameraParams._distinct.__func__)  # type: ignore[attr-defined]
+    _distinct = field_validator("previous")(classmethod(_distinct_frames))
 
 
 class SyntheticParams(_SensorParams):

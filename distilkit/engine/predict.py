@@ -50,7 +50,8 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
     # a model trained on every scan predicts the benchmark's frames (the every-5th voxel frames) like the others
     entry = DATASETS.entry("semantickitti-ssc" if data["dataset"] == "semantickitti-scan" else data["dataset"])
     kept = {k: v for k, v in (data.get("params") or {}).items()
-            if k not in ("test", "test_sequences") and not (data["dataset"] == "semantickitti-scan" and k == "stride")}
+            if k not in ("test", "test_sequences", "occluded")
+            and not (data["dataset"] == "semantickitti-scan" and k == "stride")}
     params = entry.meta["params"](**{**kept, "root": str(dataset_root), "rectify": False,
                                      "test": sequences if isinstance(sequences, str) else list(sequences)})
     dataset = SemanticKittiDataset(params, "test")

@@ -67,7 +67,8 @@ class VoxFormerParams(_SizedParams):
 
 def _camera_problems(info: DataInfo, frames: int = 1) -> list[tuple[str, str]]:
     if not info.cameras:
-        return [("", "the data has no camera (synthetic-lidar: set data.params.camera, e.g. `camera: {}`)")]
+        return [("", "the data has no camera (set data.params.camera, e.g. `camera: {}`, on synthetic-lidar or a "
+                     "SemanticKITTI folder)")]
     if frames > len(info.cameras[0].frames):
         return [("frames", f"{frames} images requested, but the data gives {len(info.cameras[0].frames)} per sample "
                            "(data.params.camera.previous)")]
