@@ -36,3 +36,28 @@ def test_eval_of_predict_equals_the_in_training_evaluation(tmp_path) -> None:
     assert got["recall_completion"] == pytest.approx(trained["recall"], abs=1e-12)
     assert got["iou_mean_25.6m"] == pytest.approx(trained["miou_25_6m"], abs=1e-12)
     assert got["iou_completion_12.8m"] == pytest.approx(trained["iou_12_8m"], abs=1e-12)
+
+
+@pytest.mark.slow
+def test_the_shipped_kitti_recipe_runs_on_an_exported_folder(tmp_path) -> None:
+    """recipes/semantickitti_scpnet.yaml unchanged but for the root, the sequences and smaller sizes: teacher on 5
+    fused scans with rectified labels, student with and without DSKD, then predict and eval of the distilled one."""
+    from pathlib import Path
+
+    root = tmp_path / "kitti"
+    assert main(["data", "export-kitti", str(root), "--frames", "11", "--set", "beams=16", "azimuth_steps=256",
+                 "gt_frames=5"]) == 0
+    sizes = [f"stages.{s}.{k}" for s in ("teacher", "student", "student_dskd")
+             for k in ("model.params.channels=4", "model.params.point_mlp=[8]", "model.params.seg_channels=4",
+                       "train.epochs=null", "train.steps=2", "train.batch_size=1")]
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "semantickitti_scpnet.yaml"
+    assert main(["run", str(recipe), "-o", str(tmp_path / "runs"), "-q", "--set", f"data.params.root={root}",
+                 "data.params.train=['00']", "data.params.val=['08']", "data.params.scale=4", *sizes]) == 0
+    (run,) = (tmp_path / "runs" / "semantickitti_scpnet").glob("student_dskd-*")
+    summary = yaml.safe_load((run / "summary.json").read_text())
+    assert summary["objectives"] == ["dskd×3000"] and summary["input"] == "1 frame"
+    assert main(["predict", str(run), "--dataset-root", str(root), "--split", "valid", "--out",
+                 str(tmp_path / "preds")]) == 0
+    assert main(["eval", "--dataset-root", str(root), "--predictions", str(tmp_path / "preds"), "--split", "valid"]) == 0
+    scores = yaml.safe_load((tmp_path / "preds" / "scores.txt").read_text())
+    assert 0 <= scores["iou_mean"] <= 1 and 0 <= scores["iou_completion"] <= 1
