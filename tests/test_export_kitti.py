@@ -236,3 +236,26 @@ def test_point_labels_and_calibration_round_trip(tmp_path) -> None:
     write_calib(tmp_path / "calib.txt", lidar_to_camera(), k)
     calib = sk.read_calib(tmp_path / "calib.txt")
     assert np.allclose(calib["P2"][:3, :3], k, rtol=1e-9) and np.allclose(calib["Tr"], lidar_to_camera(), atol=1e-9)
+
+
+def test_a_hidden_test_split_is_predicted_never_scored(exported, tmp_path) -> None:
+    """test: a sequence without voxel labels (the benchmark's hidden split) -> scores come from the validation split
+    (and the summary says so); the stage still publishes its predictions of the hidden frames."""
+    import shutil
+
+    from distilkit.engine.pipeline import Pipeline
+    from distilkit.recipe import recipe_from_dict
+
+    root = tmp_path / "kitti"
+    for seq in ("00", "08"):
+        shutil.copytree(exported / "sequences" / seq, root / "sequences" / seq)
+    shutil.copytree(exported / "sequences" / "08", root / "sequences" / "11", ignore=shutil.ignore_patterns("*.label"))
+    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 1}
+    recipe = {"schema_version": 1, "name": "hidden", "seed": 0,
+              "data": {"dataset": "semantickitti-ssc",
+                       "params": {"root": str(root), "train": ["00"], "val": ["08"], "test": ["11"], "scale": 4}},
+              "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params}, "publish": ["test"],
+                                    "train": {"steps": 1, "batch_size": 1, "eval_every": 1}}}}
+    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    assert result.summary["report_split"] == "val" and 0 <= result.summary["test"]["best"]["miou"] <= 1
+    assert len(list((result.run_dir / "predictions" / "test").glob("*"))) > 0

@@ -193,6 +193,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
                             "SemanticKITTI folder:\n  " + "\n  ".join(shown or [f"no frames with a stride of "
                                                                                    f"{params.stride}"]))
         self.info = kitti_info(params)
+        self.has_targets = any(item[3] for item in self.items)  # False: the hidden test split, predicted only
         self._poses: dict[Path, np.ndarray] = {}
         self._calibs: dict[Path, dict[str, np.ndarray]] = {}
 

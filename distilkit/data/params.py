@@ -115,8 +115,8 @@ class SemanticKittiParams(BaseModel):
     val: SplitRef = _split_field("valid", "the sequences that select the best checkpoint (none: no validation; the "
                                           "last checkpoint is the model)")
     test: SplitRef = _split_field(None, "labelled held-out sequences for test scores (none: the validation split is "
-                                        "reported, and says so; the official test split 11-21 has no labels: "
-                                        "`distilkit predict` writes its submission)")
+                                        "reported, and says so); sequences without voxel labels (the official test "
+                                        "split 11-21) are predicted (publish, `distilkit predict`), never scored")
     scale: int = Field(1, description="grid coarsening of the 256x256x32 voxel files (majority pooling)")
     input_frames: int = Field(1, ge=1, description="scans fused into the input: the current one and the next "
                                                    "input_frames - 1, through the poses")

@@ -129,8 +129,12 @@ class StageRun:
 
     def report_split(self) -> str | None:
         """The split scores are reported on: test, else validation (and the summary says so), else none (a stage
-        trained on everything, e.g. for a benchmark submission)."""
-        return next((s for s in ("test", "val") if self.pipeline.has_split(s)), None)
+        trained on everything, e.g. for a benchmark submission). A split whose dataset says it has no targets
+        (``has_targets``: SemanticKITTI's hidden test sequences) is predicted, never scored."""
+        def scored(split: str) -> bool:
+            return self.pipeline.has_split(split) and bool(getattr(self.pipeline.dataset(split), "has_targets", True))
+
+        return next((s for s in ("test", "val") if scored(s)), None)
 
     def _prepare_folder(self) -> None:
         """The folder, without a killed writer's temporary files, and the stage's resolved configuration."""
