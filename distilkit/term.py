@@ -28,7 +28,7 @@ from pydantic import BaseModel
 from torch import Tensor, nn
 
 from distilkit.data.batch import Batch
-from distilkit.data.classes import IGNORE_INDEX
+from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES
 from distilkit.data.info import DataInfo
 
 
@@ -95,6 +95,12 @@ class Term(nn.Module, ABC):
 
     def bind(self, context: TermContext) -> None:
         self.context = context
+
+    @property
+    def num_classes(self) -> int:
+        """The data's class count (its class table's; SemanticKITTI's 20 before binding)."""
+        info = self.context.info if self.context is not None else None
+        return info.num_classes if info is not None else NUM_CLASSES
 
     @property
     def ignore_index(self) -> int:

@@ -259,3 +259,25 @@ def test_a_hidden_test_split_is_predicted_never_scored(exported, tmp_path) -> No
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     assert result.summary["report_split"] == "val" and 0 <= result.summary["test"]["best"]["miou"] <= 1
     assert len(list((result.run_dir / "predictions" / "test").glob("*"))) > 0
+
+
+def test_class_weighted_losses_follow_semanticposs_twelve_classes(exported, tmp_path) -> None:
+    """JS3C-Net's weighted uncertainty loss and VoxFormer's weighted CE size their class weights by the data's class
+    table (they were SemanticKITTI's 20 whatever the data): both train on a semanticposs-ssc folder (12 classes)."""
+    from distilkit.engine.pipeline import Pipeline
+    from distilkit.recipe import recipe_from_dict
+
+    small = {"seg_channels": 4, "embed": 4, "ssc_channels": 4, "pvi_hidden": 4}
+    recipe = {"schema_version": 1, "name": "poss", "seed": 0,
+              "data": {"dataset": "semanticposs-ssc",
+                       "params": {"root": str(exported), "train": ["00"], "val": ["08"], "scale": 4}},
+              "stages": {"js3cnet": {"model": {"adapter": "js3cnet", "params": small},
+                                     "train": {"steps": 1, "batch_size": 1, "eval_every": 1}},
+                         "weighted": {"model": {"adapter": "scpnet", "params": {"channels": 4, "point_mlp": [8],
+                                                                              "seg_channels": 4}},
+                                      "task_losses": [{"name": "weighted_ce"}, {"name": "geo_scal"},
+                                                      {"name": "sem_scal"}],
+                                      "train": {"steps": 1, "batch_size": 1, "eval_every": 1}}}}
+    results = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    for result in results:
+        assert len(result.summary["classes"]["names"]) == 12 and 0 <= result.summary["test"]["best"]["miou"] <= 1

@@ -74,7 +74,8 @@ class Trainer:
         # per objective: the projection of its student tap (nn.Identity where it has none)
         self.connectors = nn.ModuleList(nn.Identity() for _ in stage.distill)
         self.steps_per_epoch = plan.steps_per_epoch
-        for term in self.terms:
+        for term in self.terms:  # bound first: a term's statistics follow the data's class table
+            term.module.bind(self._context())
             term.module.prepare(train_set)
         self._setup_terms()
         own = {id(t.module) for t, o in zip(self.terms, self.own_optimizers) if o is not None}  # train themselves

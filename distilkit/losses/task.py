@@ -95,14 +95,16 @@ class UncertaintyMultiTask(TaskLoss):
         self.register_buffer("comp_weight", torch.ones(NUM_CLASSES))
 
     def prepare(self, train_set: Any) -> None:
+        self.comp_weight = self.comp_weight.new_ones(self.num_classes)  # the data's class table's size
+        self.seg_weight = self.seg_weight.new_ones(self.num_classes)
         if self.params.class_weights == "none":
             return
         from distilkit.data.stats import label_counts
 
-        voxel, point = label_counts(train_set, NUM_CLASSES)
-        self.comp_weight.copy_(frequency_weights(voxel))
+        voxel, point = label_counts(train_set, self.num_classes)  # sized by the data's class table
+        self.comp_weight = frequency_weights(voxel).to(self.comp_weight)
         seg = frequency_weights(point[1:])  # point class 0 = unlabelled (ignored)
-        self.seg_weight.copy_(torch.cat([seg.new_zeros(1), seg]))
+        self.seg_weight = torch.cat([seg.new_zeros(1), seg]).to(self.seg_weight)
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         # the labels of the points behind the point logits: a tap, as the model may keep a subset of points
@@ -137,15 +139,16 @@ class _ClassWeighted(TaskLoss):
         self.register_buffer("weight", torch.ones(NUM_CLASSES))
 
     def prepare(self, train_set: Any) -> None:
+        self.weight = self.weight.new_ones(self.num_classes)  # the data's class table's size
         if self.params.class_weights == "none":
             return
         from distilkit.data.stats import label_counts
         from distilkit.losses.ssc import log_frequency_weights
 
-        voxel, _ = label_counts(train_set, NUM_CLASSES)
+        voxel, _ = label_counts(train_set, self.num_classes)  # sized by the data's class table
         present = voxel > 0
         w = log_frequency_weights(voxel.clamp_min(1), self.params.scale)
-        self.weight.copy_(w.masked_fill(~present, float(w[present].max()) if bool(present.any()) else 1.0))
+        self.weight = w.masked_fill(~present, float(w[present].max()) if bool(present.any()) else 1.0).to(self.weight)
 
 
 class WeightedCE(_ClassWeighted):
