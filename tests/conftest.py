@@ -57,6 +57,18 @@ def tiny_recipe(name: str = "tiny", steps: int = 2, distill: bool = True, adapte
             "data": {"dataset": "synthetic-lidar", "params": dict(TINY_DATA)}, "stages": stages}
 
 
+def folder_recipe(root, name: str = "kitti", dataset: str = "semantickitti", frames: int = 1, steps: int = 1,
+                  batch_size: int = 1, eval_every: int | None = None, stage: str = "scpnet", publish=(),
+                  **data) -> dict:
+    """A one-stage recipe: a tiny SCPNet on a SemanticKITTI-format folder at ``root`` (``data``: the dataset's
+    other parameters, e.g. ``train=["00"], val=["08"], scale=4``)."""
+    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": frames}
+    spec = {"model": {"adapter": "scpnet", "params": params}, **({"publish": list(publish)} if publish else {}),
+            "train": {"steps": steps, "batch_size": batch_size, "eval_every": eval_every or steps}}
+    return {"schema_version": 1, "name": name, "seed": 0,
+            "data": {"dataset": dataset, "params": {"root": str(root), **data}}, "stages": {stage: spec}}
+
+
 def make_trainer(pipe, stage_name: str, teacher=None, world=None):
     """The :class:`~distilkit.engine.trainer.Trainer` of a pipeline's stage at its seed, on the CPU, without a run."""
     import torch

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import folder_recipe
 from distilkit.cli import main
 from distilkit.data import semantickitti as sk
 
@@ -78,13 +79,8 @@ def test_a_recipe_trains_scpnet_on_the_exported_folder(exported, tmp_path) -> No
     from distilkit.engine.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
-    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 2}
-    recipe = {"schema_version": 1, "name": "kitti", "seed": 0,
-              "data": {"dataset": "semantickitti",
-                       "params": {"root": str(exported), "train": ["00"], "val": ["08"],
-                                  "scale": 4, "input_frames": 2, "rectify": True}},
-              "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params},
-                                    "train": {"steps": 2, "batch_size": 1, "eval_every": 2}}}}
+    recipe = folder_recipe(exported, frames=2, steps=2, train=["00"], val=["08"], scale=4, input_frames=2,
+                           rectify=True)
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     scores = result.summary["test"]["best"]  # the scores block; report_split says which split it holds
     assert result.summary["report_split"] == "val" and 0 <= scores["miou"] <= 1 and 0 <= scores["iou"] <= 1
@@ -106,12 +102,7 @@ def test_predict_writes_the_submission_format_and_eval_reads_it(exported, tmp_pa
     shutil.copytree(root / "sequences" / "08", hidden)
     for f in (hidden / "voxels").glob("*.label"):
         f.unlink()  # the benchmark's test split has scans and input voxels, no labels
-    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 1}
-    recipe = {"schema_version": 1, "name": "kitti", "seed": 0,
-              "data": {"dataset": "semantickitti", "params": {"root": str(root), "train": ["00"],
-                                                              "val": ["08"], "scale": 4}},
-              "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params},
-                                    "train": {"steps": 1, "batch_size": 1, "eval_every": 1}}}}
+    recipe = folder_recipe(root, train=["00"], val=["08"], scale=4)
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     out = tmp_path / "preds"
     assert main(["predict", str(result.run_dir), "--dataset-root", str(root), "--sequences", "08", "11",
@@ -152,15 +143,9 @@ def test_a_stage_trains_without_a_validation_split(exported, tmp_path) -> None:
     from distilkit.engine.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
-    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 1}
-
     def recipe(test):
-        return {"schema_version": 1, "name": "noval", "seed": 0,
-                "data": {"dataset": "semantickitti-ssc",
-                         "params": {"root": str(exported), "train": ["00", "08"], "val": None, "test": test,
-                                    "scale": 4}},
-                "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params}, "publish": ["train"],
-                                      "train": {"steps": 2, "batch_size": 1, "eval_every": 1}}}}
+        return folder_recipe(exported, "noval", "semantickitti-ssc", steps=2, eval_every=1, publish=["train"],
+                             train=["00", "08"], val=None, test=test, scale=4)
 
     (alone,) = Pipeline(recipe_from_dict(recipe(None)), tmp_path / "runs", quiet=True).run()
     assert alone.summary["report_split"] is None and alone.summary["test"] == {} and alone.summary["last"] is None
@@ -208,13 +193,8 @@ def test_a_multi_frame_teacher_trains_on_every_scan_and_predicts_the_benchmark_f
     from distilkit.engine.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
-    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 2}
-    recipe = {"schema_version": 1, "name": "scans", "seed": 0,
-              "data": {"dataset": "semantickitti-scan",
-                       "params": {"root": str(exported), "train": ["00"], "val": ["08"], "scale": 4,
-                                  "input_frames": 2}},
-              "stages": {"teacher": {"model": {"adapter": "scpnet", "params": params},
-                                     "train": {"steps": 2, "batch_size": 2, "eval_every": 2}}}}
+    recipe = folder_recipe(exported, "scans", "semantickitti-scan", frames=2, steps=2, batch_size=2, stage="teacher",
+                           train=["00"], val=["08"], scale=4, input_frames=2)
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     assert 0 <= result.summary["test"]["best"]["miou"] <= 1
     out = tmp_path / "preds"
@@ -250,12 +230,8 @@ def test_a_hidden_test_split_is_predicted_never_scored(exported, tmp_path) -> No
     for seq in ("00", "08"):
         shutil.copytree(exported / "sequences" / seq, root / "sequences" / seq)
     shutil.copytree(exported / "sequences" / "08", root / "sequences" / "11", ignore=shutil.ignore_patterns("*.label"))
-    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 1}
-    recipe = {"schema_version": 1, "name": "hidden", "seed": 0,
-              "data": {"dataset": "semantickitti-ssc",
-                       "params": {"root": str(root), "train": ["00"], "val": ["08"], "test": ["11"], "scale": 4}},
-              "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params}, "publish": ["test"],
-                                    "train": {"steps": 1, "batch_size": 1, "eval_every": 1}}}}
+    recipe = folder_recipe(root, "hidden", "semantickitti-ssc", publish=["test"], train=["00"], val=["08"],
+                           test=["11"], scale=4)
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     assert result.summary["report_split"] == "val" and 0 <= result.summary["test"]["best"]["miou"] <= 1
     assert len(list((result.run_dir / "predictions" / "test").glob("*"))) > 0

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
+from conftest import folder_recipe
 from distilkit.cli import main
 
 
@@ -17,12 +18,7 @@ def test_eval_of_predict_equals_the_in_training_evaluation(tmp_path) -> None:
     root = tmp_path / "kitti"
     assert main(["data", "export-kitti", str(root), "--frames", "11", "--set", "beams=16", "azimuth_steps=256",
                  "gt_frames=5", "seed=3"]) == 0
-    params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": 1}
-    recipe = {"schema_version": 1, "name": "kitti", "seed": 0,
-              "data": {"dataset": "semantickitti", "params": {"root": str(root), "train": ["00"],
-                                                              "val": ["08"], "scale": 1}},
-              "stages": {"scpnet": {"model": {"adapter": "scpnet", "params": params},
-                                    "train": {"steps": 1, "batch_size": 1, "eval_every": 1}}}}
+    recipe = folder_recipe(root, train=["00"], val=["08"], scale=1)
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     assert result.summary["report_split"] == "val"
     trained = result.summary["test"]["best"]

@@ -177,6 +177,12 @@ class SemanticKittiParams(BaseModel):
         ref = getattr(self, role)
         return [] if ref is None else list(self.SPLITS[ref]) if isinstance(ref, str) else list(ref)
 
+    def for_submission(self, root: str, test: str | list[str]) -> "SemanticKittiParams":
+        """These parameters reading ``test`` (an official split's name or sequences) of the folder at ``root`` as the
+        benchmark scores it: the voxel frames, as labelled (no rectification; no .occluded needed)."""
+        return type(self)(**{**self.model_dump(exclude={"test"}), "root": root, "test": test, "rectify": False,
+                             "occluded": False})
+
     def table(self) -> Any:
         """The :class:`~distilkit.data.info.ClassTable` of the labels."""
         from distilkit.data.info import ClassTable
@@ -190,6 +196,11 @@ class SemanticKittiScanParams(SemanticKittiParams):
 
     EVERY_SCAN: ClassVar[bool] = True
     stride: int = Field(1, ge=1, description="use every n-th scan (1: all of them)")
+
+    def for_submission(self, root: str, test: str | list[str]) -> SemanticKittiParams:
+        """A model trained on every scan predicts the benchmark's frames (the every-5th voxel frames) like the others."""
+        ssc = SemanticKittiParams(**self.model_dump(exclude={"stride", "test"}))
+        return ssc.for_submission(root, test)
 
 
 class SemanticPossParams(SemanticKittiParams):

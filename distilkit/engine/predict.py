@@ -47,13 +47,9 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
     if data.get("dataset") not in FOLDER_DATASETS:
         raise DistilkitError(f"{run}: trained on {data.get('dataset')!r}; predict writes SemanticKITTI-format "
                              f"submissions from models trained on a folder ({', '.join(FOLDER_DATASETS)})")
-    # a model trained on every scan predicts the benchmark's frames (the every-5th voxel frames) like the others
-    entry = DATASETS.entry("semantickitti-ssc" if data["dataset"] == "semantickitti-scan" else data["dataset"])
-    kept = {k: v for k, v in (data.get("params") or {}).items()
-            if k not in ("test", "test_sequences", "occluded")
-            and not (data["dataset"] == "semantickitti-scan" and k == "stride")}
-    params = entry.meta["params"](**{**kept, "root": str(dataset_root), "rectify": False,
-                                     "test": sequences if isinstance(sequences, str) else list(sequences)})
+    entry = DATASETS.entry(data["dataset"])
+    trained = entry.meta["params"](**(data.get("params") or {}))
+    params = trained.for_submission(str(dataset_root), sequences if isinstance(sequences, str) else list(sequences))
     dataset = SemanticKittiDataset(params, "test")
     model = load_run(path, device=torch.device(device))
     collate = entry.meta["collate"]
