@@ -50,7 +50,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
         run_seeds(args.recipe, args.output, args.seed, baseline=args.baseline, quiet=args.quiet, rerun=args.rerun,
                   only=args.stage, wait=not args.no_wait, overrides=_overrides(args))
-        return 0
+        return _finished()
     if args.baseline is not None:
         from distilkit.errors import DistilkitError
 
@@ -60,6 +60,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     pipe = Pipeline(args.recipe, args.output, quiet=args.quiet, seed=args.seed[0] if args.seed else None,
                     overrides=_overrides(args))
     pipe.run(stop_after=args.stop_after, rerun=args.rerun, only=args.stage, wait=not args.no_wait)
+    return _finished()
+
+
+def _finished() -> int:
+    """0 for a finished run; a process of a multi-process run leaves here, once all are done
+    (:func:`~distilkit.engine.distributed.leave`)."""
+    from distilkit.engine.distributed import leave, world_from_env
+
+    leave(world_from_env())
     return 0
 
 

@@ -16,7 +16,7 @@ import torch.multiprocessing as mp
 import yaml
 
 from conftest import make_trainer, tiny_recipe
-from distilkit.engine.distributed import World
+from distilkit.engine.distributed import World, leave
 from distilkit.engine.runs import build_model, freeze
 from distilkit.engine.pipeline import Pipeline
 from distilkit.errors import DistilkitError
@@ -67,10 +67,9 @@ def one_step(world: World, folder: Path) -> dict[str, dict[str, torch.Tensor]]:
 def _worker(rank: int, size: int, init_file: str, folder: str) -> None:
     torch.set_num_threads(1)
     torch.distributed.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=size)
-    try:
-        torch.save(one_step(World(rank, size), Path(folder)), Path(folder) / f"out{rank}.pt")
-    finally:
-        torch.distributed.destroy_process_group()
+    world = World(rank, size)
+    torch.save(one_step(world, Path(folder)), Path(folder) / f"out{rank}.pt")
+    leave(world)  # as `distilkit run` ends a process: gloo's teardown can abort at exit
 
 
 def test_two_processes_take_the_same_step_as_one_on_the_global_batch(tmp_path: Path) -> None:
@@ -137,10 +136,9 @@ def scored(world: World, folder: Path) -> dict[str, Any]:
 def _eval_worker(rank: int, size: int, init_file: str, folder: str) -> None:
     torch.set_num_threads(1)
     torch.distributed.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=size)
-    try:
-        torch.save(scored(World(rank, size), Path(folder) / f"rank{rank}"), Path(folder) / f"eval{rank}.pt")
-    finally:
-        torch.distributed.destroy_process_group()
+    world = World(rank, size)
+    torch.save(scored(world, Path(folder) / f"rank{rank}"), Path(folder) / f"eval{rank}.pt")
+    leave(world)
 
 
 def test_two_processes_evaluate_each_scene_once_and_their_merged_confusion_is_one_processs(tmp_path: Path) -> None:
