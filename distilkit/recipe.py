@@ -104,6 +104,9 @@ class AuxSpec(_Strict):
     inputs: dict[str, str] = Field(default_factory=dict, description="its tap -> the batch input it becomes "
                                                                      "(default: its prediction tap -> this aux "
                                                                      "model's name)")
+    training: bool = Field(True, description="run it on the training batches too; false: only when evaluating and "
+                                             "publishing (a model trained on other inputs and scored on this one's "
+                                             "output, e.g. LiDiff's refinement trained on jittered ground truth)")
 
 
 class LossSpec(_Strict):

@@ -87,6 +87,11 @@ class Term(nn.Module, ABC):
         present = batch.fields | frozenset(batch.meta)
         return {role: batch.field(self.default_field(role, present)) for role in self.BATCH}
 
+    @classmethod
+    def student_requires(cls, params: BaseModel) -> frozenset[str]:
+        """The student capabilities this term calls with these parameters (default: ``STUDENT_REQUIRES``)."""
+        return cls.STUDENT_REQUIRES
+
     def prepare(self, train_set: Any) -> None:
         """Statistics of the training split the term needs (e.g. class weights); default: none."""
 

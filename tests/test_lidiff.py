@@ -51,6 +51,32 @@ def test_training_forward_noises_the_scene_with_local_noise() -> None:
     assert out["eps_pred"].points.shape == (2, 256, 3) and "completion" not in out
 
 
+@pytest.mark.parametrize("per", ["batch", "scene"])
+def test_the_condition_is_dropped_for_the_whole_batch_as_lidiff_does(per: str) -> None:
+    """LiDiff's training_step: one draw per batch (if rand > uncond_prob: conditional), never with one scene; per
+    scene as an option."""
+    m = model(uncond_prob=0.5, uncond_per=per).train()
+    scan = torch.randn(8, 64, 3) + 1.0
+    batch = Batch({"scan": scan, "scan_lengths": torch.full((8,), 64)},
+                  {"scene": torch.randn(8, 256, 3), "scene_lengths": torch.full((8,), 256)}, {"size": 8})
+    seen = []
+    orig = m.net.forward
+    m.net.forward = lambda x_t, t, s: seen.append(s) or orig(x_t, t, s)  # type: ignore[method-assign]
+    mixed = False
+    for _ in range(30):
+        m(batch)
+        dropped = [bool((s == 0).all()) for s in seen[-1]]
+        mixed |= 0 < sum(dropped) < len(dropped)
+    assert mixed == (per == "scene")
+    scenes = [x for s in seen for x in s]
+    assert any(bool((x == 0).all()) for x in scenes) and any(bool((x != 0).all()) for x in scenes)
+    one = Batch({"scan": scan[:1], "scan_lengths": torch.full((1,), 64)},
+                {"scene": torch.randn(1, 256, 3), "scene_lengths": torch.full((1,), 256)}, {"size": 1})
+    for _ in range(10):
+        m(one)
+        assert bool((seen[-1] != 0).all())
+
+
 def test_lidiff_loss_is_mse_plus_the_statistics_regulariser() -> None:
     cls = TASK_LOSSES.get("lidiff")
     pred, eps = torch.randn(2, 10, 3, dtype=torch.float64), torch.randn(2, 10, 3, dtype=torch.float64)
@@ -248,7 +274,7 @@ def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -
                                                                                    "sample_steps": 1}},
                                      "init": {"from": "teacher", "strict": False}, "teacher": {"from": "teacher"},
                                      "task_losses": [],
-                                     "distill": [{"name": "vsd", "params": {"rank": 2, "aux_lr": 0.01},
+                                     "distill": [{"name": "vsd", "params": {"aux": "lora", "rank": 2, "aux_lr": 0.01},
                                                   "taps": {"student": "samples"}},
                                                  {"name": "structural", "params": {"k": 8},
                                                   "taps": {"student": "samples"}}],
@@ -257,7 +283,7 @@ def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -
                                                                                "sample_steps": 1}},
                                  "init": {"from": "teacher", "strict": False}, "teacher": {"from": "teacher"},
                                  "task_losses": [],
-                                 "distill": [{"name": "distillation_dpo", "params": {"rank": 2, "aux_lr": 0.01},
+                                 "distill": [{"name": "distillation_dpo", "params": {"aux_lr": 0.01},
                                               "taps": {"student": "samples", "noise": "start_noise"}}],
                                  "optimizer": {"name": "sgd", "lr": 1e-4}, "train": train}}}
     teacher, student, dpo = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
@@ -278,6 +304,12 @@ def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -
     log = [__import__("json").loads(x) for x in (dpo.run_dir / "metrics.jsonl").read_text().splitlines()]
     assert all({"kd_distillation_dpo", "dpo_aux_loss", "dpo_first_wins"} <= set(r) for r in log if "loss" in r)
     assert dpo.summary["test"]["best"]["cd"] > 0
+    # its two auxiliary networks are full copies of the teacher (the default), and they trained
+    d_ckpt = load_checkpoint(dpo.run_dir / "checkpoints" / "last.pt")["objectives"]
+    for net in ("aux", "aux_loser"):
+        copy = {k.split(f".{net}.", 1)[1]: v for k, v in d_ckpt.items() if f".{net}." in k}
+        assert copy.keys() == t_ckpt["student"].keys()
+        assert any(not torch.equal(v, t_ckpt["student"][k]) for k, v in copy.items())
 
 
 def test_an_evaluate_only_stage_scores_a_trained_model_at_other_sampler_steps(tmp_path) -> None:

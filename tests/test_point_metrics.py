@@ -9,6 +9,7 @@ from scipy.integrate import simpson
 from scipy.spatial.distance import jensenshannon
 
 from distilkit.metrics import auc, chamfer_distance, jsd_bev, precision_recall_curves, voxel_confusion
+from distilkit.metrics.points import emd, jsd_3d
 
 
 def scene(m: int, seed: int, spread: float = 20.0) -> torch.Tensor:
@@ -49,6 +50,47 @@ def test_voxel_iou_counts_equal_dense_occupancy_histograms() -> None:
         hg = np.histogramdd(g.numpy(), bins=bins, range=[(-50, 50)] * 3)[0] > 0
         want = (int((hp & hg).sum()), int((hp & ~hg).sum()), int((~hp & hg).sum()))
         assert voxel_confusion(p, g, size) == want
+
+
+def test_jsd_3d_is_the_unclipped_point_count_histograms_distance() -> None:
+    p, g = scene(2000, 12), scene(2500, 13)
+    p[:300] = p[:1].clone()  # 300 points in one voxel: counted 300 times (no clipping)
+    p[300] = torch.tensor([60.0, 0, 0])  # out of range: dropped
+
+    def counts(x: np.ndarray) -> np.ndarray:
+        h, _ = np.histogramdd(x, bins=200, range=[(-50, 50)] * 3)
+        return h.ravel()
+
+    want = jensenshannon(counts(g.numpy()) / counts(g.numpy()).sum(), counts(p.numpy()) / counts(p.numpy()).sum())
+    assert jsd_3d(p, g) == pytest.approx(float(want), rel=1e-9)
+    assert jsd_3d(p, g) != pytest.approx(jsd_bev(p, g))
+
+
+def test_the_rounded_iou_is_lidiffs_histogram_of_rounded_indices() -> None:
+    """LiDiff before its June 2025 fix (and ScoreLiDAR): np.round(p / v) histogrammed over [-50, 50] in index units."""
+    p, g = scene(3000, 14, 12.0), scene(3000, 15, 12.0)
+    p[0] = torch.tensor([25.0, 0.0, 0.0])  # index 50 at 0.5 m: the upper edge, counted
+    p[1] = torch.tensor([25.3, 0.0, 0.0])  # index 51: outside
+    size = 0.5
+    bins = int(2 * 50 / size)
+    hp = np.histogramdd(np.round(p.numpy() / size), bins=bins, range=[(-50, 50)] * 3)[0] > 0
+    hg = np.histogramdd(np.round(g.numpy() / size), bins=bins, range=[(-50, 50)] * 3)[0] > 0
+    want = (int((hp & hg).sum()), int((hp & ~hg).sum()), int((~hp & hg).sum()))
+    assert voxel_confusion(p, g, size, rounded=True) == want
+    assert voxel_confusion(p, g, size, rounded=True) != voxel_confusion(p, g, size)
+
+
+def test_emd_is_the_optimal_matching_of_equal_subsamples() -> None:
+    from itertools import permutations
+
+    a, b = scene(6, 16, 3.0), scene(6, 17, 3.0)
+    d = np.sqrt(((a.numpy()[:, None] - b.numpy()[None]) ** 2).sum(-1))
+    want = min(d[np.arange(6), list(perm)].mean() for perm in permutations(range(6)))
+    assert emd(a, b) == pytest.approx(want, rel=1e-12)
+    assert emd(a, a) == 0.0
+    big, other = scene(3000, 18, 3.0), scene(2500, 19, 3.0)
+    assert emd(big, other) == emd(big, other)  # a seeded draw: repeatable
+    assert emd(big, other, points=8) != emd(big, other, points=16)
 
 
 def test_precision_recall_auc_over_5_to_10_cm() -> None:
@@ -112,4 +154,8 @@ def test_the_registered_completion_metric_accumulates_like_lidiffs_evaluation() 
     conf = [voxel_confusion(p.float().double(), g.float().double(), 0.2) for p, g in zip(kept, gts)]
     tp, fp, fn = (sum(c[i] for c in conf) for i in range(3))
     assert got["iou_20cm"] == pytest.approx(tp / (tp + fp + fn))
-    assert set(got) == set(cls.KEYS) and cls.LOWER_IS_BETTER == {"cd", "jsd"}
+    assert set(got) == set(cls.KEYS) and cls.LOWER_IS_BETTER == {"cd", "jsd", "jsd_3d"}
+    assert got["jsd_3d"] == pytest.approx(np.mean([jsd_3d(p, g) for p, g in zip(kept, gts)]))
+    rounded = [voxel_confusion(p.float().double(), g.float().double(), 0.2, rounded=True) for p, g in zip(kept, gts)]
+    tp, fp, fn = (sum(c[i] for c in rounded) for i in range(3))
+    assert got["iou_20cm_rounded"] == pytest.approx(tp / (tp + fp + fn))

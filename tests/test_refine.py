@@ -44,7 +44,7 @@ def refiner(**kw):
 
 
 def test_the_refiner_predicts_six_bounded_offsets_per_point_in_any_chunking() -> None:
-    m = refiner(max_offset=0.5)
+    m = refiner(max_offset=0.5, train_on="completions")
     coarse = PointCloud.from_list([torch.randn(40, 3) * 5, torch.randn(25, 3) * 5])
     m.train()
     out = m(Batch({"coarse": coarse}, {}, {"size": 2}))["refined"]
@@ -53,7 +53,7 @@ def test_the_refiner_predicts_six_bounded_offsets_per_point_in_any_chunking() ->
         moved = out.cloud(b).view(-1, 6, 3) - coarse.cloud(b)[:, None]
         assert moved.abs().max() <= 0.5 and moved.abs().max() > 0
     m.eval()
-    chunked = refiner(max_offset=0.5, chunk=7).eval()
+    chunked = refiner(max_offset=0.5, chunk=7, train_on="completions").eval()
     chunked.load_state_dict(m.state_dict())
     with torch.no_grad():
         a = m(Batch({"coarse": coarse}, {}, {"size": 2}))["completion"]
@@ -62,3 +62,40 @@ def test_the_refiner_predicts_six_bounded_offsets_per_point_in_any_chunking() ->
     assert np.allclose(m.refine_cloud(coarse.cloud(0).numpy()), a.cloud(0).numpy(), atol=1e-6)
     with pytest.raises(TypeError, match="point cloud"):
         m(Batch({"coarse": torch.zeros(2, 3, 3)}, {}, {"size": 2}))
+
+
+def test_the_refiner_trains_on_jittered_ground_truth_by_default() -> None:
+    """LiDiff's refinement training input: the ground truth plus N(0, 0.2^2) per axis clipped at 0.3 m."""
+    m = refiner().train()
+    scene = torch.randn(2, 50, 3) * 5
+    batch = Batch({}, {"scene": scene, "scene_lengths": torch.tensor([50, 30])}, {"size": 2})
+    seen = []
+    m.refine = lambda coarse: seen.append(coarse) or coarse  # type: ignore[method-assign]
+    torch.manual_seed(4)
+    m(batch)
+    torch.manual_seed(4)
+    noise = torch.randn(2, 50, 3) * 0.2
+    assert torch.equal(seen[0].points, scene + noise.clamp(-0.3, 0.3)) and seen[0].lengths.tolist() == [50, 30]
+    assert float((seen[0].points - scene).abs().max()) <= 0.3 + 1e-6 and bool((noise.abs() > 0.3).any())
+    cls = ADAPTERS.get("lidiff-refine")
+    assert cls.inputs(cls.Params()) >= {"scene", "coarse"} and cls.inputs(cls.Params(train_on="completions")) == {"coarse"}
+    m.eval()  # evaluation refines an auxiliary model's completion, and says so when there is none
+    with pytest.raises(ValueError, match="coarse"):
+        m(batch)
+
+
+def test_an_auxiliary_model_marked_training_false_runs_only_in_evaluation() -> None:
+    from types import SimpleNamespace
+
+    from distilkit.engine.stage import with_aux_inputs
+
+    calls = []
+
+    def model(batch):
+        calls.append(1)
+        return {"completion": "out"}
+
+    aux = [(SimpleNamespace(training=False, inputs={"completion": "coarse"}), model)]
+    batch = Batch({}, {}, {"size": 1})
+    assert "coarse" not in with_aux_inputs(batch, aux, training=True).inputs and not calls
+    assert with_aux_inputs(batch, aux).inputs["coarse"] == "out" and calls == [1]

@@ -49,7 +49,7 @@ def test_the_few_step_students_scan_encoder_is_frozen_by_default() -> None:
 @pytest.mark.parametrize("order", ["before", "after"])
 def test_the_auxiliary_network_steps_before_the_student_by_default(order: str) -> None:
     teacher, student = lidiff(generate_steps=0), lidiff().train()
-    term = bound("vsd", student, teacher, rank=2, aux_lr=0.1, aux_optimizer="adam", aux_update=order)
+    term = bound("vsd", student, teacher, aux="lora", rank=2, aux_lr=0.1, aux_optimizer="adam", aux_update=order)
     b = batch()
     out = student(b)
     taps = {"student": out["samples"], "condition": b.inputs["scan"]}
@@ -77,7 +77,8 @@ def test_key_points_are_redrawn_every_step_or_cached_per_scene() -> None:
 
 def test_distillation_dpo_ranks_the_pair_and_sends_the_intended_gradient() -> None:
     teacher, student = lidiff(generate_steps=0), lidiff().train()
-    term = bound("distillation_dpo", student, teacher, rank=2, aux_lr=0.01, aux_optimizer="adam")
+    term = bound("distillation_dpo", student, teacher, aux="lora", rank=2, aux_lr=0.01, aux_optimizer="adam",
+                 aux_sample="same")
     b = batch()
     out = student(b)
     taps = {"student": out["samples"], "noise": out["start_noise"], "condition": b.inputs["scan"],
@@ -126,3 +127,47 @@ def test_distillation_dpo_ranks_the_pair_and_sends_the_intended_gradient() -> No
     assert torch.allclose(second_leaf.grad, want_second, atol=1e-7)
     logged = term.update(0, b, taps)
     assert set(logged) == {"dpo_first_wins", "dpo_aux_loss"}
+
+
+def test_the_auxiliary_network_is_a_trainable_copy_of_the_teacher_by_default() -> None:
+    """ScoreLiDAR appendix A.3 and its code: a full copy initialised from the teacher (LoRA is an option)."""
+    teacher, student = lidiff(generate_steps=0), lidiff().train()
+    for name in ("vsd", "distillation_dpo"):
+        term = bound(name, student, teacher)
+        b = batch()
+        out = student(b)
+        term.setup({"student": out["samples"], "condition": b.inputs["scan"]}, b)
+        for aux in term.aux_networks():
+            mine, theirs = dict(aux.named_parameters()), dict(teacher.named_parameters())
+            assert mine.keys() == theirs.keys() and all(p.requires_grad for p in mine.values())
+            assert all(torch.equal(mine[k], theirs[k]) and mine[k] is not theirs[k] for k in mine)
+    lora = bound("vsd", student, teacher, aux="lora", rank=2)
+    lora.setup({"student": out["samples"], "condition": b.inputs["scan"]}, b)
+    assert any(n.endswith("lora_a") for n, _ in lora.aux.named_parameters())
+
+
+def test_the_auxiliary_step_fits_a_fresh_student_sample() -> None:
+    """The release's aux step generates its own samples (no gradient, eval mode): not the ones it is queried on."""
+    teacher, student = lidiff(generate_steps=0), lidiff().train()
+    b = batch()
+    out = student(b)
+    x0, cond = out["samples"].points, b.inputs["scan"]
+    for sample, want_fresh in (("fresh", True), ("same", False)):
+        term = bound("vsd", student, teacher, aux_sample=sample)
+        taps = {"student": out["samples"], "condition": cond}
+        term.setup(taps, b)
+        term.own_optimizer()
+        seen = []
+        term.fit_aux = lambda pairs, condition: seen.extend(x for _, x in pairs)  # type: ignore[method-assign]
+        torch.manual_seed(3)
+        term.compute(taps, b)
+        torch.manual_seed(3)
+        with torch.no_grad():
+            fresh = student.generate(cond, torch.randn_like(x0))
+        assert torch.equal(seen[0], fresh) == want_fresh and torch.equal(seen[0], x0) != want_fresh
+        assert student.training  # the mode is restored after the eval-mode sample
+    # the recipe checks the capability: a fresh sample calls the student's generate()
+    from distilkit.objectives.score import VSD
+
+    assert VSD.student_requires(VSD.Params()) == {"generate"}
+    assert VSD.student_requires(VSD.Params(aux_sample="same")) == frozenset()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -134,3 +136,52 @@ def test_distillation_dpo_moves_the_winner_like_vsd_and_the_loser_the_other_way(
     assert all(p.grad is None for p in preds) and win.grad.abs().max() > 0
     with pytest.raises(ValueError, match="same scans"):
         L.distillation_dpo(win, lose[:10], e_tw, e_aw, e_tl, e_al)
+
+
+def test_distillation_dpo_paper_sign_negates_both_gradients() -> None:
+    """Eq. 16-18 as printed push the winner away from the teacher's score: the release's gradient negated."""
+    grads = {}
+    for sign in ("release", "paper"):
+        win, lose = cloud(30, 20).requires_grad_(), cloud(30, 21).requires_grad_()
+        L.distillation_dpo(win, lose, *(cloud(30, s) for s in (22, 23, 24, 25)), sign=sign).backward()
+        grads[sign] = (win.grad, lose.grad)
+    assert torch.equal(grads["paper"][0], -grads["release"][0]) and torch.equal(grads["paper"][1], -grads["release"][1])
+    with pytest.raises(ValueError, match="sign"):
+        L.distillation_dpo(win, lose, *(cloud(30, s) for s in (22, 23, 24, 25)), sign="other")
+
+
+@pytest.mark.parametrize("sign", ["release", "paper"])
+def test_bounded_distillation_dpo_is_diffusion_dpos_log_sigmoid(sign: str) -> None:
+    """beta: (2 / beta) softplus(-beta s Delta) per scene, Delta = r_w - r_l with r = mean w [(eps - eps_aux)^2 -
+    (eps - eps_teacher)^2]; each scene's linear gradient times 2 sigmoid(-beta s Delta) (naive, float64, per scene)."""
+    b, m, beta = 3, 20, 40.0
+    g = torch.Generator().manual_seed(7)
+    rand = lambda: torch.randn(b, m, 3, generator=g, dtype=torch.float64)  # noqa: E731
+    win, lose = rand().requires_grad_(), rand().requires_grad_()
+    e_tw, e_aw, e_tl, e_al, noise_w, noise_l = (rand() for _ in range(6))
+    e_aw = e_aw * 0.3 + noise_w * 0.7  # margins of both signs and several sizes
+    w = torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)
+    loss = L.distillation_dpo(win, lose, e_tw, e_aw, e_tl, e_al, weight=w[:, None, None], sign=sign, beta=beta,
+                              noise_w=noise_w, noise_l=noise_l)
+    loss.backward()
+    s = 1.0 if sign == "release" else -1.0
+    n = win.numel()
+    value = 0.0
+    for i in range(b):
+        def reward(eps, e_t, e_a):
+            return sum(float(w[i]) * (float(eps[i, j, k] - e_a[i, j, k]) ** 2 - float(eps[i, j, k] - e_t[i, j, k]) ** 2)
+                       for j in range(m) for k in range(3)) / (m * 3)
+        margin = s * (reward(noise_w, e_tw, e_aw) - reward(noise_l, e_tl, e_al))
+        value += 2.0 / beta * math.log1p(math.exp(-beta * margin)) / b
+        factor = 2.0 / (1.0 + math.exp(beta * margin))
+        assert torch.allclose(win.grad[i], factor * s * w[i] * (e_tw[i] - e_aw[i]) / n, rtol=1e-12, atol=1e-18)
+        assert torch.allclose(lose.grad[i], -factor * s * w[i] * (e_tl[i] - e_al[i]) / n, rtol=1e-12, atol=1e-18)
+    assert float(loss.detach()) == pytest.approx(value, rel=1e-12)
+    # at a zero margin the bounded gradient is the linear one; far ahead, it vanishes
+    win0 = rand().requires_grad_()
+    L.distillation_dpo(win0, lose.detach(), e_tw, e_aw, e_tw, e_aw, beta=beta, noise_w=noise_w).backward()
+    lin = win0.detach().clone().requires_grad_()
+    L.distillation_dpo(lin, lose.detach(), e_tw, e_aw, e_tw, e_aw).backward()
+    assert torch.allclose(win0.grad, lin.grad, rtol=1e-12)
+    with pytest.raises(ValueError, match="noise_w"):
+        L.distillation_dpo(win, lose, e_tw, e_aw, e_tl, e_al, beta=beta)

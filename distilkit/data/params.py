@@ -227,7 +227,7 @@ class SceneParams(_SensorParams):
     scene_points: int = Field(10240, ge=8, description="points of the dense ground-truth scene (LiDiff: 180,000 = "
                                                        "10 x the scan)")
     frames: int = Field(11, ge=1, description="scans accumulated into the scene (the current one in the middle)")
-    gt_voxel: float = Field(0.2, gt=0, description="the scene keeps one point (the mean) per voxel of this size "
+    gt_voxel: float = Field(0.2, gt=0, description="the map keeps one original point per voxel of this size "
                                                    "(LiDiff's maps: 0.1 m)")
     viewpoint_voxel: float = Field(10.0, gt=0, description="scene points are kept in cells of this size that hold "
                                                            "a scan point (LiDiff: 10 m)")

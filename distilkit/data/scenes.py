@@ -2,16 +2,19 @@
 
 One sample, around the current frame of a drive along the street (SemanticKITTI sensor frame):
 
-* ``scan`` (N, 3): the current scan's static points with 3.5 m < range < ``max_range`` and z > -4 m,
-  tiled and farthest-point-sampled to ``scan_points`` (LiDiff: 18,000);
-* ``scene`` (M, 3): the static points of every scan of the drive (``frames`` of them, the current one in
-  the middle) within ``max_range`` of the current pose and z > -4 m, downsampled to one point (the mean)
-  per ``gt_voxel`` voxel, kept where a ``viewpoint_voxel`` voxel holds a point of the scan (LiDiff's 10 m
-  "viewpoint" crop), randomly permuted and tiled to ``scene_points`` (LiDiff: 180,000 = 10 x 18,000);
-* ``scene_eval`` (E, 3): the ground truth LiDiff *evaluates* against (data_metrics.md §3.2): the same static map
-  points within ``max_range`` of the current pose (3-D distance) with ``min_z`` < z < 4.4 m, one per ``gt_voxel``,
-  kept in the 10 m viewpoint cells of the raw current scan (every point within ``max_range``, moving ones
-  included), neither permuted nor tiled (its length varies).
+* ``scan`` (N, 3): the current scan's static points with 3.5 m < range < ``max_range`` (3-D range, as LiDiff's
+  ``SemanticKITTITemporal``) and z > -4 m, tiled and farthest-point-sampled to ``scan_points`` (LiDiff: 18,000);
+* ``scene`` (M, 3): the map — the static points of every scan of the drive (``frames`` of them, the current one in
+  the middle; each scan's points within 3.5 m of its sensor dropped, as ``map_from_scans.py`` does), one original
+  point per ``gt_voxel`` voxel of the world frame (the first in scan order: MinkowskiEngine's ``sparse_quantize``
+  with ``return_index``, not a mean) — within ``max_range`` of the current pose (3-D) and z > -4 m, kept where a
+  ``viewpoint_voxel`` cell holds a point of the cropped scan before sampling (LiDiff's 10 m "viewpoint" crop: an
+  Open3D ``VoxelGrid`` anchored at the scan's minimum bound less half a cell), randomly permuted and tiled to
+  ``scene_points`` (LiDiff: 180,000 = 10 x 18,000);
+* ``scene_eval`` (E, 3): the ground truth LiDiff *evaluates* against (data_metrics.md §3.2): the same map points
+  within ``max_range`` of the current pose (3-D distance) with ``min_z`` < z < 4.4 m, kept in the 10 m viewpoint
+  cells of the raw current scan (every point within ``max_range``, moving ones included; the grid anchored at that
+  scan's minimum bound), neither permuted nor tiled (its length varies).
 
 Moving objects (raw ids >= 252) and unlabelled points are left out of both, as LiDiff's maps do.
 The batch holds padded clouds with lengths (PyTorch3D's convention): inputs ``scan``/``scan_lengths``,
@@ -32,7 +35,8 @@ from distilkit.data.raycast import ray_directions
 from distilkit.data.cache import cached_samples
 from distilkit.data.synthetic import EGO_LANE_Y, SENSOR_HEIGHT, cast_scan, make_scene
 
-SCENES_VERSION = 2  # 2: the untiled evaluation ground truth ``scene_eval``
+SCENES_VERSION = 3  # 2: the untiled evaluation ground truth ``scene_eval``; 3: LiDiff's crops (3-D range, viewpoint
+# grid at the scan's minimum bound, one original point per map voxel, 3.5 m around each sensor dropped)
 SCENE_FIELDS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths", "scene_eval", "scene_eval_lengths"})
 EVAL_MAX_Z = 4.4  # LiDiff's evaluation keeps -4 < z < 4.4
 
@@ -72,23 +76,31 @@ def tile_to(points: np.ndarray, count: int) -> np.ndarray:
 
 
 def scan_crop(xyz: np.ndarray, min_range: float, max_range: float, min_z: float) -> np.ndarray:
-    r = np.linalg.norm(xyz[:, :2], axis=1)
+    """The points with ``min_range`` < 3-D range < ``max_range`` and z > ``min_z`` (LiDiff's crop: the Euclidean norm
+    of the point, not its distance in the ground plane)."""
+    r = np.linalg.norm(xyz, axis=1)
     return xyz[(r > min_range) & (r < max_range) & (xyz[:, 2] > min_z)]
 
 
-def voxel_mean(xyz: np.ndarray, voxel: float) -> np.ndarray:
-    """One point per occupied voxel: the mean of its points."""
-    keys, inv = np.unique(np.floor(xyz / voxel).astype(np.int64), axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    sums = np.zeros((len(keys), 3), np.float64)
-    np.add.at(sums, inv, xyz)
-    return (sums / np.bincount(inv, minlength=len(keys))[:, None]).astype(np.float32)
+def voxel_first(xyz: np.ndarray, voxel: float, shift: np.ndarray | None = None) -> np.ndarray:
+    """One original point per occupied voxel of ``floor((xyz + shift) / voxel)``: the first one (LiDiff's maps, made
+    with MinkowskiEngine's ``sparse_quantize(..., return_index=True)``, keep points, not means). ``shift`` moves the
+    points into the frame whose grid is meant (the world frame of a map), without moving what is returned."""
+    base = xyz.astype(np.float64) + (0.0 if shift is None else np.asarray(shift, np.float64))
+    _, first = np.unique(np.floor(base / voxel).astype(np.int64), axis=0, return_index=True)
+    return xyz[np.sort(first)]
 
 
 def viewpoint_crop(scene: np.ndarray, scan: np.ndarray, voxel: float) -> np.ndarray:
-    """The scene points inside the ``voxel``-sized cells that hold a scan point."""
+    """The scene points inside the ``voxel``-sized cells that hold a scan point, the cells of an Open3D
+    ``VoxelGrid.create_from_point_cloud(scan, voxel)``: anchored at the scan's minimum bound less half a cell
+    (``check_if_included``)."""
+    if len(scan) == 0:
+        return scene[:0]
+    origin = scan.astype(np.float64).min(axis=0) - voxel / 2
+
     def key(xyz: np.ndarray) -> np.ndarray:
-        k = np.floor(xyz / voxel).astype(np.int64) + 1_000_000
+        k = np.floor((xyz.astype(np.float64) - origin) / voxel).astype(np.int64) + 1_000_000
         return (k[:, 0] * 2_000_001 + k[:, 1]) * 2_000_001 + k[:, 2]
 
     return scene[np.isin(key(scene), key(scan))]
@@ -109,18 +121,19 @@ def make_scene_sample(seed: int, p: SceneParams) -> dict[str, np.ndarray]:
         origin = np.array([x0 + p.ego_speed * j, EGO_LANE_Y, SENSOR_HEIGHT], np.float32)
         s = cast_scan(scene, origin, j, dirs, rng, p.max_range, p.range_noise)
         static = (s.label >= 1) & (s.label < 252)
-        xyz = s.xyz[static] - ego[None, :]  # the current sensor frame (the ego drives along +x, heading 0)
+        near = np.linalg.norm(s.xyz - origin[None, :], axis=1) <= p.min_range  # map_from_scans drops these
+        xyz = s.xyz[static & ~near] - ego[None, :]  # the current sensor frame (the ego drives along +x, heading 0)
         statics.append(xyz)
         if j == cur:
-            scan, raw = xyz, s.xyz - ego[None, :]
-    partial = scan_crop(scan, p.min_range, p.max_range, p.min_z)
-    if len(partial) == 0:
+            scan, raw = s.xyz[static] - ego[None, :], s.xyz - ego[None, :]
+    cropped = scan_crop(scan, p.min_range, p.max_range, p.min_z)
+    if len(cropped) == 0:
         raise ValueError(f"scene seed {seed}: the scan has no static point in range")
-    partial = tile_to(partial, p.scan_points)
+    partial = tile_to(cropped, p.scan_points)
     partial = partial[farthest_point_sample(partial, p.scan_points, int(rng.integers(len(partial))))]
-    world = np.concatenate(statics)
+    world = voxel_first(np.concatenate(statics), p.gt_voxel, ego)  # the map, one point per world-frame voxel
     full = scan_crop(world, 0.0, p.max_range, p.min_z)
-    full = viewpoint_crop(voxel_mean(full, p.gt_voxel), partial, p.viewpoint_voxel)
+    full = viewpoint_crop(full, cropped, p.viewpoint_voxel)  # the grid of the scan before sampling, as LiDiff's
     full = tile_to(full[rng.permutation(len(full))], p.scene_points)[: p.scene_points]
     return {"scan": partial.astype(np.float32), "scene": full.astype(np.float32),
             "scene_eval": evaluation_ground_truth(world, raw, p).astype(np.float32)}
@@ -128,10 +141,9 @@ def make_scene_sample(seed: int, p: SceneParams) -> dict[str, np.ndarray]:
 
 def evaluation_ground_truth(world: np.ndarray, raw_scan: np.ndarray, p: SceneParams) -> np.ndarray:
     """LiDiff's per-scan evaluation ground truth (``get_ground_truth``): map points (here: the static points of the
-    drive, one per ``gt_voxel``) within ``max_range`` of the sensor (3-D), ``min_z`` < z < 4.4, inside the 10 m
-    viewpoint cells of the raw scan's points within ``max_range``."""
-    gt = voxel_mean(world, p.gt_voxel)
-    gt = gt[(np.linalg.norm(gt, axis=1) < p.max_range) & (gt[:, 2] > p.min_z) & (gt[:, 2] < EVAL_MAX_Z)]
+    drive, one per ``gt_voxel``, as :func:`make_scene_sample` makes them) within ``max_range`` of the sensor (3-D),
+    ``min_z`` < z < 4.4, inside the 10 m viewpoint cells of the raw scan's points within ``max_range``."""
+    gt = world[(np.linalg.norm(world, axis=1) < p.max_range) & (world[:, 2] > p.min_z) & (world[:, 2] < EVAL_MAX_Z)]
     view = raw_scan[np.linalg.norm(raw_scan, axis=1) < p.max_range]
     return viewpoint_crop(gt, view, p.viewpoint_voxel)
 

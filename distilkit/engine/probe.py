@@ -34,7 +34,7 @@ def probe_trainer(res: Any, stage_name: str, params: Any, run_dir: Path, batch_s
     aux = [(a, freeze(build_model(a.model, info, f"aux model {a.name!r}").to(device))) for a in stage.aux]
     plan = BatchPlan(len(train_set), batch_size, 0, SINGLE)
     return Trainer(stage, info, train_set, plan, device, collate=entry.meta["collate"], teacher=teacher, world=SINGLE,
-                   prepare=lambda batch: with_aux_inputs(batch.to(device), aux))
+                   prepare=lambda batch: with_aux_inputs(batch.to(device), aux, training=True))
 
 
 __all__ = ["probe_trainer"]

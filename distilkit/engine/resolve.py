@@ -66,6 +66,7 @@ class ResolvedAux:
     which: str
     model: ResolvedModel
     inputs: dict[str, str]  # its tap -> batch input
+    training: bool = True  # also run on training batches (else only in evaluation and publishing)
 
 
 @dataclass
@@ -344,7 +345,7 @@ def resolve_aux(spec: Any, stages: dict[str, ResolvedStage], path: str,
             if tap not in up.student.taps:
                 problems.append((f"{path}.aux.{name}.inputs", f"stage {aux.from_!r}'s {up.student.adapter!r} has no tap "
                                                               f"{tap!r} (it has: {', '.join(up.student.taps)})"))
-        out.append(ResolvedAux(name, aux.from_, aux.which, up.student, inputs))
+        out.append(ResolvedAux(name, aux.from_, aux.which, up.student, inputs, aux.training))
     return out
 
 
@@ -448,7 +449,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
             problems.extend(alignment_problems(distill, models, info, f"{path}.distill"))
         for i, term in enumerate(distill):  # teacher and student capabilities the objective calls
             for role, model, caps in (("teacher", teacher, term.cls.REQUIRES),
-                                      ("student", student, term.cls.STUDENT_REQUIRES)):
+                                      ("student", student, term.cls.student_requires(term.params))):
                 for cap in sorted(caps):
                     if model is not None and not callable(getattr(model.cls, cap, None)):
                         problems.append((f"{path}.distill[{i}]", f"{term.name} calls the {role}'s {cap}(), which "

@@ -58,8 +58,10 @@ def read_summary(run_dir: Path) -> dict[str, Any] | None:
     return summary if summary.get("status") == "finished" else None
 
 
-def with_aux_inputs(batch: Any, aux: list[tuple[Any, Any]]) -> Any:
-    """``batch`` with the inputs the frozen auxiliary models give: each (resolved aux, model)'s taps under no_grad."""
+def with_aux_inputs(batch: Any, aux: list[tuple[Any, Any]], training: bool = False) -> Any:
+    """``batch`` with the inputs the frozen auxiliary models give: each (resolved aux, model)'s taps under no_grad
+    (for a ``training`` batch, only those of the auxiliary models that run in training)."""
+    aux = [(spec, model) for spec, model in aux if spec.training or not training]
     if not aux:
         return batch
     added: dict[str, Any] = {}
@@ -171,8 +173,13 @@ class StageRun:
         return LabelOverlay(data, store, labels.field, labels.keep, self.info.classes.ignore_index, labels.unlabelled)
 
     def prepare(self, batch: Any) -> Any:
-        """A batch on the device, with the inputs the auxiliary models give (their taps, under no_grad)."""
+        """A batch to evaluate or publish on the device, with the inputs the auxiliary models give (their taps, under
+        no_grad)."""
         return with_aux_inputs(batch.to(self.device), self.aux)
+
+    def prepare_training(self, batch: Any) -> Any:
+        """A training batch on the device, with the inputs the auxiliary models that run in training give."""
+        return with_aux_inputs(batch.to(self.device), self.aux, training=True)
 
     def load_aux(self) -> None:
         """The frozen auxiliary models (``aux``), each from its stage's checkpoint (once)."""
@@ -199,7 +206,7 @@ class StageRun:
         train_set = self.split("train")
         plan = BatchPlan(len(train_set), self.spec.batch_size, self.seed, self.world)
         self.trainer = Trainer(self.stage, self.info, train_set, plan, self.device, collate=self.pipeline.collate,
-                               teacher=teacher, init_weights=init, world=self.world, prepare=self.prepare)
+                               teacher=teacher, init_weights=init, world=self.world, prepare=self.prepare_training)
         self.trainer.kept = self.checkpoints.kept
         return self.trainer
 
@@ -242,7 +249,7 @@ class StageRun:
         batches = train_batches(trainer.train_set, trainer.plan, trainer.collate, loop.step, stop, self.workers)
         for batch in batches:
             loop.emit("before_step")
-            values = trainer.train_step(self.prepare(batch), loop.step)
+            values = trainer.train_step(self.prepare_training(batch), loop.step)
             loop.values = {**values, "lr": trainer.optimizer.param_groups[0]["lr"]}
             loop.step += 1
             loop.evaluated = False

@@ -130,9 +130,11 @@ class _WeightedCEParams(_WeightedParams):
 
 
 class _ClassWeighted(TaskLoss):
-    """A voxel loss with class weights from the training split's voxel counts (computed once, in ``prepare``)."""
+    """A voxel loss with class weights from the training split's counts of ``COUNTED`` (computed once, in
+    ``prepare``, over the labels the stage trains on: a label overlay's pseudo-labels, not the data's own)."""
 
     CONSUMES = {"student": "voxel_logits"}
+    COUNTED = "voxel_label"
 
     def __init__(self, params: _WeightedParams) -> None:
         super().__init__(params)
@@ -145,7 +147,7 @@ class _ClassWeighted(TaskLoss):
         from distilkit.data.stats import label_counts
         from distilkit.losses.ssc import log_frequency_weights
 
-        voxel, _ = label_counts(train_set, self.num_classes)  # sized by the data's class table
+        voxel, _ = label_counts(train_set, self.num_classes, self.COUNTED)  # sized by the data's class table
         present = voxel > 0
         w = log_frequency_weights(voxel.clamp_min(1), self.params.scale)
         self.weight = w.masked_fill(~present, float(w[present].max()) if bool(present.any()) else 1.0).to(self.weight)
@@ -164,11 +166,22 @@ class WeightedCE(_ClassWeighted):
         return weighted_ce(taps["student"], taps["target"], weight, self.params.normalize, self.ignore_index)
 
 
-class PartialCE(_ClassWeighted):
-    """Scribble2Scene's partial CE (the Dean-Labeler's loss): CE over the voxels a scribble labels with a class."""
+class _PartialParams(_WeightedParams):
+    class_weights: Literal["none", "log_frequency"] = Field(
+        "none", description="none: unweighted, as Scribble2Scene eq. 1 (default); log_frequency: scale / ln(f_c + "
+                            "0.001) with f_c counted over the training split's scribbled voxels only (never the "
+                            "dense labels)")
 
-    Params = _WeightedParams
+
+class PartialCE(_ClassWeighted):
+    """Scribble2Scene's partial CE (the Dean-Labeler's loss, eq. 1): the unweighted mean CE over the voxels a scribble
+    labels with a class. Optional class weights count scribbles only, so the scribble setting never reads dense
+    labels."""
+
+    Params = _PartialParams
     BATCH = {"target": "scribble"}
+    COUNTED = "scribble"
+    VERSION = 2  # 2: unweighted by default (was: weights from the dense labels' counts)
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.losses.ssc import partial_ce

@@ -11,35 +11,46 @@ from torch import Tensor, nn
 
 from distilkit.data.batch import Batch
 from distilkit.losses.dpo import distillation_dpo
-from distilkit.metrics.points import chamfer_distance, jsd_bev
+from distilkit.metrics.points import chamfer_distance, jsd_3d, jsd_bev
 from distilkit.objectives.base import register_objective
 from distilkit.objectives.score import VSD, VSDParams
 from distilkit.structures import PointCloud
 
-RANKINGS = {"chamfer": chamfer_distance, "jsd": jsd_bev}  # lower is better
+RANKINGS = {"chamfer": chamfer_distance, "jsd": jsd_bev, "jsd_3d": jsd_3d}  # lower is better
 
 
 class DPOParams(VSDParams):
     noise_scale: float = Field(1.1, gt=0, description="the second completion starts from this multiple of the first "
                                                       "one's noise (the released code: 1.1)")
-    rank_by: Literal["chamfer", "jsd"] = Field(
+    rank_by: Literal["chamfer", "jsd", "jsd_3d"] = Field(
         "chamfer", description="the completion with the lower value against the ground-truth scene wins: LiDiff's "
-                               "Chamfer distance or BEV Jensen-Shannon distance (the released code's Sinkhorn 'EMD' "
-                               "is left out: it is degenerate)")
+                               "Chamfer distance (the released code's ranking), its BEV Jensen-Shannon distance, or the "
+                               "3-D point-count one (jsd_3d: the released code's calc_jsd)")
+    sign: Literal["release", "paper"] = Field(
+        "release", description="release: the winner moves towards the teacher's score and the loser away (the released "
+                               "DistillationDPO.py, lines 485-486; it distils); paper: eq. 16-18 as printed, both "
+                               "gradients negated (distilkit.losses.distillation_dpo states the conflict)")
+    beta: float | None = Field(
+        None, gt=0, description="None: the linear surrogate (the release; unbounded in the log-ratios); beta > 0: "
+                                "Diffusion-DPO's log-sigmoid with this beta on the implicit-reward margin, bounded: its "
+                                "gradient vanishes once the winner leads by much more than 1 / beta")
 
 
 class DistillationDPO(VSD):
     """Each step: the student's ``samples`` (from its ``start_noise`` eps) and a second completion of the same scans
     from ``noise_scale`` eps (the student's ``generate``); per scene the one closer to the ground truth (``rank_by``)
-    is the winner. Two auxiliary score networks (LoRAs of the teacher, one optimizer) fit the winners and the losers
-    (eq. 5, before the student's step by default); both are re-noised with one t and eps, and
-    :func:`distilkit.losses.distillation_dpo` moves the winner towards the teacher's score and away from its
-    auxiliary network's, the loser the other way (the intended gradient: the released loss's is 0)."""
+    is the winner. Two auxiliary score networks (copies of the teacher, as the release; ``aux: lora`` for LoRAs; one
+    optimizer) fit winners and losers of a fresh pair the student generates without gradient (the release's aux step;
+    ``aux_sample: same``: this step's pair), before the student's step by default; the student's winner and loser are
+    re-noised with one t and eps, and :func:`distilkit.losses.distillation_dpo` moves the winner towards the
+    teacher's score and away from its auxiliary network's, the loser the other way (``sign: release``, the code's
+    choice; ``sign: paper`` is eq. 16-18 as printed, the opposite), linearly or bounded by ``beta``."""
 
     Params = DPOParams
     CONSUMES = {"student": "points", "noise": "points"}
     BATCH = {"condition": "scan", "target": "scene", "target_lengths": "scene_lengths"}
     STUDENT_REQUIRES = frozenset({"generate"})
+    VERSION = 2  # 2: copies as auxiliary networks fitted on a fresh pair; sign and beta
 
     def setup(self, taps: dict[str, Any], batch: Batch) -> None:
         super().setup(taps, batch)
@@ -58,6 +69,16 @@ class DistillationDPO(VSD):
         pick = first_wins[:, None, None]
         return torch.where(pick, first, second), torch.where(pick, second, first), first_wins
 
+    def fit_pair(self, winner: Tensor, loser: Tensor, taps: dict[str, Any]) -> None:
+        """The auxiliary networks' step: on a fresh pair of the student (``aux_sample: fresh``, the release) ranked
+        like the student's own, or on the given one."""
+        if self.params.aux_sample == "fresh":
+            cond = taps["condition"]
+            noise = torch.randn_like(winner)
+            first, second = self.fresh(noise, cond), self.fresh(self.params.noise_scale * noise, cond)
+            winner, loser, _ = self.pair(first, second, PointCloud(taps["target"], taps["target_lengths"]))
+        self.fit_aux([(self.aux, winner.detach()), (self.aux_loser, loser.detach())], taps["condition"])
+
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         student = self.context.student  # type: ignore[union-attr]  (its generate(): checked by the recipe)
         first = taps["student"].points
@@ -65,7 +86,7 @@ class DistillationDPO(VSD):
         winner, loser, first_wins = self.pair(first, second, PointCloud(taps["target"], taps["target_lengths"]))
         self._win_rate.append(float(first_wins.float().mean()))
         if self.params.aux_update == "before":
-            self.fit_aux([(self.aux, winner), (self.aux_loser, loser)], taps["condition"])
+            self.fit_pair(winner, loser, taps)
         self._pending = (winner.detach(), loser.detach())
         with torch.no_grad():
             x_w, t, eps = self._noised(winner.detach())
@@ -73,12 +94,13 @@ class DistillationDPO(VSD):
             teacher, cond = self.context.teacher, taps["condition"]  # type: ignore[union-attr]
             preds = (teacher.predict_noise(x_w, t, cond), self.aux.predict_noise(x_w, t, cond),
                      teacher.predict_noise(x_l, t, cond), self.aux_loser.predict_noise(x_l, t, cond))
-        return distillation_dpo(winner, loser, *preds, weight=self._weight(t))
+        return distillation_dpo(winner, loser, *preds, weight=self._weight(t), sign=self.params.sign,
+                                beta=self.params.beta, noise_w=eps)
 
     def update(self, step: int, batch: Batch, taps: dict[str, Any]) -> dict[str, float]:
         if self.params.aux_update == "after":
             winner, loser = self._pending
-            self.fit_aux([(self.aux, winner), (self.aux_loser, loser)], taps["condition"])
+            self.fit_pair(winner, loser, taps)
         values, self._aux_losses = self._aux_losses, []
         rate, self._win_rate = self._win_rate, []
         out = {"dpo_first_wins": sum(rate) / len(rate)} if rate else {}
@@ -87,9 +109,12 @@ class DistillationDPO(VSD):
 
 register_objective("distillation_dpo", DistillationDPO,
                    description="Distillation-DPO: winner/loser pairs of the student's completions from eps and 1.1 eps, "
-                               "two auxiliary score networks, VSD towards the winner and away from the loser",
+                               "two auxiliary score networks, VSD towards the winner and away from the loser (the "
+                               "release's sign; the paper's eq. 16-18 print the opposite: sign: paper), linear or "
+                               "bounded (beta)",
                    paper="Distillation-DPO (Zhang et al., arXiv 2504.11447), ScoreLiDAR's successor",
-                   equation="∇ = w(t)[(ε_T − ε_aux,w)(x_t^w) ∂x_w/∂θ − (ε_T − ε_aux,l)(x_t^l) ∂x_l/∂θ], winner = lower "
-                            "CD to the ground truth",
+                   equation="∇ = s w(t)[(ε_T − ε_aux,w)(x_t^w) ∂x_w/∂θ − (ε_T − ε_aux,l)(x_t^l) ∂x_l/∂θ], s = +1 "
+                            "(release) or −1 (paper eq. 16-18), times 2σ(−β s Δ) with beta; winner = lower CD to the "
+                            "ground truth",
                    shapes="student samples and their start noise: points (B, M, 3); condition: the batch's scan; "
                           "target: its scene; teacher: predict_noise; student: generate")

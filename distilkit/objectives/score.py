@@ -17,10 +17,13 @@ from distilkit.structures import PointCloud
 
 class VSDParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    aux: Literal["lora", "copy"] = Field("lora", description="the auxiliary score network: a LoRA of the teacher's "
-                                                            "denoiser (the paper) or a full copy (the released code)")
-    rank: int = Field(8, ge=1, description="LoRA rank (neither the paper nor the released code gives one: the code "
-                                           "trains a full copy; 8 and the scale alpha / rank = 1 are distilkit's)")
+    aux: Literal["copy", "lora"] = Field(
+        "copy", description="the auxiliary score network: a full copy of the teacher initialised from it (ScoreLiDAR "
+                            "appendix A.3 and its released code; default) or a LoRA of the teacher's denoiser "
+                            "(distilkit's cheaper option: §4.1 names LoRA as one possible parametrisation, as "
+                            "ProlificDreamer does, but neither the paper's experiments nor the code use one)")
+    rank: int = Field(8, ge=1, description="LoRA rank with aux: lora (no source gives one: 8 and the scale alpha / "
+                                           "rank = 1 are distilkit's)")
     aux_lr: float = Field(3e-5, gt=0, description="learning rate of the auxiliary network (ScoreLiDAR: SGD 3e-5)")
     aux_optimizer: Literal["sgd", "adam"] = "sgd"
     aux_steps: int = Field(1, ge=1, description="auxiliary steps per student step (ScoreLiDAR: 1, alternating)")
@@ -33,6 +36,10 @@ class VSDParams(BaseModel):
         "before", description="the auxiliary network's steps come before the student's (the released code: optimizer "
                               "0 then 1 on every batch, so the first student step already sees a fitted network) or "
                               "after it")
+    aux_sample: Literal["fresh", "same"] = Field(
+        "fresh", description="what the auxiliary network fits: a fresh sample of the student from new noise, drawn "
+                             "without gradient (the released code: its aux step generates its own samples; needs the "
+                             "student's generate) or the very samples it is then queried on")
 
 
 class VSD(MultiTapObjective):
@@ -42,9 +49,11 @@ class VSD(MultiTapObjective):
     x_t = x0 + sigma_t eps; the frozen teacher's and the auxiliary network's noise predictions at x_t (both
     conditional, no guidance, no gradient); the loss :func:`distilkit.losses.vsd` whose gradient is
     w(t) (eps_teacher - eps_aux) / numel. Before the student's step (``aux_update``; or after it), the auxiliary
-    network (a LoRA of the teacher's denoiser, or a copy) takes ``aux_steps`` denoising steps (eq. 5) on the
-    detached samples with its own optimizer. The teacher must offer ``predict_noise(x_t, t, condition)`` and
-    ``alphas_cumprod``.
+    network takes ``aux_steps`` denoising steps (eq. 5) with its own optimizer on a fresh sample of the student
+    (``aux_sample``: generated from new noise without gradient, as the released code's aux step does; or on the
+    detached samples themselves). The auxiliary network is a full copy of the teacher initialised from it
+    (appendix A.3, the released code) unless ``aux: lora`` (distilkit's option). The teacher must offer
+    ``predict_noise(x_t, t, condition)`` and ``alphas_cumprod``; a fresh sample needs the student's ``generate``.
     """
 
     Params = VSDParams
@@ -53,6 +62,13 @@ class VSD(MultiTapObjective):
     BATCH = {"condition": "scan"}
     REQUIRES = frozenset({"predict_noise"})
     DEFAULT_WEIGHT = 1.0
+    VERSION = 2  # 2: a full copy as the auxiliary network, fitted on a fresh student sample (the released code)
+
+    @classmethod
+    def student_requires(cls, params: BaseModel) -> frozenset[str]:
+        """``generate`` for a fresh auxiliary sample, beside what the class always calls."""
+        fresh = frozenset({"generate"}) if getattr(params, "aux_sample") == "fresh" else frozenset()
+        return cls.STUDENT_REQUIRES | fresh
 
     def setup(self, taps: dict[str, Any], batch: Batch) -> None:
         assert self.context is not None and self.context.teacher is not None, "bound to a teacher before setup"
@@ -97,6 +113,18 @@ class VSD(MultiTapObjective):
             eps_teacher = self.context.teacher.predict_noise(x_t, t, condition)  # type: ignore[union-attr]
             return eps_teacher, aux.predict_noise(x_t, t, condition), t
 
+    def fresh(self, noise: Tensor, condition: Tensor) -> Tensor:
+        """The student's sample from ``noise``, without gradient and in evaluation mode (the released code's aux
+        step: ``generator.eval()`` under ``no_grad``)."""
+        student = self.context.student  # type: ignore[union-attr]  (its generate(): checked by the recipe)
+        was = student.training
+        student.eval()
+        try:
+            with torch.no_grad():
+                return student.generate(condition, noise)
+        finally:
+            student.train(was)
+
     def fit_aux(self, pairs: list[tuple[nn.Module, Tensor]], condition: Tensor) -> None:
         """``aux_steps`` denoising steps (eq. 5) of each auxiliary network on its detached samples, one optimizer
         step for all of them."""
@@ -115,23 +143,28 @@ class VSD(MultiTapObjective):
             self.opt.step()
             self._aux_losses.append(total / len(pairs))
 
+    def aux_samples(self, x0: Tensor, condition: Tensor) -> Tensor:
+        """What the auxiliary network fits this step (``aux_sample``)."""
+        return self.fresh(torch.randn_like(x0), condition) if self.params.aux_sample == "fresh" else x0
+
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         x0 = taps["student"].points
         if self.params.aux_update == "before":
-            self.fit_aux([(self.aux, x0)], taps["condition"])
+            self.fit_aux([(self.aux, self.aux_samples(x0, taps["condition"]))], taps["condition"])
         eps_teacher, eps_aux, t = self._predictions(self.aux, x0, taps["condition"])
         return vsd(x0, eps_teacher, eps_aux, self._weight(t))
 
     def update(self, step: int, batch: Batch, taps: dict[str, Any]) -> dict[str, float]:
         if self.params.aux_update == "after":
-            self.fit_aux([(self.aux, taps["student"].points)], taps["condition"])
+            x0 = taps["student"].points
+            self.fit_aux([(self.aux, self.aux_samples(x0, taps["condition"]))], taps["condition"])
         values, self._aux_losses = self._aux_losses, []
         return {"vsd_aux_loss": sum(values) / len(values)} if values else {}
 
 
-register_objective("vsd", VSD, description="variational score distillation with an auxiliary (LoRA) score network "
-                                           "trained on the student's samples",
+register_objective("vsd", VSD, description="variational score distillation with an auxiliary score network (a copy "
+                                           "of the teacher, or a LoRA) trained on the student's samples",
                    paper="ScoreLiDAR (Zhang et al., ICCV 2025), eq. 7-11; ProlificDreamer's VSD",
                    equation="∇ = w(t) (ε_teacher(x_t, t, c) − ε_aux(x_t, t, c)) ∂x0/∂θ, x_t = x0 + σ_t ε; ε_aux trained "
-                            "with eq. 5 on sg(x0), 1:1, before the student's step",
+                            "with eq. 5 on a fresh student sample, 1:1, before the student's step",
                    shapes="student samples: points (B, M, 3); condition: the batch's scan; teacher: predict_noise")

@@ -41,7 +41,10 @@ class LiDiffParams(BaseModel):
                                                    "ScoreLiDAR: 3.5; 1 = the conditional prediction alone)")
     postprocess: bool = Field(True, description="LiDiff's post-processing of the evaluated completion: keep points "
                                                 "within 50 m whose height lies in (mean - 2 std, max) of the scan's")
-    uncond_prob: float = Field(0.1, ge=0, le=1, description="share of training scenes with the condition dropped")
+    uncond_prob: float = Field(0.1, ge=0, le=1, description="probability that the condition is dropped (LiDiff: 0.1)")
+    uncond_per: Literal["batch", "scene"] = Field(
+        "batch", description="batch: one draw per training batch drops every scene's condition (LiDiff's "
+                             "training_step); scene: one draw per scene. A batch of one scene always keeps it (LiDiff)")
     generate_steps: int = Field(0, ge=0, description="0: training denoises noised scenes (LiDiff); n > 0: training "
                                                      "generates ``samples`` in n sampler steps with their gradient "
                                                      "(a few-step student, ScoreLiDAR: 1)")
@@ -58,7 +61,7 @@ class LiDiffAdapter(Adapter):
     TAPS = {"eps_pred": "points", "eps": "points", "samples": "points", "start_noise": "points", "completion": "points"}
     PREDICTION_TAP = "completion"
     DEFAULT_TASK_LOSSES = [{"name": "lidiff", "taps": {"student": "eps_pred", "noise": "eps"}}]
-    VERSION = 2  # 2: n sampler steps are n network evaluations (none at t = 0)
+    VERSION = 3  # 2: n sampler steps are n network evaluations (none at t = 0); 3: the condition dropped per batch
 
     def __init__(self, params: LiDiffParams, info: DataInfo) -> None:
         super().__init__(params, info)
@@ -188,7 +191,8 @@ class LiDiffAdapter(Adapter):
         eps = torch.randn_like(x0)
         x_t = x0 + self.sigma(t)[:, None, None] * eps
         if b > 1 and self.params.uncond_prob > 0:  # conditional dropout (LiDiff keeps B = 1 conditional)
-            drop = torch.rand(b, device=x0.device) < self.params.uncond_prob
+            draws = 1 if self.params.uncond_per == "batch" else b
+            drop = (torch.rand(draws, device=x0.device) < self.params.uncond_prob).expand(b)
             scan = torch.where(drop[:, None, None], torch.zeros_like(scan), scan)
         eps_pred = self.net(x_t, t, scan)
         return {"eps_pred": PointCloud(eps_pred, lengths), "eps": PointCloud(eps, lengths)}

@@ -2,16 +2,22 @@
 six offsets per point of a diffusion completion (Linear(C -> 20), LeakyReLU, Linear(20 -> 18), tanh: each offset
 in [-1, 1] m), so the refined scene holds 6x the points, trained with the Chamfer distance against the ground truth.
 
-Its input ``coarse`` is the completion of a frozen LiDiff model given as an auxiliary model of the stage
-(``aux: {diffusion: {from: teacher, inputs: {completion: coarse}}}``): the refiner trains on the diffusion model's
-own completions, and an evaluation stage with another auxiliary model (the teacher at other steps, a distilled
-student) scores that model refined. LiDiff's MinkUNet is replaced by per-point MLPs with a k-nearest-neighbour
-edge descriptor of the completion itself, computed in chunks so that a 180,000-point completion fits in memory.
+What it trains on (``train_on``): LiDiff trains its refinement on the aggregated ground truth jittered by Gaussian
+noise (sigma 0.2 m, clipped at 0.3 m; ``SemanticKITTITemporalAggr.py``), not on a diffusion model's output, so the
+refiner learns to densify and denoise any completion rather than one teacher's errors — the default,
+``jittered-ground-truth``, from the batch's tiled ground-truth scene ``scene``. ``completions`` trains on the
+completions of a frozen LiDiff model given as an auxiliary model (``aux: {diffusion: {from: teacher, inputs:
+{completion: coarse}}}``; distilkit's earlier behaviour). Either way, evaluation refines the auxiliary model's
+completion ``coarse``: with ground-truth training, the auxiliary model need not run on training batches
+(``training: false`` on the aux edge), and an evaluation stage with another auxiliary model (the teacher at other
+steps, a distilled student) scores that model refined. LiDiff's MinkUNet is replaced by per-point MLPs with a
+k-nearest-neighbour edge descriptor of the completion itself, computed in chunks so that a 180,000-point completion
+fits in memory.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -35,6 +41,12 @@ class RefineParams(BaseModel):
     max_offset: float = Field(1.0, gt=0, description="offsets lie in [-max_offset, max_offset] per axis (LiDiff: "
                                                      "tanh, 1 m)")
     chunk: int = Field(32768, ge=1, description="points per chunk of the descriptor (bounds memory, not results)")
+    train_on: Literal["jittered-ground-truth", "completions"] = Field(
+        "jittered-ground-truth", description="training input: the ground-truth scene with clipped Gaussian jitter "
+                                             "(LiDiff's refinement training; default) or an auxiliary LiDiff model's "
+                                             "completions (the aux input coarse)")
+    jitter_sigma: float = Field(0.2, gt=0, description="jitter standard deviation, metres (LiDiff: 0.2)")
+    jitter_clip: float = Field(0.3, gt=0, description="jitter clipped to [-clip, clip] per axis, metres (LiDiff: 0.3)")
 
 
 class PointRefiner(nn.Module):
@@ -67,11 +79,18 @@ class LiDiffRefineAdapter(Adapter):
     ``offsets`` x as many points; the ``refine_cloud`` capability refines a completion for ``distilkit complete``."""
 
     Params = RefineParams
-    INPUTS = frozenset({"coarse"})
+    INPUTS = frozenset({"coarse", "scene", "scene_lengths"})
     TAPS = {"refined": "points", "completion": "points"}
     PREDICTION_TAP = "completion"
     DEFAULT_TASK_LOSSES = [{"name": "chamfer", "taps": {"student": "refined"}}]
-    VERSION = 1
+    VERSION = 2  # 2: trained on jittered ground truth by default (LiDiff)
+
+    @classmethod
+    def inputs(cls, params: BaseModel) -> frozenset[str]:
+        """``coarse`` (an auxiliary model's completion, refined in evaluation), and the ground-truth ``scene`` when
+        training on it."""
+        jitter = getattr(params, "train_on") == "jittered-ground-truth"
+        return cls.INPUTS if jitter else frozenset({"coarse"})
 
     def __init__(self, params: RefineParams, info: DataInfo) -> None:
         super().__init__(params, info)
@@ -96,8 +115,21 @@ class LiDiffRefineAdapter(Adapter):
             pts = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32)).to(device)
             return (pts[:, None, :] + self.net(pts)).reshape(-1, 3).cpu().numpy()
 
+    def jittered(self, batch: Batch) -> PointCloud:
+        """The batch's ground-truth scenes, each point moved by N(0, sigma^2) per axis clipped to +-clip (LiDiff's
+        ``jitter_point_cloud(sigma=0.2, clip=0.3)``)."""
+        scene = PointCloud(batch.field("scene"), batch.field("scene_lengths"))
+        noise = (torch.randn_like(scene.points) * self.params.jitter_sigma).clamp(-self.params.jitter_clip,
+                                                                                   self.params.jitter_clip)
+        return PointCloud(scene.points + noise, scene.lengths)
+
     def forward(self, batch: Batch) -> dict[str, Any]:
-        coarse = batch.inputs["coarse"]
+        if self.training and self.params.train_on == "jittered-ground-truth":
+            return {"refined": self.refine(self.jittered(batch))}
+        coarse = batch.inputs.get("coarse")
+        if coarse is None:
+            raise ValueError("lidiff-refine refines the batch input 'coarse' (a frozen LiDiff model's completion: give "
+                             "the stage `aux: {NAME: {from: STAGE, inputs: {completion: coarse}}}`)")
         if not isinstance(coarse, PointCloud):
             raise TypeError(f"lidiff-refine's input 'coarse' must be a point cloud (an auxiliary LiDiff model's "
                             f"completion), got {type(coarse).__name__}")
@@ -106,6 +138,6 @@ class LiDiffRefineAdapter(Adapter):
 
 
 ADAPTERS.add("lidiff-refine", LiDiffRefineAdapter,
-             description="LiDiff's refinement: six offsets per point of a diffusion completion (Chamfer-trained), "
-                         "on the completion of a frozen auxiliary LiDiff model",
+             description="LiDiff's refinement: six offsets per point of a diffusion completion (Chamfer-trained on "
+                         "jittered ground truth, or on a frozen auxiliary LiDiff model's completions)",
              paper="Nunes et al., LiDiff, CVPR 2024 (models_refine.py)", consumes=tuple(LiDiffRefineAdapter.TAPS.values()))
