@@ -81,7 +81,23 @@ def objectives_markdown() -> str:
                 out.append(f"| `{name}` | `{json.dumps(prop.get('default'))}` | {prop.get('description', '')} |")
             out.append("")
         out += ["```yaml", "distill:", f"  - {{name: {e.name}, weight: {e.meta['default_weight']:g}}}", "```", ""]
-    return "\n".join(out)
+    return "\n".join(out + choices_markdown())
+
+
+def choices_markdown() -> list[str]:
+    """The table of every registered component's choices (:mod:`distilkit.choices`)."""
+    from distilkit.choices import component_choices
+
+    out = ["## Choices: where distilkit, the papers and the released code differ", "",
+           "Every registered component lists the details where its paper and its authors' code disagree, or where",
+           "neither pins one down: distilkit's default, what each source says, and the switch to the other",
+           "behaviour where there is one (each also stated in the component's docstring).", "",
+           "| component | topic | distilkit's default | the paper | the released code | the other way |",
+           "|---|---|---|---|---|---|"]
+    for kind, name, c in component_choices():
+        out.append(f"| {kind} `{name}` | {_cell(c.topic)} | {_cell(c.default)} | {_cell(c.paper)} | {_cell(c.code)} | "
+                   f"{_cell(c.option) or '—'} |")
+    return out + [""]
 
 
 def _cell(text: str) -> str:

@@ -56,6 +56,7 @@ class Term(nn.Module, ABC):
     OPTIONAL: ClassVar[frozenset[str]] = frozenset()  # tap roles used only when the recipe names a tap
     # role -> the batch field read for it, or candidates in order of preference (the first the data provides)
     BATCH: ClassVar[dict[str, str | tuple[str, ...]]] = {}
+    BATCH_HINTS: ClassVar[dict[str, str]] = {}  # role -> what to do when the data lacks its field (validate says it)
     REQUIRES: ClassVar[frozenset[str]] = frozenset()  # teacher capabilities called through the context
     STUDENT_REQUIRES: ClassVar[frozenset[str]] = frozenset()  # student capabilities called through the context
     DEFAULT_WEIGHT: ClassVar[float] = 1.0

@@ -257,3 +257,51 @@ def test_class_weighted_losses_follow_semanticposs_twelve_classes(exported, tmp_
     results = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     for result in results:
         assert len(result.summary["classes"]["names"]) == 12 and 0 <= result.summary["test"]["best"]["miou"] <= 1
+
+
+def test_scribblesc_scribbles_round_trip_through_the_folder_dataset(exported) -> None:
+    """export-kitti writes ScribbleSC's layout (scribblesc/sequences/NN/voxels/*.label: raw ids of scribbled voxels,
+    0 elsewhere); semantickitti-ssc reads it as `scribble` (classes, 254 occupied-unscribbled, 0 empty, 255 invalid)."""
+    from distilkit.data.classes import IGNORE_INDEX, SCRIBBLE_UNLABELLED, remap, ssc_lut
+    from distilkit.registry import DATASETS
+
+    path = exported / "scribblesc" / "sequences" / "08" / "voxels" / "000005.label"
+    raw = sk.read_voxel_labels(path)
+    dense_raw = sk.read_voxel_labels(exported / "sequences" / "08" / "voxels" / "000005.label")
+    assert raw.dtype == np.uint16 and 0 < (raw > 0).sum() < (dense_raw > 0).sum() and not (raw[dense_raw == 0]).any()
+    entry = DATASETS.entry("semantickitti")
+    ds = entry.obj(entry.meta["params"](root=str(exported), train=["08"], val=None, scribbles="scribblesc"), "train")
+    sample = ds[[ds.sample_id(i) for i in range(len(ds))].index("08/000005")]
+    dense = remap(dense_raw, ssc_lut())
+    inv = sk.read_voxel_bits(exported / "sequences" / "08" / "voxels" / "000005.invalid")
+    want = np.where((dense != 0) & (dense != IGNORE_INDEX), SCRIBBLE_UNLABELLED, 0)
+    want = np.where(raw != 0, remap(raw, ssc_lut()), want)
+    want = np.where(inv, IGNORE_INDEX, want)
+    assert np.array_equal(sample["scribble"], want)
+    labelled = (want != 0) & (want != SCRIBBLE_UNLABELLED) & (want != IGNORE_INDEX)
+    assert labelled.any() and (want == SCRIBBLE_UNLABELLED).any()
+    assert "scribble" in entry.meta["info"](ds.p).fields
+    coarse = entry.obj(entry.meta["params"](root=str(exported), train=["08"], val=None, scribbles="scribblesc",
+                                            scale=4), "train")[0]["scribble"]
+    assert coarse.shape == (64, 64, 8) and ((coarse > 0) & (coarse < 20)).any()
+
+
+def test_a_term_that_needs_scribbles_is_refused_without_them(exported, tmp_path, capsys) -> None:
+    """RGO²D's class centres never fall back to the dense labels: validate names the missing scribbles (exit 2)."""
+    import yaml
+
+    recipe = folder_recipe(exported, train=["00"], val=["08"], scale=4)
+    recipe["stages"]["student"] = {**recipe["stages"]["scpnet"], "teacher": {"from": "scpnet"},
+                                   "distill": [{"name": "rgo2d"}]}
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    assert main(["validate", str(path), "--no-memory"]) == 2
+    err = capsys.readouterr()
+    assert "'scribble'" in err.err + err.out and "scribbles: FOLDER" in err.err + err.out
+    recipe["data"]["params"]["scribbles"] = "scribblesc"
+    path.write_text(yaml.safe_dump(recipe))
+    assert main(["validate", str(path), "--no-memory"]) == 0
+    recipe["data"]["params"].pop("scribbles")
+    recipe["stages"]["student"]["distill"] = [{"name": "rgo2d", "taps": {"labels": "voxel_target"}}]
+    path.write_text(yaml.safe_dump(recipe))
+    assert main(["validate", str(path), "--no-memory"]) == 0  # the dense labels, when asked for by name

@@ -384,7 +384,7 @@ def test_the_objectives_compute_their_functions_with_the_data_ignore_label(g) ->
     from distilkit.term import TermContext
 
     s, t, labels, mask = _rgo_inputs(g)
-    batch = Batch({}, {"voxel_target": labels}, {"size": 2})
+    batch = Batch({}, {"voxel_target": labels, "scribble": labels}, {"size": 2})
     info = DataInfo(None, replace(ClassTable.semantickitti(), ignore_index=2))
     for name, fn in (("cleaners", lambda: L.cleaners(s, t, labels, ignore_index=2)),
                      ("rgo2d", lambda: L.rgo2d(s, t, labels, (labels != 2) & (labels != 0), ignore_index=2)),

@@ -144,7 +144,17 @@ def test_the_scribble2scene_table_varies_the_camera_student_of_its_recipe(tmp_pa
     recipe = sweep.sweep.recipes["rgo2d"]
     stage = recipe.stages["rgo2d"]
     assert stage.model.adapter == "voxformer" and stage.labels.from_ == "dean" and stage.teacher.from_ == "teacher_labeler"
-    assert {"global", "local", "no_range", "no_feature", "kd", "mgd", "dist", "cleaners"} <= set(sweep.sweep.recipes)
+    assert {"no_global", "no_local", "no_range", "no_feature", "kd", "mgd", "dist", "cleaners"} <= set(sweep.sweep.recipes)
+    # Table 6 removes one item at a time: every ablation but no_feature keeps the feature term (its taps)
+    for name in ("no_global", "no_local", "no_range"):
+        (term,) = sweep.sweep.recipes[name].stages[name].distill
+        assert term.name == "rgo2d" and term.taps.get("student_features") == "image_features", name
+        assert "feature_weight" not in term.params  # the default 0.6
+    (no_feature,) = sweep.sweep.recipes["no_feature"].stages["no_feature"].distill
+    assert "student_features" not in no_feature.taps
+    # the CE of Scribble2Scene's released code: x10
+    (ce,) = [t for t in recipe.stages["rgo2d"].task_losses if t.name == "weighted_ce"]
+    assert ce.weight == 10
     teacher_dirs = {sweep.pipes[v, s].run_dir("teacher_labeler").name for v in sweep.sweep.recipes for s in sweep.seeds
                     if v != "none"}
     assert len(teacher_dirs) == 1

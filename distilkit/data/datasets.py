@@ -22,6 +22,7 @@ from distilkit.data.params import (SceneParams, SemanticKittiParams, SemanticKit
                                    SyntheticParams)
 from distilkit.data.probe import cloud_plan, grid_plan
 from distilkit.data.render import CAMERA_VERSION
+from distilkit.data.scribbles import pool_scribbles, read_scribbles, scribble_file, scribble_root
 from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.data import semantickitti as skio
 from distilkit.errors import DataError
@@ -86,7 +87,8 @@ def kitti_info(params: SemanticKittiParams) -> DataInfo:
     cam = params.camera
     return DataInfo(VoxelGrid.semantickitti(params.scale), params.table(),
                     fields=LIDAR_INPUTS | LIDAR_TARGETS | (CAMERA_FIELDS if cam else frozenset())
-                    | ({"occluded"} if params.occluded else frozenset()),
+                    | ({"occluded"} if params.occluded else frozenset())
+                    | ({"scribble"} if params.scribbles else frozenset()),
                     cameras=(dataclasses.replace(rig(cam, 0.0), depth="sparse"),) if cam is not None else (),
                     input_frames=params.input_frames)
 
@@ -131,6 +133,10 @@ def folder_problems(d: Path, frames: list[int], labelled: bool, p: SemanticKitti
     if p.occluded and labelled:
         out += [f"{where}/voxels/{f:06d}.occluded: missing (occluded: true reads it)" for f in frames
                 if not (d / "voxels" / f"{f:06d}.occluded").is_file()]
+    if p.scribbles and labelled:
+        folder = scribble_root(p.root, p.scribbles)
+        out += [f"{scribble_file(folder, d.name, f)}: missing (scribbles: {p.scribbles} reads it)" for f in frames
+                if not scribble_file(folder, d.name, f).is_file()]
     if p.camera is not None:
         wanted = sorted({max(f - k, 0) for f in frames for k in (0, *p.camera.previous)})
         out += [f"{where}/image_2/{j:06d}.png: missing (the camera's image)" for j in wanted
@@ -261,12 +267,14 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
             return {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
                     "point_label": np.concatenate(labs).astype(np.uint8),
                     "voxel_label": np.full(shape, IGNORE_INDEX, np.uint8), "invalid": np.ones(shape, bool),
-                    **({"occluded": np.zeros(shape, bool)} if self.p.occluded else {})}
+                    **({"occluded": np.zeros(shape, bool)} if self.p.occluded else {}),
+                    **({"scribble": np.full(shape, IGNORE_INDEX, np.uint8)} if self.p.scribbles else {})}
         vl = remap(skio.read_voxel_labels(vox_file), ssc_lut(self.table.learning_map), str(vox_file))
         inv_file = d / "voxels" / f"{frame:06d}.invalid"
         inv = skio.read_voxel_bits(inv_file) if inv_file.is_file() else np.zeros(vl.shape, bool)
         if self.p.rectify:
             vl = self._rectified(d, frame, vl)
+        dense = vl
         vl, pooled = pool_labels(vl, inv, self.p.scale, self.table.num_classes)
         out = {"points": np.concatenate(pts), "point_frame": np.concatenate(frames),
                "point_label": np.concatenate(labs).astype(np.uint8), "voxel_label": vl.astype(np.uint8),
@@ -274,6 +282,10 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         if self.p.occluded:  # occluded from the current viewpoint (not used by the official evaluation)
             occ = skio.read_voxel_bits(d / "voxels" / f"{frame:06d}.occluded")
             out["occluded"] = pool_all(occ, self.p.scale)
+        if self.p.scribbles:  # ScribbleSC's scribbles, told from empty voxels by the dense geometry
+            path = scribble_file(scribble_root(self.p.root, self.p.scribbles), d.name, frame)
+            scribble = read_scribbles(path, dense, inv, dict(self.table.learning_map))
+            out["scribble"] = pool_scribbles(scribble, self.p.scale, self.table.num_classes)
         return out
 
 
@@ -294,6 +306,11 @@ def kitti_fingerprint(params: SemanticKittiParams) -> dict[str, Any]:
         for f in files:
             st = f.stat()
             lines.append(f"{f.relative_to(root).as_posix()} {st.st_size} {st.st_mtime_ns}")
+        if params.scribbles:  # ScribbleSC's folder, wherever it lies
+            folder = scribble_root(root, params.scribbles)
+            for f in sorted((folder / "sequences" / seq / "voxels").glob("*.label")):
+                st = f.stat()
+                lines.append(f"scribbles/{f.relative_to(folder).as_posix()} {st.st_size} {st.st_mtime_ns}")
     return {"params": params.model_dump(mode="json", exclude={"root"}, exclude_defaults=True),
             "files": len(lines), "digest": hashlib.sha256("\n".join(lines).encode()).hexdigest()}
 

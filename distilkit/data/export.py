@@ -13,6 +13,10 @@ Each sequence is one drive along a synthetic street (``frames`` scans, the ego m
   traces, as in the real data;
 * ``image_2/NNNNNN.png`` for every frame when the synthetic parameters have a ``camera`` (rendered as the
   ``synthetic-lidar`` camera renders, at its image size);
+* ScribbleSC's scribbles in their own folder, ``scribblesc/sequences/NN/voxels/NNNNNN.label`` beside ``sequences/``
+  (:mod:`distilkit.data.scribbles`; ``scribbles: scribblesc`` reads them): for every voxel frame, the majority raw id
+  of the fused points the synthetic annotator's scribbles cover (lines fixed in the world, as the ``synthetic-lidar``
+  scribbles), 0 elsewhere;
 * ``poses.txt`` (camera-0 poses, KITTI's convention) and ``calib.txt`` whose ``Tr`` is the LiDAR-to-camera transform
   (KITTI's axes, cam2's offset; ``P2``'s intrinsics are the written images'), so that ``inv(Tr) · P · Tr`` gives the
   LiDAR poses back.
@@ -30,7 +34,9 @@ from distilkit.data.camera import CAMERA_IN_LIDAR, KITTI_CENTRE, KITTI_FOCAL, LI
 from distilkit.data.params import SyntheticParams
 from distilkit.data.raycast import ray_directions
 from distilkit.errors import DistilkitError
-from distilkit.data.synthetic import EGO_LANE_Y, SENSOR_HEIGHT, cast_scan, make_scene, traversed, voxelize_majority
+from distilkit.data.scribbles import write_scribbles
+from distilkit.data.synthetic import (EGO_LANE_Y, SENSOR_HEIGHT, cast_scan, make_scene, scribble_mask, traversed,
+                                      voxelize_majority)
 from distilkit.structures import VoxelGrid
 
 
@@ -58,8 +64,9 @@ def write_calib(path: Path, tr: np.ndarray, k: np.ndarray | None = None) -> None
 
 
 def export_sequence(seq_dir: Path, seed: int, p: SyntheticParams, frames: int, stride: int,
-                    progress: Callable[[], None] | None = None) -> int:
-    """Write one drive of ``frames`` scans into ``seq_dir``; returns the number of voxel frames written."""
+                    progress: Callable[[], None] | None = None, scribble_dir: Path | None = None) -> int:
+    """Write one drive of ``frames`` scans into ``seq_dir`` (and its scribbles into ``scribble_dir``, a ScribbleSC
+    sequence folder); returns the number of voxel frames written."""
     for sub in ("velodyne", "labels", "voxels"):
         (seq_dir / sub).mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -99,12 +106,21 @@ def export_sequence(seq_dir: Path, seed: int, p: SyntheticParams, frames: int, s
         skio.write_voxel_bits(seq_dir / "voxels" / f"{t:06d}.bin", occupied)
         current = traversed([np.zeros(3, np.float32)], fused[:1], grid)
         skio.write_voxel_bits(seq_dir / "voxels" / f"{t:06d}.occluded", ~current & ~occupied)
+        if scribble_dir is not None:  # the same lines in every frame (a stream of their own: scans unchanged)
+            world = np.concatenate([scans[j].xyz for j in range(t, last + 1)])
+            keep = scribble_mask(world, p, np.random.default_rng([seed, 0x5C]))
+            scribbled = voxelize_majority(np.concatenate(fused)[keep], raw[keep], grid)
+            write_scribbles(scribble_dir / "voxels" / f"{t:06d}.label",
+                            np.where(voxel_raw != 0, scribbled, 0).astype(np.uint16))
         written += 1
         if progress:
             progress()
     (seq_dir / "poses.txt").write_text("".join(_row(m) + "\n" for m in poses))
     write_calib(seq_dir / "calib.txt", tr, intrinsics(p.camera) if p.camera is not None else None)
     return written
+
+
+SCRIBBLE_FOLDER = "scribblesc"  # the export's ScribbleSC folder, under its root
 
 
 def export_kitti(out: str | Path, p: SyntheticParams, sequences: Sequence[str] = ("00", "08"), frames: int = 16,
@@ -125,8 +141,9 @@ def export_kitti(out: str | Path, p: SyntheticParams, sequences: Sequence[str] =
     for name in sequences:
         if not name.isdigit():
             raise DistilkitError(f"export-kitti: sequence names are numbers such as 00 or 08, got {name!r}")
-        export_sequence(root / "sequences" / name, p.seed * 1000 + int(name), p, frames, stride, tick)
+        export_sequence(root / "sequences" / name, p.seed * 1000 + int(name), p, frames, stride, tick,
+                        root / SCRIBBLE_FOLDER / "sequences" / name)
     return root
 
 
-__all__ = ["export_kitti", "export_sequence", "lidar_to_camera", "write_calib"]
+__all__ = ["SCRIBBLE_FOLDER", "export_kitti", "export_sequence", "lidar_to_camera", "write_calib"]

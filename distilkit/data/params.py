@@ -134,6 +134,10 @@ class SemanticKittiParams(BaseModel):
     occluded: bool = Field(False, description="also read voxels/*.occluded (voxels hidden from the current "
                                               "viewpoint; the official evaluation does not use them) as the target "
                                               "`occluded`")
+    scribbles: str | None = Field(None, description="a folder of ScribbleSC's voxel scribbles (Scribble2Scene's "
+                                                    "layout: sequences/NN/voxels/NNNNNN.label, raw ids of the "
+                                                    "scribbled voxels, 0 elsewhere; relative paths are under root), "
+                                                    "read as the target `scribble`; none: no scribbles")
 
     _scale = field_validator("scale")(_check_scale)
 
@@ -181,7 +185,7 @@ class SemanticKittiParams(BaseModel):
         """These parameters reading ``test`` (an official split's name or sequences) of the folder at ``root`` as the
         benchmark scores it: the voxel frames, as labelled (no rectification; no .occluded needed)."""
         return type(self)(**{**self.model_dump(exclude={"test"}), "root": root, "test": test, "rectify": False,
-                             "occluded": False})
+                             "occluded": False, "scribbles": None})
 
     def table(self) -> Any:
         """The :class:`~distilkit.data.info.ClassTable` of the labels."""

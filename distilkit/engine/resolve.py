@@ -143,9 +143,10 @@ def _resolve_fields(term_path: str, cls: Any, given: dict[str, str], info: Any,
     out = {role: given.get(role, cls.default_field(role, fields)) for role in cls.BATCH}
     for role, name in out.items():
         if fields and name not in fields:
+            hint = cls.BATCH_HINTS.get(role) if role not in given else None
             problems.append((f"{term_path}.taps.{role}" if role in given else term_path,
                              f"reads batch field {name!r} for its {role!r}, which the data does not provide "
-                             f"(it has: {', '.join(sorted(fields))})"))
+                             f"(it has: {', '.join(sorted(fields))})" + (f"; {hint}" if hint else "")))
     return out
 
 

@@ -8,6 +8,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 
+from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES
 from distilkit.losses.chamfer import chamfer
@@ -177,6 +178,11 @@ class PartialCE(_ClassWeighted):
     """Scribble2Scene's partial CE (the Dean-Labeler's loss, eq. 1): the unweighted mean CE over the voxels a scribble
     labels with a class. Optional class weights count scribbles only, so the scribble setting never reads dense
     labels."""
+
+    CHOICES = (
+        Choice("class weights", "none: the unweighted mean over scribbled voxels", "eq. 1: unweighted",
+               "the Dean-Labeler's training is not released", "`class_weights: log_frequency` (scribble counts)"),
+    )
 
     Params = _PartialParams
     BATCH = {"target": "scribble"}

@@ -9,6 +9,7 @@ import torch
 from pydantic import Field
 from torch import Tensor, nn
 
+from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.losses.dpo import distillation_dpo
 from distilkit.metrics.points import chamfer_distance, jsd_3d, jsd_bev
@@ -45,6 +46,16 @@ class DistillationDPO(VSD):
     re-noised with one t and eps, and :func:`distilkit.losses.distillation_dpo` moves the winner towards the
     teacher's score and away from its auxiliary network's, the loser the other way (``sign: release``, the code's
     choice; ``sign: paper`` is eq. 16-18 as printed, the opposite), linearly or bounded by ``beta``."""
+
+    CHOICES = (
+        Choice("the sign", "the winner towards the teacher's score, the loser away (`sign: release`)",
+               "eq. 16-18 print the opposite (winner away, loser towards)", "DistillationDPO.py lines 485-486: the "
+               "release's sign (with a zero gradient: the VSD stop-gradient mistake)", "`sign: paper`"),
+        Choice("the loss's form", "linear in the implicit log-ratios (the release's)", "eq. 16-18: the gradient only",
+               "linear", "`beta`: Diffusion-DPO's log-sigmoid, bounded"),
+        Choice("EMD", "the `emd` metric: exact, on 2,048-point subsamples", "reported (Table 1)",
+               "Sinkhorn with epsilon 0.001 m on 0.5 m voxels: its kernel underflows (not an EMD)"),
+    )
 
     Params = DPOParams
     CONSUMES = {"student": "points", "noise": "points"}

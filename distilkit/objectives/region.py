@@ -7,6 +7,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
+from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.losses.feature import fitnet
 from distilkit.losses.cleaners import cleaners
@@ -51,13 +52,22 @@ class RGO2D(MultiTapObjective):
     and local (LSA) distillation, plus 0.6 x feature MSE when ``student_features``/``teacher_features``
     taps are given (image features in the paper)."""
 
+    CHOICES = (
+        Choice("class-centre labels", "the scribbles (a dataset without them is refused by validate)",
+               "eq. 2-3: scribble labels", "utils/distillation_loss.py: the scribbles",
+               "`taps: {labels: voxel_target}` (the dense labels, by name)"),
+    )
+
     Params = RGO2DParams
     CONSUMES = LOGITS_AND_OPTIONAL_FEATURES
     TEACHER_ROLES = frozenset({"teacher", "teacher_features"})
     OPTIONAL = FEATURE_ROLES
-    # the sparse labels of the class centres (scribbles where the data has them, else the dense target) and the
-    # dense target that gives the geometry
-    BATCH = {"labels": ("scribble", "voxel_target"), "target": "voxel_target"}
+    # the sparse labels of the class centres (the scribbles: never silently the dense labels) and the dense target
+    # that gives the geometry
+    BATCH = {"labels": "scribble", "target": "voxel_target"}
+    BATCH_HINTS = {"labels": "RGO²D's class centres come from scribbles (semantickitti-ssc reads ScribbleSC's with "
+                             "`scribbles: FOLDER`); to use the dense labels instead, say so: `taps: {labels: "
+                             "voxel_target}`"}
     DEFAULT_WEIGHT = 1.0
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:

@@ -8,6 +8,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 
+from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.losses.vsd import vsd
 from distilkit.objectives.base import MultiTapObjective, register_objective
@@ -55,6 +56,17 @@ class VSD(MultiTapObjective):
     (appendix A.3, the released code) unless ``aux: lora`` (distilkit's option). The teacher must offer
     ``predict_noise(x_t, t, condition)`` and ``alphas_cumprod``; a fresh sample needs the student's ``generate``.
     """
+
+    CHOICES = (
+        Choice("auxiliary score network", "a full copy of the teacher, initialised from it",
+               "§4.1: a small U-Net or a LoRA of the teacher; appendix A.3: the teacher's architecture, initialised "
+               "from it", "three full copies (generator, teacher, auxDiff)", "`aux: lora` (`rank`)"),
+        Choice("what the auxiliary network fits", "a fresh student sample from new noise, without gradient",
+               "the student's generated samples (eq. 5)", "its aux step generates its own samples",
+               "`aux_sample: same`"),
+        Choice("the VSD gradient", "w(t)(eps_teacher - eps_aux) through the samples (eq. 11)", "eq. 11",
+               "((eps_teacher - eps_aux)(x_t - x_0)).mean(): exactly zero gradient (x_t - x_0 does not depend on the samples)"),
+    )
 
     Params = VSDParams
     CONSUMES = {"student": "points"}

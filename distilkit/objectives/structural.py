@@ -9,6 +9,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
+from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.losses.structural import point_wise, scene_wise, select_keypoints
 from distilkit.objectives.base import MultiTapObjective, register_objective
@@ -37,6 +38,14 @@ class Structural(MultiTapObjective):
     Key points depend on the ground truth only: with ``keypoints: per-step`` (the released code) a new random sample
     is drawn every step from the stage's random stream; with ``cached`` they are selected once per ``scene_id`` (the
     batch's meta) with a generator seeded from the id, and reused every step."""
+
+    CHOICES = (
+        Choice("scene-wise term", "each generated point to its nearest ground-truth point (eq. 12 as described)",
+               "eq. 12: a scene-wise distance to the ground truth", "F.mse_loss between index-aligned points of two "
+               "unordered sets (pulls every point to the centroid)", "`legacy_index_aligned: true`"),
+        Choice("key points", "drawn anew every step (the release)", "§4.2: the top 1/3 by curvature of a 1/10 sample",
+               "randperm every step, curvature in a Python loop", "`keypoints: cached` (once per scene)"),
+    )
 
     Params = StructuralParams
     CONSUMES = {"student": "points"}

@@ -7,6 +7,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.data.lidar import select_frames
@@ -28,7 +29,19 @@ class JS3CNetParams(BaseModel):
 
 
 class JS3CNetAdapter(MultiFrameLidarAdapter):
-    """JS3C-Net with the uncertainty-weighted multi-task loss (eq. 2) as its task loss."""
+    """JS3C-Net with the uncertainty-weighted multi-task loss (eq. 2) as its task loss. Its choices against the paper
+    and the release (``CHOICES``): 3 SSC decoder blocks, segmentation on the 0.2 m grid, a residual refinement."""
+
+    CHOICES = (
+        Choice("SSC decoder blocks", "3 residual blocks (the last two dilated by 2)",
+               "supplement: five basic blocks of 32 channels", "SSCNet_Decoder: 5 blocks", "`ssc_channels` sets the width only"),
+        Choice("segmentation resolution", "a dense U-Net on the 0.2 m completion grid (CPU-sized)",
+               "§4: 0.05 m grids for the SparseConv U-Net", "JS3C_default_kitti.yaml: 0.1 m (scale 10)",
+               ""),
+        Choice("PVI refinement", "residual: FC([aggregated, coarse logits]) added to the coarse logits",
+               "Fig. 3: the PVI output replaces the coarse completion", "FC(m + 20 -> 20) replaces them; a final ReLU "
+               "on the logits (left out here)"),
+    )
 
     Params = JS3CNetParams
     TAPS = {"completion": "sparse_features", "ssc_dense": "volume_features", "logits": "voxel_logits",

@@ -12,6 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
 from distilkit.adapter import Adapter
+from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.registry import ADAPTERS
@@ -54,7 +55,21 @@ class LiDiffParams(BaseModel):
 
 
 class LiDiffAdapter(Adapter):
-    """LiDiff with its denoising loss (``lidiff`` task loss) and a DDIM sampler of any number of steps."""
+    """LiDiff with its denoising loss (``lidiff`` task loss) and a DDIM sampler of any number of steps. Its choices
+    (``CHOICES``): the sampler of few-step students, the per-point denoiser, the condition dropped per batch."""
+
+    CHOICES = (
+        Choice("few-step sampler", "DDIM of the local-noise process (`sampler: ddim`): n steps = n network calls, "
+                                   "the last returns x0", "ScoreLiDAR §4: the student samples in one step",
+               "ScoreLiDAR trains with one SDE-DPM-Solver++ step (diffusers 0.18) and evaluates 8 DPM steps",
+               "`sampler: dpm-solver++`"),
+        Choice("denoiser", "a per-point MLP conditioned on its nearest scan points: every completed point is an "
+                           "independent sample given the scan", "MinkUNet (sparse convolutions): points interact",
+               "MinkUNetDiff over 5 cm voxels (minkunet.py)"),
+        Choice("condition dropout", "one draw per batch drops every scene's scan (p = uncond_prob); a batch of one "
+                                    "keeps it", "classifier-free guidance, 10 % unconditional",
+               "models.py: `if torch.rand(1) > uncond_prob or batch size == 1` (per batch)", "`uncond_per: scene`"),
+    )
 
     Params = LiDiffParams
     INPUTS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths"})  # training noises the scene

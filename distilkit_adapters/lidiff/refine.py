@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 
 from distilkit.adapter import Adapter
+from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.geometry.nearest import knn_indices
@@ -77,6 +78,12 @@ class PointRefiner(nn.Module):
 class LiDiffRefineAdapter(Adapter):
     """LiDiff's refinement network: ``coarse`` points in, ``refined`` (training) / ``completion`` (evaluation) out,
     ``offsets`` x as many points; the ``refine_cloud`` capability refines a completion for ``distilkit complete``."""
+
+    CHOICES = (
+        Choice("refinement training input", "the ground-truth scene jittered (sigma 0.2 m, clipped at 0.3 m)",
+               "§3.4: trained to refine noisy completions", "jittered aggregated ground truth "
+               "(SemanticKITTITemporalAggr.py)", "`train_on: completions` (a frozen LiDiff model's output)"),
+    )
 
     Params = RefineParams
     INPUTS = frozenset({"coarse", "scene", "scene_lengths"})

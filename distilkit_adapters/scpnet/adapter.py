@@ -7,6 +7,7 @@ from typing import Annotated, Any
 import torch
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.data.lidar import select_frames
@@ -39,7 +40,17 @@ class SCPNetParams(BaseModel):
 
 
 class SCPNetAdapter(MultiFrameLidarAdapter):
-    """SCPNet: MPB completion sub-network then segmentation; CE + Lovász task loss (eq. 4, alpha = 1)."""
+    """SCPNet: MPB completion sub-network then segmentation; CE + Lovász task loss (eq. 4, alpha = 1). Its choices
+    where the paper and the release differ (``CHOICES``): DSKD on the completion output, rectification from the
+    current scan."""
+
+    CHOICES = (
+        Choice("DSKD's layer", "the completion sub-network's output (the `completion` tap) in every recipe",
+               "§3.3 distils 'dense-to-sparse' completion features without pinning the layer",
+               "DSKD is not in the release", "`taps: {student: TAP, teacher: TAP}`"),
+        Choice("label rectification's scan", "the current scan's instance boxes (`rectify: true`)",
+               "Algorithm 1, per frame", "rectifies with the 5 fused scans (multiscan = 4)"),
+    )
 
     Params = SCPNetParams
     TAPS = {"completion": "sparse_features", "completion_dense": "volume_features", "logits": "voxel_logits"}

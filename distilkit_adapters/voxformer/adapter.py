@@ -15,6 +15,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from distilkit.adapter import Adapter
+from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.data.camera import CAMERA_INPUTS
 from distilkit.data.info import Camera, DataInfo
@@ -76,7 +77,14 @@ def _camera_problems(info: DataInfo, frames: int = 1) -> list[tuple[str, str]]:
 
 
 class VoxFormerProposalAdapter(Adapter):
-    """VoxFormer's stage 1: depth from the current image, lifted and completed to half-resolution occupancy."""
+    """VoxFormer's stage 1: depth from the current image, lifted and completed to half-resolution occupancy. Its
+    choice (``CHOICES``): monocular depth from one frame where VoxFormer lifts stereo depth of 10 sweeps."""
+
+    CHOICES = (
+        Choice("stage-1 depth", "a monocular depth head trained with the data's depth, the current image only",
+               "§3.2: depth from a stereo network (MobileStereoNet), lifted to a pseudo point cloud",
+               "query proposals precomputed from MSNet3D depth of 10 sweeps (sequences_msnet3d_sweep10)"),
+    )
 
     Params = ProposalParams
     INPUTS = CAMERA_INPUTS
@@ -110,7 +118,18 @@ class VoxFormerProposalAdapter(Adapter):
 
 class VoxFormerAdapter(Adapter):
     """VoxFormer's stage 2: proposed voxel queries read the images by deformable cross-attention; CE (VoxFormer's
-    class weights, mean over valid voxels) + sem_scal + geo_scal (seed_code.md §5)."""
+    class weights, mean over valid voxels) + sem_scal + geo_scal (seed_code.md §5). Its choices (``CHOICES``):
+    sampling offsets per image, ``align_corners`` of the samplings."""
+
+    CHOICES = (
+        Choice("deformable sampling offsets", "predicted per image (head x image x point), each image of VoxFormer-T "
+                                              "its own offsets", "not stated",
+               "one set per head, level and point, shared by every image (BEVFormer's spatial cross-attention)"),
+        Choice("align_corners", "False everywhere: grid_sample of image features (pixel coordinates normalised by the "
+                                "feature map's size) and the header's trilinear x2 upsampling",
+               "not stated", "grid_sample with align_corners=False (mmcv's deformable attention, the same convention); "
+                             "the Header's nn.Upsample(scale_factor=2, trilinear) with align_corners=True"),
+    )
 
     Params = VoxFormerParams
     TAPS = {"image_features": "image_features", "query_features": "sparse_features", "logits": "voxel_logits"}
