@@ -1,4 +1,5 @@
-"""The ``distilkit`` command: run | sweep | report | compare | validate | list | schema | bench | complete.
+"""The ``distilkit`` command: run | sweep | report | compare | validate | list | schema | bench | eval | predict | export
+| data | complete.
 
 Importing this module and ``distilkit --help`` do not import torch; each command imports what
 it needs. A user's mistake (bad recipe, missing file, NaN loss) prints one clear message and
@@ -43,6 +44,9 @@ def _launch(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     import os
 
+    from distilkit.engine import stop
+
+    stop.install()  # SIGTERM (or the death of the sweep that started it) stops after a step, its checkpoint written
     if args.nproc_per_node is not None and "LOCAL_RANK" not in os.environ:
         return _launch(args)
     if args.seed is not None and len(args.seed) > 1:
@@ -106,12 +110,24 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
+    from distilkit.engine.checks import data_problems, weights_problems
     from distilkit.engine.resolve import resolve
+    from distilkit.errors import RecipeError
     from distilkit.recipe import load_recipe
+    from distilkit.registry import DATASETS
 
     overrides = _overrides(args)
     for path in args.recipes:
         res = resolve(load_recipe(path, overrides), str(path))
+        entry = DATASETS.entry(res.recipe.data.dataset)
+        has_split = lambda split: bool(entry.meta.get("has_split", lambda p, s: s != "test")(  # noqa: E731
+            res.data_params, split))
+        unreadable = data_problems(res, has_split)
+        problems = unreadable + weights_problems(res)  # what the run needs: its data and its weights files
+        if problems:
+            if unreadable and not args.no_memory:
+                print("memory not estimated: the data cannot be read", file=sys.stderr)
+            raise RecipeError(problems, str(path))
         stages = ", ".join(
             f"{n} ({s.student.adapter}" + "".join(f"; {edge} <- {up}" for edge, up in s.spec.edges().items())
             + (f"; {', '.join(t.name for t in s.distill)}" if s.distill else "") + ")"
@@ -172,10 +188,13 @@ def _cmd_list(args: argparse.Namespace) -> int:
         table.add_column("description")
         table.add_column("paper")
         table.add_column(_LIST_COLUMN[kind])
+        if kind == "adapters":
+            table.add_column("parameters (default)")
         for e in reg:
             also = reg.aliases_of(e.name)
+            extra = [_params_cell(e.obj.Params)] if kind == "adapters" else []
             table.add_row(e.name + (f" (also {', '.join(also)})" if also else ""), e.description, e.paper,
-                          _list_cell(kind, e))
+                          _list_cell(kind, e), *extra)
         console.print(table)
     for msg in plugin_errors:
         console.print(f"[yellow]warning:[/] {msg}")
@@ -186,6 +205,17 @@ _LIST_COLUMN = {"adapters": "taps (name: kind)", "objectives": "reads (tap kinds
                 "datasets": "batch fields", "metrics": "scores (tap kind)", "optimizers": "—",
                 "schedules": "parameters", "connectors": "—", "hooks": "parameters",
                 "recorders": "—"}
+
+
+def _params_cell(params: Any) -> str:
+    """An adapter's parameters with their defaults, one per line (docs/recipe-reference.md has their descriptions)."""
+    import json
+
+    out = []
+    for name, field in params.model_fields.items():
+        default = field.get_default(call_default_factory=True)
+        out.append(f"{name}={json.dumps(default, default=str)}")
+    return "\n".join(out) or "—"
 
 
 def _list_cell(kind: str, entry: object) -> str:
@@ -219,13 +249,70 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+EXAMPLES: dict[str, list[str]] = {
+    "run": ["distilkit run recipes/quickstart.yaml",
+            "distilkit run recipes/quickstart.yaml --set 'stages.*.train.steps=4'   # every stage, 4 steps",
+            "distilkit run recipes/scorelidar.yaml --seed 0 1 2                    # mean ± std over seeds"],
+    "sweep": ["distilkit sweep recipes/sweeps/quickstart_methods.yaml --jobs 2",
+              "distilkit sweep recipes/sweeps/scpnet_table4.yaml --plan             # commands for a cluster"],
+    "report": ["distilkit report runs/quickstart                                # every stage of a recipe",
+               "distilkit report runs/quickstart/student_dskd-*"],
+    "compare": ["distilkit compare runs/quickstart/student-* runs/quickstart/student_dskd-*"],
+    "validate": ["distilkit validate recipes/quickstart.yaml",
+                 "distilkit validate recipes/semantickitti_scpnet.yaml --set data.params.root=/data/semantickitti"],
+    "list": ["distilkit list objectives", "distilkit list task_losses", "distilkit list objectives --markdown"],
+    "schema": ["distilkit schema > recipe.schema.json                       # editor completion",
+               "distilkit schema --markdown > docs/recipe-reference.md"],
+    "bench": ["distilkit bench dskd pkt", "distilkit bench --quick", "distilkit bench determinism loader"],
+    "eval": ["distilkit eval --dataset-root /data/semantickitti --predictions preds --split valid"],
+    "predict": ["distilkit predict runs/NAME/STAGE-* --dataset-root /data/semantickitti --split valid --out preds",
+                "distilkit predict runs/NAME/STAGE-* --dataset-root /data/semantickitti --split test --out submission"],
+    "export": ["distilkit export runs/quickstart/student_dskd-* --out student.pt",
+               "distilkit export runs/quickstart/student_dskd-* --out student.pt --which last"],
+    "data": ["distilkit data export-kitti /tmp/kitti --camera", "distilkit data rectify /data/semantickitti"],
+    "data rectify": ["distilkit data rectify /data/semantickitti",
+                     "distilkit data rectify /data/semanticposs --labels semanticposs"],
+    "data export-kitti": ["distilkit data export-kitti /tmp/kitti",
+                          "distilkit data export-kitti /tmp/kitti --camera --set beams=64 azimuth_steps=2048"],
+    "complete": ["distilkit complete runs/scorelidar/student-* scan.bin --out scene.ply --steps 8",
+                 "distilkit complete runs/scorelidar/student-* scan.bin --out scene.ply --refine "
+                 "runs/scorelidar/refined_8-*"],
+}
+
+# every `distilkit bench` NAME with what it times (the help lists them without importing torch; a test keeps this
+# in step with distilkit.bench.BENCHES)
+BENCH_NAMES: dict[str, str] = {
+    "dskd": "DSKD's exact O(N C^2) identity against the N x N matrices",
+    "pkt": "PKT, blocked, against the dense kernel",
+    "rgo2d": "RGO²D, by index_add, against the authors' broadcast masks",
+    "kd": "KD over a masked voxel volume",
+    "nst": "NST's MMD, by its Gram identity",
+    "structural": "ScoreLiDAR's structural loss: key points and the point-wise distance matrices",
+    "sampler": "LiDiff's sampler at 8 against 50 steps",
+    "determinism": "a training step with the deterministic settings on and off",
+    "loader": "an epoch of the quickstart teacher's steps with 2 loader workers and with none",
+    "camera": "the camera student's step with and without RGO²D",
+    "guidance": "LiDiff's sampler with classifier-free guidance against without",
+    "complete": "`distilkit complete` on a 125,000-point scan, with and without refinement",
+    "kitti": "reading, fusing and evaluating SemanticKITTI-sized frames",
+}
+
+
+def _doc(name: str) -> dict[str, Any]:
+    """A subcommand's help layout: its examples (and, for bench, every benchmark) after the options."""
+    text = "examples:\n" + "\n".join(f"  {line}" for line in EXAMPLES[name])
+    if name == "bench":
+        text = "benchmarks:\n" + "\n".join(f"  {n:<12} {d}" for n, d in BENCH_NAMES.items()) + "\n\n" + text
+    return {"epilog": text, "formatter_class": argparse.RawDescriptionHelpFormatter}
+
+
 def build_parser() -> argparse.ArgumentParser:
     from distilkit import __version__
 
     p = argparse.ArgumentParser(prog="distilkit", description="Knowledge distillation for 3D semantic scene completion.")
     p.add_argument("--version", action="version", version=f"distilkit {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    r = sub.add_parser("run", help="train, distill and evaluate the stages of a recipe")
+    r = sub.add_parser("run", **_doc("run"), help="train, distill and evaluate the stages of a recipe")
     r.add_argument("recipe", help="recipe YAML file")
     r.add_argument("--output", "-o", default="runs", help="output folder (default: runs/)")
     r.add_argument("--quiet", "-q", action="store_true", help="no progress bars or tables")
@@ -253,7 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--master-port", type=int, default=29500, help="free port on node 0")
     r.add_argument("--stop-after", type=int, default=None, metavar="STEPS", help=argparse.SUPPRESS)
     r.set_defaults(fn=_cmd_run)
-    w = sub.add_parser("sweep", help="compare variants of a stage (distillation methods, weights, any override) "
+    w = sub.add_parser("sweep", **_doc("sweep"), help="compare variants of a stage (distillation methods, weights, any override) "
                                      "over seeds: mean ± std, paired differences with 95 %% intervals")
     w.add_argument("sweep", help="sweep YAML file (see recipes/sweeps/)")
     w.add_argument("--output", "-o", default="runs", help="output folder (default: runs/)")
@@ -265,38 +352,41 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--collect", action="store_true", help="train nothing: the table of the runs finished so far")
     w.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
     w.set_defaults(fn=_cmd_sweep)
-    rp = sub.add_parser("report", help="re-render a stage run's report.md and plots (or every run under a folder)")
+    rp = sub.add_parser("report", **_doc("report"), help="re-render a stage run's report.md and plots (or every run under a folder)")
     rp.add_argument("run", help="a stage run folder (runs/<recipe>/<stage>-<hash>) or a recipe's output folder")
     rp.set_defaults(fn=_cmd_report)
-    cp = sub.add_parser("compare", help="two stage runs side by side: configuration, scores, per-class, plots")
-    cp.add_argument("run_a")
-    cp.add_argument("run_b")
+    cp = sub.add_parser("compare", **_doc("compare"), help="two stage runs side by side: configuration, scores, per-class, plots")
+    cp.add_argument("run_a", help="the first stage run folder (runs/<recipe>/<stage>-<hash>): the reference, A")
+    cp.add_argument("run_b", help="the second stage run folder, B (differences are B - A)")
     cp.add_argument("--out", "-o", default=None, help="folder for compare.md / compare.png "
                                                       "(default: compare-<A>-vs-<B> beside run A)")
     cp.set_defaults(fn=_cmd_compare)
-    v = sub.add_parser("validate", help="check recipes without training (exit status 2 on a problem)")
-    v.add_argument("recipes", nargs="+")
+    v = sub.add_parser("validate", **_doc("validate"), help="check recipes without training (exit status 2 on a problem)")
+    v.add_argument("recipes", nargs="+", help="recipe YAML files")
     v.add_argument("--set", nargs="+", action="extend", metavar="PATH=VALUE", default=None,
                    help="override recipe fields by dotted path, e.g. --set stages.student.train.steps=10")
     v.add_argument("--no-memory", action="store_true", help="skip the memory estimate (one training step of each "
                    "stage at a small size)")
     v.set_defaults(fn=_cmd_validate)
-    ls = sub.add_parser("list", help="registered adapters, objectives, task losses, datasets, metrics, optimizers, "
+    ls = sub.add_parser("list", **_doc("list"), help="registered adapters, objectives, task losses, datasets, metrics, optimizers, "
                                      "schedules, connectors, hooks and recorders")
-    ls.add_argument("kind", nargs="?", choices=["adapters", "objectives", "task losses", "datasets", "metrics",
-                                                "optimizers", "schedules", "connectors", "hooks", "recorders"])
+    ls.add_argument("kind", nargs="?", metavar="KIND", type=lambda text: text.replace("_", " "),
+                    choices=["adapters", "objectives", "task losses", "datasets", "metrics", "optimizers", "schedules",
+                             "connectors", "hooks", "recorders"],
+                    help="one kind of component: adapters, objectives, task_losses (or 'task losses'), datasets, "
+                         "metrics, optimizers, schedules, connectors, hooks, recorders (default: all)")
     ls.add_argument("--markdown", action="store_true",
                     help="objectives or datasets as Markdown (docs/objectives.md, docs/datasets.md)")
     ls.set_defaults(fn=_cmd_list)
-    s = sub.add_parser("schema", help="print the recipe JSON schema (for editor completion)")
+    s = sub.add_parser("schema", **_doc("schema"), help="print the recipe JSON schema (for editor completion)")
     s.add_argument("--markdown", action="store_true", help="print the recipe reference as Markdown instead")
     s.set_defaults(fn=_cmd_schema)
-    b = sub.add_parser("bench", help="time objectives forward+backward at realistic sizes")
-    b.add_argument("names", nargs="*", help="objectives to time (default: all)")
+    b = sub.add_parser("bench", **_doc("bench"), help="time objectives forward+backward at realistic sizes")
+    b.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (listed below; default: all)")
     b.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     b.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
     b.set_defaults(fn=_cmd_bench)
-    ev = sub.add_parser("eval", help="SemanticKITTI's official completion evaluation of a predictions folder "
+    ev = sub.add_parser("eval", **_doc("eval"), help="SemanticKITTI's official completion evaluation of a predictions folder "
                                      "(and VoxFormer's 12.8 / 25.6 m range split)")
     _folder_split_args(ev, "the SemanticKITTI folder (holds sequences/NN/voxels/)", "valid", "08")
     ev.add_argument("--predictions", required=True, help="the folder holding sequences/NN/predictions/*.label")
@@ -304,17 +394,27 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--classes", default="semantickitti", choices=["semantickitti", "semanticposs"],
                     help="the labels' class table and official splits (semanticposs: 11 classes, valid = test = 02)")
     ev.set_defaults(fn=_cmd_eval)
-    pr = sub.add_parser("predict", help="write a trained SSC run's predictions of a SemanticKITTI folder in the "
+    pr = sub.add_parser("predict", **_doc("predict"), help="write a trained SSC run's predictions of a SemanticKITTI folder in the "
                                         "submission format (sequences/NN/predictions/NNNNNN.label)")
     pr.add_argument("run", help="a stage's run folder or checkpoint (trained on a semantickitti folder)")
     _folder_split_args(pr, "the SemanticKITTI folder to predict", "test", "11-21")
     pr.add_argument("--out", required=True, help="the folder to write sequences/NN/predictions/ into")
     pr.add_argument("--device", default="cpu", help="cpu or cuda")
     pr.set_defaults(fn=_cmd_predict)
-    dp = sub.add_parser("data", help="work on data folders: rectify a SemanticKITTI folder's completion labels, "
+    xp = sub.add_parser("export", **_doc("export"), help="write a trained student's weights alone (a plain state dict "
+                                                         "for torch.load(weights_only=True) or `init: {checkpoint: "
+                                                         "...}`) and a JSON of its adapter, parameters and classes")
+    xp.add_argument("run", help="a stage's run folder (runs/<recipe>/<stage>-<hash>) or a checkpoint file")
+    xp.add_argument("--out", "-o", required=True, help="the weights file to write (e.g. student.pt); the JSON goes "
+                                                      "beside it (student.json)")
+    xp.add_argument("--which", default="best", choices=["best", "last"],
+                    help="the run folder's checkpoint: the best validation score (default) or the last step")
+    xp.set_defaults(fn=_cmd_export)
+    dp = sub.add_parser("data", **_doc("data"), help="work on data folders: rectify a SemanticKITTI folder's completion labels, "
                                      "export synthetic streets as one")
-    dsub = dp.add_subparsers(dest="data_command", required=True, metavar="ACTION")
-    rect = dsub.add_parser("rectify", help="SCPNet's label rectification: write sequences/NN/voxels_rectified/ "
+    dsub = dp.add_subparsers(dest="data_command", required=True, metavar="ACTION",
+                             help="rectify (SCPNet's label rectification) or export-kitti (synthetic streets as a folder)")
+    rect = dsub.add_parser("rectify", **_doc("data rectify"), help="SCPNet's label rectification: write sequences/NN/voxels_rectified/ "
                                            "beside the original voxel labels (which stay untouched)")
     rect.add_argument("root", help="a SemanticKITTI folder (holds sequences/)")
     rect.add_argument("--sequences", nargs="+", default=None, help="the sequences (default: every one)")
@@ -325,7 +425,7 @@ def build_parser() -> argparse.ArgumentParser:
     rect.add_argument("--labels", default="semantickitti", choices=["semantickitti", "semanticposs"],
                       help="the folder's class table (semanticposs: people, rider and car by default)")
     rect.set_defaults(fn=_cmd_data_rectify)
-    ex = dsub.add_parser("export-kitti", help="write synthetic streets as a SemanticKITTI folder (scans, panoptic "
+    ex = dsub.add_parser("export-kitti", **_doc("data export-kitti"), help="write synthetic streets as a SemanticKITTI folder (scans, panoptic "
                                               "labels, voxels, invalid and occluded masks, poses, calibration, "
                                               "with --camera images)")
     ex.add_argument("out", help="the folder to write (sequences/ goes inside)")
@@ -338,7 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--camera", action="store_true",
                     help="also render image_2/ (the synthetic camera's defaults unless --set camera=... says more)")
     ex.set_defaults(fn=_cmd_data_export)
-    c = sub.add_parser("complete", help="complete a scan (.bin, .ply, .npy) into a dense scene with a trained "
+    c = sub.add_parser("complete", **_doc("complete"), help="complete a scan (.bin, .ply, .npy) into a dense scene with a trained "
                                         "point-diffusion model")
     c.add_argument("checkpoint", help="a checkpoint (best.pt / last.pt) or a stage's run folder")
     c.add_argument("scan", help="the scan: SemanticKITTI .bin, .ply or .npy")
@@ -402,6 +502,16 @@ def _cmd_predict(args: argparse.Namespace) -> int:
         n, sequences = predict_folder(args.run, args.dataset_root, args.sequences or args.split, args.out, args.device,
                                       advance)
     console.print(f"{n} frames of sequences {' '.join(sequences)} predicted into {args.out}/sequences/*/predictions/")
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from distilkit.console import make_console
+    from distilkit.engine.export import export_student
+
+    done = export_student(args.run, args.out, args.which)
+    make_console().print(f"{done.weights}: the {done.adapter} student's {done.tensors} tensors (step {done.step}), a "
+                         f"plain state dict; {done.sidecar}: its adapter, parameters, data and classes")
     return 0
 
 
@@ -470,13 +580,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.fn(args) or 0)
     except KeyboardInterrupt:
-        print("interrupted; finished stages and the last checkpoint are kept", file=sys.stderr)
+        print("stopped; finished stages and the last checkpoint are kept (run the same command again to resume)",
+              file=sys.stderr)
         return 130
     except Exception as exc:
         from distilkit.errors import DistilkitError
 
         if isinstance(exc, DistilkitError):
             print(f"error: {exc}", file=sys.stderr)
+            return 2
+        if isinstance(exc, OSError) and exc.filename is not None:  # the machine's: a read-only folder, a full disk
+            hint = " (a read-only folder? give --output a writable one)" if isinstance(exc, PermissionError) else ""
+            print(f"error: {exc.filename}: {exc.strerror or exc}{hint}", file=sys.stderr)
             return 2
         raise
 

@@ -26,12 +26,22 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def _file_mode() -> int:
+    """The mode a newly created file gets under the process's umask (0644 under umask 022): what ``open`` would give,
+    where ``mkstemp`` gives 0600."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
     """Let ``write`` fill a temp file beside ``path``, fsync it, rename it over ``path`` and fsync the folder (the
-    temp file is removed if anything fails)."""
+    temp file is removed if anything fails). The file gets the mode the umask gives new files (as ``open``'s)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     try:
+        if hasattr(os, "fchmod"):
+            os.fchmod(fd, _file_mode())
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()

@@ -17,6 +17,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from distilkit.errors import RecipeError
 
 SCHEMA_VERSION = 1
+MAX_NAME = 128  # recipe and stage names name folders (<stage>-<hash>: within the 255 bytes a file name may have)
+MAX_LABEL = 200  # what reports show of a stage
+MAX_NOTE = 1000
 
 
 class _Strict(BaseModel):
@@ -225,7 +228,8 @@ class StageSpec(_Strict):
     publish: list[Literal["train", "val", "test"]] = Field(
         default_factory=list, description="splits whose predictions the stage's best model publishes by sample id "
                                           "(a stage that a later stage reads labels from publishes what it needs)")
-    label: str | None = Field(None, description="display name in reports")
+    label: str | None = Field(None, max_length=MAX_LABEL, description=f"display name in reports (at most {MAX_LABEL} "
+                                                                        "characters)")
     seed: int | None = Field(None, description="this stage's training seed (default: the recipe's `seed`, or "
                                                "`--seed`); a sweep fixes a shared teacher's seed this way")
 
@@ -259,13 +263,17 @@ class ReportSpec(_Strict):
                                                                       "seeds are taken to (e.g. a few-step student -> "
                                                                       "the undistilled teacher at the same step "
                                                                       "count; default: the seeds' baseline)")
+    note: str | None = Field(None, max_length=MAX_NOTE, description="a line printed under the results table and "
+                                                                    "written under it in report.md (e.g. how much "
+                                                                    "one run of the recipe can tell)")
 
 
 class Recipe(_Strict):
     """A distilkit recipe: data and named stages, run in dependency order."""
 
     schema_version: Literal[1] = Field(SCHEMA_VERSION, description="recipe format version")
-    name: str = Field(..., pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", description="run name (folder under the output)")
+    name: str = Field(..., pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", max_length=MAX_NAME,
+                      description=f"run name (folder under the output; at most {MAX_NAME} characters)")
     seed: int = 0
     data: DataSpec = Field(default_factory=DataSpec)
     stages: dict[str, StageSpec] = Field(..., min_length=1)
@@ -278,7 +286,11 @@ class Recipe(_Strict):
 
         for name in v:
             if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
-                raise ValueError(f"stage name {name!r} must be letters, digits, '_', '-' or '.'")
+                raise ValueError(f"stage name {name[:40]!r}{'...' if len(name) > 40 else ''} must be letters, digits, "
+                                 "'_', '-' or '.'")
+            if len(name) > MAX_NAME:  # <stage>-<hash> must be a folder name (255 bytes at most)
+                raise ValueError(f"stage name {name[:40]!r}... has {len(name)} characters: at most {MAX_NAME} (it "
+                                 "names a folder)")
         return v
 
     @model_validator(mode="after")
@@ -303,7 +315,56 @@ def format_loc(loc: tuple[Any, ...]) -> str:
     return out
 
 
-def pydantic_problems(err: ValidationError, prefix: str = "") -> list[tuple[str, str]]:
+def _model_at(model: Any, loc: tuple[Any, ...]) -> type[BaseModel] | None:
+    """The pydantic model class a location inside ``model`` (a class) falls in: field by field, through the values
+    of dicts (a part of ``loc`` is then their key) and the items of lists (an index), None where it leaves them."""
+    import typing
+
+    def unwrap(annotation: Any) -> tuple[Any, bool]:
+        """(the model or container an annotation holds, whether the next part of the location is a key/index)."""
+        origin = typing.get_origin(annotation)
+        if origin in (dict, list):
+            return typing.get_args(annotation)[-1], True
+        inner = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if origin is not None and len(inner) == 1:  # Optional[X]
+            return unwrap(inner[0])
+        return annotation, False
+
+    node: Any = model
+    keyed = False
+    for part in loc:
+        if keyed:  # a dict's key or a list's index: its value's annotation
+            node, keyed = unwrap(node)
+            continue
+        if not (isinstance(node, type) and issubclass(node, BaseModel)):
+            return None
+        field = node.model_fields.get(part) or next((f for f in node.model_fields.values() if f.alias == part), None)
+        if field is None:
+            return None
+        node, keyed = unwrap(field.annotation)
+    if keyed:
+        return None
+    return node if isinstance(node, type) and issubclass(node, BaseModel) else None
+
+
+def model_keys(model: type[BaseModel]) -> list[str]:
+    """The keys a model accepts, as a recipe writes them (aliases where a field has one)."""
+    return sorted(f.alias or name for name, f in model.model_fields.items())
+
+
+def unknown_key_message(key: Any, valid: list[str]) -> str:
+    """``unknown key 'x'`` with the nearest valid key and the valid ones."""
+    import difflib
+
+    close = difflib.get_close_matches(str(key), valid, n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    return f"unknown key {str(key)!r}{hint} (valid: {', '.join(valid)})"
+
+
+def pydantic_problems(err: ValidationError, prefix: str = "", model: type[BaseModel] | None = None) -> \
+        list[tuple[str, str]]:
+    """(path, message) per validation error; an unknown key names the valid keys of ``model`` (the class validated)
+    at its place, and the nearest one."""
     problems = []
     for e in err.errors():
         loc = tuple(p for p in e["loc"] if p not in ("function-after",) and not str(p).startswith("function-"))
@@ -312,7 +373,8 @@ def pydantic_problems(err: ValidationError, prefix: str = "") -> list[tuple[str,
             path = f"{prefix}.{path}" if path and not path.startswith("[") else prefix + path
         msg = e["msg"]
         if e["type"] == "extra_forbidden":
-            msg = "unknown key"
+            at = _model_at(model, loc[:-1]) if model is not None and loc else None
+            msg = unknown_key_message(loc[-1], model_keys(at)) if at is not None and loc else "unknown key"
         elif msg.startswith("Value error, "):
             msg = msg[len("Value error, "):]
         problems.append((path, msg))
@@ -335,13 +397,25 @@ def recipe_from_dict(data: Any, source: str = "recipe") -> Recipe:
     try:
         return Recipe.model_validate(data)
     except ValidationError as err:
-        raise RecipeError(pydantic_problems(err), source) from None
+        raise RecipeError(pydantic_problems(err, model=Recipe), source) from None
 
 
-def set_path(data: dict[str, Any], path: str, value: Any, source: str, where: str) -> None:
-    """Set ``data[a][b][0]...`` from the dotted path ``a.b.0...`` (mappings are created on the way)."""
+def set_path(data: dict[str, Any], path: str, value: Any, source: str, where: str) -> int:
+    """Set ``data[a][b][0]...`` from the dotted path ``a.b.0...`` (mappings are created on the way); a ``*`` part
+    stands for every key of the mapping (every item of the list) found there, as in ``stages.*.train.steps``.
+    Returns the number of places set; a path whose wildcard matches nothing is an error that names it."""
     parts = path.split(".")
-    node: Any = data
+    if "*" in parts:
+        places = _expand(data, parts)
+        if not places:
+            i = parts.index("*")
+            raise RecipeError([(where, f"{path}: matches nothing (no field of the recipe is at that path; the first "
+                                       f"'*' stands for the entries of {'.'.join(parts[:i]) or 'the recipe'})")],
+                              source)
+        for place in places:
+            set_path(data, ".".join(place), value, source, where)
+        return len(places)
+    node = data
     for i, part in enumerate(parts):
         last = i == len(parts) - 1
         if isinstance(node, list):
@@ -356,6 +430,7 @@ def set_path(data: dict[str, Any], path: str, value: Any, source: str, where: st
                                        "a list")], source)
         if last:
             node[key] = copy.deepcopy(value)
+            return 1
         else:
             if isinstance(node, dict) and node.get(key) is None:
                 if parts[:i] == ["stages"]:  # a new stage from a typo would fail later with a vaguer message
@@ -367,6 +442,31 @@ def set_path(data: dict[str, Any], path: str, value: Any, source: str, where: st
                                                f"{', '.join(map(str, node)) or 'none'})")], source)
                 node[key] = {}
             node = node[key]
+    return 0  # not reached: the last part returns
+
+
+def _expand(node: Any, parts: list[str]) -> list[list[str]]:
+    """The concrete paths a dotted path with ``*`` parts names in ``node``: each ``*`` stands for every key of the
+    mapping (item of the list) there; a branch that does not reach the path's last part names nothing."""
+    if not parts:
+        return [[]]
+    head, rest = parts[0], parts[1:]
+    if head == "*":
+        keys = list(node) if isinstance(node, dict) else list(range(len(node))) if isinstance(node, list) else []
+    else:
+        keys = [head]
+    out = []
+    for key in keys:
+        if not rest:
+            out.append([str(key)])
+            continue
+        child = (node.get(key) if isinstance(node, dict) else
+                 node[int(key)] if isinstance(node, list) and str(key).isdigit() and int(key) < len(node) else None)
+        if child is None and "*" not in rest:  # created on the way, as a path without wildcards would be
+            out.append([str(key), *rest])
+        elif isinstance(child, (dict, list)):
+            out += [[str(key), *tail] for tail in _expand(child, rest)]
+    return out
 
 
 def parse_overrides(items: list[str], source: str = "--set") -> dict[str, Any]:

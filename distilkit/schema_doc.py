@@ -9,9 +9,25 @@ from distilkit.recipe import Recipe
 
 
 def recipe_json_schema() -> str:
+    """The recipe's JSON schema; a model's ``params`` follow its adapter's parameters (``if adapter == NAME then
+    params: ...``), so an editor completes and checks them."""
+    from distilkit.registry import ADAPTERS
+
     schema = Recipe.model_json_schema(by_alias=True)
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["title"] = "distilkit recipe"
+    defs = schema.setdefault("$defs", {})
+    rules = []
+    for e in ADAPTERS:
+        params = e.obj.Params.model_json_schema(by_alias=True)
+        for name, block in params.pop("$defs", {}).items():
+            defs.setdefault(name, block)
+        key = f"AdapterParams_{e.name.replace('-', '_')}"
+        defs[key] = {**params, "title": f"{e.name} parameters", "additionalProperties": False}
+        rules.append({"if": {"properties": {"adapter": {"const": e.name}}, "required": ["adapter"]},
+                      "then": {"properties": {"params": {"$ref": f"#/$defs/{key}"}}}})
+    if "ModelSpec" in defs:
+        defs["ModelSpec"]["allOf"] = rules
     return json.dumps(schema, indent=2)
 
 
@@ -44,14 +60,79 @@ def recipe_reference_markdown() -> str:
     for name, sec in sections:
         out += [f"## {name}", ""]
         if sec.get("description"):
-            out += [sec["description"].strip().splitlines()[0], ""]
+            out += [" ".join(sec["description"].split()), ""]
         out += ["| field | type | default | description |", "|---|---|---|---|"]
         required = set(sec.get("required", []))
         for field, prop in sec.get("properties", {}).items():
             default = "*required*" if field in required else f"`{json.dumps(prop.get('default'))}`" if "default" in prop else ""
             out.append(f"| `{field}` | {_cell(_type(prop))} | {default} | {_cell(prop.get('description') or '')} |")
         out.append("")
-    return "\n".join(out)
+    return "\n".join(out + OVERRIDES_MARKDOWN + adapters_markdown())
+
+
+OVERRIDES_MARKDOWN = [
+    "## Overrides on the command line (`--set`)", "",
+    "`distilkit run` and `distilkit validate` take `--set PATH=VALUE ...`: each sets one field of the recipe by its "
+    "dotted path, the path sweep files use, before the recipe is validated (so an override is checked like the "
+    "file). Values are read as YAML (`0.01` a number, `[1, 2]` a list, `true` a boolean, `{a: 1}` a mapping, "
+    "anything else a string); a path goes into lists by index (`stages.s.distill.0.weight=10`). A `*` stands for "
+    "every key (or list item) at its place: `--set 'stages.*.train.steps=4'` shrinks every stage at once. An "
+    "override whose wildcard matches nothing, or that names a stage the recipe does not have, is an error (exit 2). "
+    "Each stage's `recipe.resolved.yaml` records the values in effect.", "",
+    "```bash",
+    "distilkit run recipes/quickstart.yaml --set 'stages.*.train.steps=4' data.params.num_test=4",
+    "distilkit validate recipes/semantickitti_scpnet.yaml --set data.params.root=/data/semantickitti",
+    "```", ""]
+
+
+def params_table(params: type[Any]) -> list[str]:
+    """A parameter table (and one per nested parameter block) of a component's pydantic ``Params``."""
+    schema = params.model_json_schema()
+    defs = schema.get("$defs", {})
+    out: list[str] = []
+    for name, block in [("", schema)] + [(n, defs[n]) for n in sorted(defs)]:
+        if name:
+            out += [f"`{name}` ({' '.join((block.get('description') or '').split())})", ""]
+        out += ["| parameter | type | default | description |", "|---|---|---|---|"]
+        required = set(block.get("required", []))
+        for field, prop in block.get("properties", {}).items():
+            default = ("*required*" if field in required
+                       else f"`{json.dumps(prop.get('default'))}`" if "default" in prop else "")
+            out.append(f"| `{field}` | {_cell(_type(prop))} | {default} | {_cell(prop.get('description') or '')} |")
+        out.append("")
+    return out
+
+
+def aux_only_inputs(inputs: frozenset[str]) -> list[str]:
+    """The batch inputs no registered dataset provides: only a frozen auxiliary model's tap (an ``aux`` edge) can."""
+    from distilkit.registry import DATASETS
+
+    fields: set[str] = set()
+    for entry in DATASETS:
+        try:
+            fields |= set(entry.meta["info"](entry.meta["params"].model_construct()).fields)
+        except Exception:  # a dataset whose facts need parameters it has no default for
+            continue
+    return sorted(inputs - fields)
+
+
+def adapters_markdown() -> list[str]:
+    """Every registered adapter: what it is, the batch inputs it reads (those only an ``aux`` edge provides said so)
+    and its parameters (``model.params``), from its ``Params``."""
+    from distilkit.registry import ADAPTERS
+
+    out = ["## Adapter parameters", "",
+           "`model: {adapter: NAME, params: {...}}` takes these parameters (unknown ones are errors; "
+           "`distilkit list adapters` shows the same).", ""]
+    for e in ADAPTERS:
+        inputs = e.obj.inputs(e.obj.Params.model_construct())
+        aux = aux_only_inputs(inputs)
+        out += [f"### {e.name}", "", e.description + ".", "", f"- **Paper:** {e.paper}",
+                f"- **Reads:** {', '.join(f'`{i}`' for i in sorted(inputs)) or 'nothing'}"
+                + (f"; {', '.join(f'`{i}`' for i in aux)} only from an auxiliary model: `aux: {{NAME: {{from: STAGE, "
+                   f"inputs: {{TAP: {aux[0]}}}}}}}`" if aux else ""), ""]
+        out += params_table(e.obj.Params)
+    return out
 
 
 def objectives_markdown() -> str:
@@ -123,15 +204,5 @@ def datasets_markdown() -> str:
         defs = schema.get("$defs", {})
         doc = " ".join((params.__doc__ or "").split())
         out += [f"## {e.name}", "", e.description + ".", "", f"- **Paper:** {e.paper}", "", doc, ""]
-        blocks = [("", schema)] + [(name, defs[name]) for name in sorted(defs)]
-        for name, block in blocks:
-            if name:
-                out += [f"`{name}` ({' '.join((block.get('description') or '').split())})", ""]
-            out += ["| parameter | type | default | description |", "|---|---|---|---|"]
-            required = set(block.get("required", []))
-            for field, prop in block.get("properties", {}).items():
-                default = ("*required*" if field in required
-                           else f"`{json.dumps(prop.get('default'))}`" if "default" in prop else "")
-                out.append(f"| `{field}` | {_cell(_type(prop))} | {default} | {_cell(prop.get('description') or '')} |")
-            out.append("")
+        out += params_table(params)
     return "\n".join(out)

@@ -171,7 +171,8 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
     every-5th frames; with ``semantickitti-scan``'s parameters every scan, its voxel targets ignored where the frame
     has none)."""
 
-    def __init__(self, params: SemanticKittiParams, split: str) -> None:
+    def __init__(self, params: SemanticKittiParams, split: str, what: str | None = None) -> None:
+        """The role ``split`` (train, val, test) of the folder; ``what`` names it in errors (default: the role)."""
         self.p = params
         self.table = params.table()
         root = Path(params.root).expanduser()
@@ -179,6 +180,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         # (sequence dir, frame, sequence length, has voxel labels: a test sequence without any is the benchmark's
         # hidden split, whose every stride-th scan is predicted and never scored)
         self.items: list[tuple[Path, int, int, bool]] = []
+        self.notes: list[str] = []  # what a user should hear about the folder (frames left out), shown once
         problems: list[str] = []
         for seq in seqs:
             d = root / "sequences" / seq
@@ -193,9 +195,17 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
             frames = [f for f in frames if f % params.stride == 0]
             problems += folder_problems(d, frames, bool(vox) or split != "test", params)
             self.items += [(d, f, len(scans), bool(vox)) for f in frames]
+            if vox:  # every 5th scan up to the last labelled one has voxel labels: a gap is a deleted file
+                labelled = {int(f.stem) for f in vox}
+                gaps = [int(f.stem) for f in scans if int(f.stem) % 5 == 0 and int(f.stem) % params.stride == 0
+                        and int(f.stem) < max(labelled) and int(f.stem) not in labelled]
+                if gaps:
+                    self.notes.append(f"sequences/{seq}: {len(gaps)} of its every-5th frames have a scan but no "
+                                      f"{params.voxels}/*.label and are left out ({', '.join(f'{g:06d}' for g in gaps[:5])}"
+                                      f"{', ...' if len(gaps) > 5 else ''})")
         if problems or not self.items:
             shown = problems[:12] + ([f"... and {len(problems) - 12} more"] if len(problems) > 12 else [])
-            raise DataError(f"{root}: split {split!r} (sequences {', '.join(seqs) or 'none'}) is not a complete "
+            raise DataError(f"{root}: {what or f'split {split!r}'} (sequences {', '.join(seqs) or 'none'}) is not a complete "
                             "SemanticKITTI folder:\n  " + "\n  ".join(shown or [f"no frames with a stride of "
                                                                                    f"{params.stride}"]))
         self.info = kitti_info(params)
@@ -224,8 +234,14 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         return self._calibs[d]
 
     def _pose(self, d: Path) -> np.ndarray:
+        """The sequence's LiDAR poses: one per scan (a poses.txt with fewer is named)."""
         if d not in self._poses:
-            self._poses[d] = skio.read_poses(d / "poses.txt", self._calib(d))
+            poses = skio.read_poses(d / "poses.txt", self._calib(d))
+            scans = len(list((d / "velodyne").glob("*.bin")))
+            if len(poses) < scans:
+                raise DataError(f"{d / 'poses.txt'}: {len(poses)} poses for the {scans} scans of velodyne/ (one pose "
+                                "a scan, in order)")
+            self._poses[d] = poses
         return self._poses[d]
 
     def __getitem__(self, i: int) -> dict[str, np.ndarray]:
@@ -289,6 +305,19 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
         return out
 
 
+def kitti_check(params: SemanticKittiParams, split: str) -> str | None:
+    """What ``distilkit validate`` says of a folder's split: None where it can be read, else the problem (the
+    folder missing, or each file it lacks). Only lists and stats files: cheap."""
+    root = Path(params.root).expanduser()
+    if not (root / "sequences").is_dir():
+        return f"{root}: no sequences/ folder there (a SemanticKITTI folder holds sequences/NN/velodyne, ...)"
+    try:
+        SemanticKittiDataset(params, split)
+    except DataError as exc:
+        return str(exc)
+    return None
+
+
 def kitti_fingerprint(params: SemanticKittiParams) -> dict[str, Any]:
     """What identifies a SemanticKITTI folder in a stage's identity: the parameters but the root, and a digest of
     the names, sizes and modification times of the files of the sequences it reads (a moved folder keeps its
@@ -349,7 +378,7 @@ for _name, _params, _description, _paper in (
     DATASETS.add(_name, _kitti_factory, description=_description, paper=_paper, params=_params,
                  info=kitti_info, collate=collate_street, version=1,
                  has_split=lambda p, split: bool(p.sequences(split)), probe=grid_plan,
-                 fingerprint=kitti_fingerprint)
+                 fingerprint=kitti_fingerprint, check=kitti_check)
 
 
 def _scenes_factory(params: Any, split: str, progress: Any = None) -> Any:

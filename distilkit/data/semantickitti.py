@@ -25,8 +25,14 @@ def _read(path: Path, dtype: np.dtype, what: str, multiple: int = 1) -> np.ndarr
 
 
 def read_points(path: str | Path) -> np.ndarray:
-    """``velodyne/NNNNNN.bin``: little-endian float32 (N, 4) = x, y, z, remission."""
-    return _read(Path(path), np.dtype("<f4"), "point cloud", 4).reshape(-1, 4)
+    """``velodyne/NNNNNN.bin``: little-endian float32 (N, 4) = x, y, z, remission; at least one point, every
+    coordinate finite."""
+    from distilkit.data.pointfiles import check_finite
+
+    points = _read(Path(path), np.dtype("<f4"), "point cloud", 4).reshape(-1, 4)
+    if len(points) == 0:
+        raise DataError(f"{path}: the scan holds no point (an empty file)")
+    return check_finite(points, path)
 
 
 def read_point_labels(path: str | Path, num_points: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -100,9 +106,20 @@ def read_poses(path: str | Path, calib: dict[str, np.ndarray] | None = None) -> 
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: poses file not found")
-    rows = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    if rows.shape[1] != 12:
-        raise DataError(f"{path}: each pose line must have 12 numbers, got {rows.shape[1]}")
+    rows = []
+    for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            values = [float(v) for v in line.split()]
+        except ValueError:
+            raise DataError(f"{path}:{n}: a pose line must be 12 numbers, got {line.strip()[:80]!r}") from None
+        if len(values) != 12:
+            raise DataError(f"{path}:{n}: a pose line must have 12 numbers, got {len(values)}")
+        rows.append(values)
+    if not rows:
+        raise DataError(f"{path}: no pose in the file")
+    rows = np.asarray(rows, dtype=np.float64)
     poses = np.tile(np.eye(4), (rows.shape[0], 1, 1))
     poses[:, :3, :] = rows.reshape(-1, 3, 4)
     if calib is not None and "Tr" in calib:

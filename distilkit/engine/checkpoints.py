@@ -15,13 +15,32 @@ from distilkit.files import atomic_torch_save
 from distilkit.errors import DataError
 
 
+def _reason(exc: Exception) -> str:
+    """What torch says is wrong with a file, without its advice to load it with ``weights_only=False`` (which would
+    run code from an untrusted file)."""
+    text = str(exc)
+    if text.startswith("Weights only load failed"):
+        paragraphs = [p.strip() for p in text.split("\n\n") if p.strip()]
+        detail = next((p for p in paragraphs[1:] if "weights_only" not in p and not p.startswith("Check the")), "")
+        detail = detail.replace("WeightsUnpickler error:", "").strip()
+        return (f"not loadable as plain weights{f': {detail[:300]}' if detail else ''}; distilkit reads weights "
+                "only and never runs code from a file")
+    first = text.strip().split("\n")[0]
+    return f"{type(exc).__name__}: {first[:300]}"
+
+
 def _load_safely(path: Path) -> Any:
     if not path.is_file():
         raise DataError(f"{path}: checkpoint not found")
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        try:  # memory-mapped: a tensor is read only when used (validate reads shapes alone)
+            return torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+        except RuntimeError as exc:
+            if "mmap" not in str(exc):
+                raise
+            return torch.load(path, map_location="cpu", weights_only=True)  # the legacy (non-zip) format
     except Exception as exc:
-        raise DataError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {exc})") from None
+        raise DataError(f"{path}: not a readable checkpoint ({_reason(exc)})") from None
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -49,18 +68,29 @@ def read_state_dict(path: str | Path) -> dict[str, Any]:
     return obj
 
 
+def mismatch(own: dict[str, tuple[int, ...]], given: dict[str, tuple[int, ...]], strict: bool = True) -> str | None:
+    """Every key of ``given`` (a file's shapes) that does not fit ``own`` (a model's), named: missing, unexpected and
+    of another shape (with both shapes); None where they fit (not ``strict``: only keys of another shape count,
+    missing and unexpected ones being left out by design)."""
+    misfit = [f"{k} {tuple(given[k])} (model: {tuple(own[k])})" for k in given if k in own and given[k] != own[k]]
+    missing = [k for k in own if k not in given] if strict else []
+    unexpected = [k for k in given if k not in own] if strict else []
+    parts = [f"{len(keys)} {what}: {', '.join(keys)}" for keys, what in
+             ((missing, "missing"), (unexpected, "unexpected"), (misfit, "of another shape")) if keys]
+    return "; ".join(parts) or None
+
+
 def load_weights(model: torch.nn.Module, weights: dict[str, Any], strict: bool, source: str) -> list[str]:
     """Load ``weights`` into ``model``; strict: all must fit, else the ones that fit by name and shape.
-    Returns what was left out (names), for the log. A misfit under ``strict`` is a one-line DataError."""
+    Returns what was left out (names), for the log. A misfit under ``strict`` is a DataError naming every key."""
     own = model.state_dict()
+    problem = mismatch({k: tuple(v.shape) for k, v in own.items()}, {k: tuple(v.shape) for k, v in weights.items()},
+                       strict)
+    if strict and problem:
+        raise DataError(f"{source}: weights do not fit {type(model).__name__}: {problem} (set strict: false to load "
+                        "the ones that fit)")
     misfit = [k for k, v in weights.items() if k in own and tuple(own[k].shape) != tuple(v.shape)]
     missing = [k for k in own if k not in weights]
-    unexpected = [k for k in weights if k not in own]
-    if strict and (misfit or missing or unexpected):
-        parts = [f"{len(x)} {what} (e.g. {x[0]})" for x, what in ((missing, "missing"), (unexpected, "unexpected"),
-                                                                   (misfit, "of another shape")) if x]
-        raise DataError(f"{source}: weights do not fit {type(model).__name__}: {'; '.join(parts)} "
-                        f"(set strict: false to load the ones that fit)")
     fit = {k: v for k, v in weights.items() if k in own and k not in misfit}
     model.load_state_dict(fit, strict=False)
     return sorted(missing + misfit)

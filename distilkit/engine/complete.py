@@ -62,6 +62,14 @@ def complete(checkpoint: str | Path, scan: str | Path, out: str | Path, steps: i
              device: str = "cpu", status: Any = None, refine: str | Path | None = None) -> Completion:
     """Complete ``scan`` with the model in ``checkpoint`` (a checkpoint file or a stage's run folder), refine it with
     the model of ``refine`` if given; write ``out``."""
+    import math
+
+    for name, value in (("--steps", steps), ("--scan-points", scan_points)):
+        if value is not None and value < 1:
+            raise DistilkitError(f"{name} {value}: must be at least 1 (leave it out for the model's own)")
+    if guidance is not None and not (math.isfinite(guidance) and guidance >= 0):
+        raise DistilkitError(f"--guidance {guidance}: must be a finite number >= 0 (1: the conditional prediction "
+                             "alone)")
     t0 = time.perf_counter()
     model, data_params = _model(Path(checkpoint).expanduser(), ScanCompleter,
                                 "complete a scan: it offers no complete_scan(points, ...)")
@@ -80,6 +88,10 @@ def complete(checkpoint: str | Path, scan: str | Path, out: str | Path, steps: i
             if status:
                 status(f"refining {len(scene):,} completed points")
             scene = refiner.refine_cloud(scene)
+    if len(scene) == 0:
+        raise DistilkitError(f"{scan}: the completion of its {len(raw):,} points holds no point after the model's "
+                             "post-processing (LiDiff's keeps heights within 2 std of the scan's mean and below its "
+                             "highest point: a scan this small or flat leaves nothing); nothing written")
     path = write_points(out, scene)
     return Completion(path, count, len(raw), len(scene), n_steps, time.perf_counter() - t0, refiner is not None)
 

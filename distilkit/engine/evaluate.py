@@ -50,14 +50,17 @@ def _merged(metrics: list[Metric], seconds: float, count: int, world: World) -> 
 @torch.no_grad()
 def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device, collate: Collate,
              metrics: list[Any], world: World = SINGLE, workers: int = 0, seed: int = 0,
-             prepare: Callable[[Batch], Batch] | None = None) -> dict[str, Any]:
+             prepare: Callable[[Batch], Batch] | None = None,
+             progress: Callable[[int | None, int | None], None] | None = None) -> dict[str, Any]:
     """Scores of the model's prediction tap over ``dataset`` with ``metrics`` (each with its registered ``name``
     and ``cls``): the first one's keys as they are, the others' as ``<name>.<key>``; and ``seconds_per_sample`` of
-    the model's forward passes, its auxiliary models' included (``prepare``)."""
+    the model's forward passes, its auxiliary models' included (``prepare``). ``progress(done, total)`` follows this
+    process's samples (``(None, None)`` at the end)."""
     was_training = model.training
     model.eval()
     accs = [m.cls(model.info) for m in metrics]
     seconds, count = 0.0, 0
+    share = -(-len(dataset) // world.size)
     with seeded(seed, device):
         for batch in eval_batches(dataset, batch_size, collate, world, workers):
             if device.type == "cuda":
@@ -76,6 +79,10 @@ def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device
                                f"{model.PREDICTION_TAP!r} (returned: {', '.join(map(str, out))})")
             for acc in accs:
                 acc.update(out[model.PREDICTION_TAP], batch)
+            if progress is not None:
+                progress(min(count, share), share)
+    if progress is not None:
+        progress(None, None)
     model.train(was_training)
     accs, seconds, count = _merged(accs, seconds, count, world)
     scores: dict[str, Any] = dict(accs[0].compute())

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,19 @@ from distilkit.engine.stage import StageResult, StageRun
 from distilkit.errors import RecipeError
 from distilkit.recipe import Recipe, load_recipe, needed_stages
 from distilkit.registry import DATASETS
+
+
+def writable(root: Path) -> None:
+    """Make the recipe's output folder (a read-only one that exists is left as it is: its finished stages are only
+    read; a stage that must be written there stops with one line)."""
+    from distilkit.errors import DataError
+
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except PermissionError:
+        if not root.is_dir():
+            raise DataError(f"{root}: cannot create the output folder (permission denied); give --output a "
+                            "writable folder") from None
 
 
 def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
@@ -91,6 +105,8 @@ class Pipeline:
                 task = prog.add_task("gen", total=None)
                 self._data[split] = Split(entry.obj(self.resolved.data_params, split,
                                                     lambda i, n: prog.update(task, completed=i, total=n)), split)
+            for note in getattr(self._data[split].dataset, "notes", []):  # e.g. frames a folder leaves out
+                self.console.print(f"[yellow]data {split}:[/] {note}")
         return self._data[split]
 
     @property
@@ -172,13 +188,18 @@ class Pipeline:
         from distilkit.engine.lock import lock_path, stage_lock
         from distilkit.repro import deterministic_algorithms
 
+        from distilkit.engine.stage import read_summary
+
         results: list[StageResult] = []
         again = self.rerun_set(rerun)
-        self.root.mkdir(parents=True, exist_ok=True)
+        writable(self.root)
         for name in self.resolved.order:
             if name not in names:
                 continue
             run_dir = self.run_dir(name)
+            if name not in again and read_summary(run_dir) is not None and not os.access(run_dir, os.W_OK):
+                results.append(StageRun(self, name, run_dir, stop_after).run())  # finished, read-only: no lock
+                continue
             lock = stage_lock(lock_path(self.root, run_dir.name), wait=wait,
                               on_wait=lambda holder, n=name: self.console.print(
                                   f"stage [bold]{n}[/] is being trained by another distilkit run ({holder}); waiting"))

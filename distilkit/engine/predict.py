@@ -42,15 +42,23 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
     from distilkit.engine.runs import checkpoint_path, load_run, run_config
     from distilkit.registry import DATASETS
 
+    from distilkit.engine.checkpoints import load_checkpoint
+
     path = checkpoint_path(Path(run).expanduser(), "any")
+    load_checkpoint(path)  # a distilkit checkpoint, or one line saying what it is not
     data = run_config(path).get("data") or {}
+    if not data:
+        raise DistilkitError(f"{path}: no recipe.resolved.yaml in its run folder, so the data the model was trained "
+                             "on is unknown; give predict the stage's run folder (runs/<recipe>/<stage>-<hash>) or "
+                             "its checkpoints/best.pt")
     if data.get("dataset") not in FOLDER_DATASETS:
         raise DistilkitError(f"{run}: trained on {data.get('dataset')!r}; predict writes SemanticKITTI-format "
                              f"submissions from models trained on a folder ({', '.join(FOLDER_DATASETS)})")
     entry = DATASETS.entry(data["dataset"])
     trained = entry.meta["params"](**(data.get("params") or {}))
     params = trained.for_submission(str(dataset_root), sequences if isinstance(sequences, str) else list(sequences))
-    dataset = SemanticKittiDataset(params, "test")
+    dataset = SemanticKittiDataset(params, "test", what=f"--split {sequences}" if isinstance(sequences, str)
+                                   else "--sequences")
     model = load_run(path, device=torch.device(device))
     collate = entry.meta["collate"]
     to_raw = raw_ids(dataset.table)

@@ -115,7 +115,7 @@ def _params(model: type[BaseModel], raw: dict[str, Any], path: str, problems: li
     try:
         return model.model_validate(raw)
     except ValidationError as err:
-        problems.extend(pydantic_problems(err, path))
+        problems.extend(pydantic_problems(err, path, model=model))
         return None
 
 
@@ -376,8 +376,13 @@ def data_problems(model: ResolvedModel, info: Any, path: str) -> list[tuple[str,
     out = []
     missing = sorted(model.cls.inputs(model.params) - info.fields) if info.fields else []
     if missing:
+        from distilkit.schema_doc import aux_only_inputs
+
+        aux = aux_only_inputs(frozenset(missing))
+        hint = (f"; no dataset provides {', '.join(aux)}: a frozen auxiliary model's tap does, e.g. `aux: {{{aux[0]}: "
+                f"{{from: STAGE}}}}` (its prediction becomes the input `{aux[0]}`)" if aux else "")
         out.append((f"{path}.adapter", f"adapter {model.adapter!r} reads batch input(s) {', '.join(missing)}, which "
-                                       f"the data does not provide (it has: {', '.join(sorted(info.fields))})"))
+                                       f"the data does not provide (it has: {', '.join(sorted(info.fields))}){hint}"))
     out += [(f"{path}.params.{param}" if param else f"{path}.adapter", problem)
             for param, problem in model.cls.check_data(model.params, info)]
     return out

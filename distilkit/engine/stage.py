@@ -94,12 +94,13 @@ class StageRun:
         self.checkpoints = Checkpoints(run_dir / "checkpoints", self.world.main)
         self.trainer: Trainer | None = None
         self.aux: list[tuple[Any, Any]] = []  # (resolved aux, its frozen model)
+        self.eval_progress: Any = None  # where an evaluation shows its progress (the stage's bar), if anywhere
         self.device = pick_device(self.spec.device)
 
     # -- the whole run -----------------------------------------------------------------------
     def run(self) -> StageResult | None:
         """Reuse the finished stage, or build, train, evaluate and publish it (None: stopped early on request)."""
-        from distilkit.console import stage_progress
+        from distilkit.console import progress_bar, stage_progress
         from distilkit.engine.memory import is_out_of_memory, out_of_memory
 
         done = read_summary(self.run_dir)
@@ -110,16 +111,22 @@ class StageRun:
             return StageResult(self.name, self.run_dir, {**done, "label": self.stage.spec.label or self.name}, True)
         self._prepare_folder()
         try:
-            with stage_progress(self.pipeline.console, self.name) as on_step:
+            with stage_progress(self.pipeline.console, self.name) as bar:
+                self.eval_progress = bar.evaluation
                 self.build()
-                loop = self.loop(on_step)
+                loop = self.loop(bar)
             assert self.trainer is not None
             if loop.step < self.trainer.total_steps:
                 self.pipeline.console.print(f"stage {self.name} stopped after {loop.step} steps (checkpoint kept)")
                 return None
             split = self.report_split()
             best = self.best_model()  # read once: scored on the test split, previewed on a validation scene
-            test = self.score(split, best) if split is not None else {}
+            test = {}
+            if split is not None:
+                with progress_bar(self.pipeline.console, f"{self.name}: scoring {split}", transient=True) as advance:
+                    self.eval_progress = lambda done, total: advance(done, total) if done is not None else None
+                    test = self.score(split, best)
+            self.eval_progress = None
             self.write_preview(best)
             self.publish_predictions(best[0] if best is not None else None)
         except (RuntimeError, MemoryError) as exc:  # out of memory: one line that says what to lower
@@ -224,6 +231,7 @@ class StageRun:
     # -- loop --------------------------------------------------------------------------------
     def loop(self, on_step: Any) -> Loop:
         """Train from the start or from ``last.pt`` to the last step (or ``stop_after``)."""
+        from distilkit.engine import stop as stopping
         from distilkit.engine.randomness import set_rng_state
 
         trainer = self.trainer
@@ -254,6 +262,10 @@ class StageRun:
             loop.step += 1
             loop.evaluated = False
             loop.emit("after_step")
+            if self.world.any(stopping.requested()) and loop.step < trainer.total_steps:  # SIGTERM, or a sweep gone
+                loop.save("last")
+                self.log({"event": "stopped", "step": loop.step})
+                raise KeyboardInterrupt
         if loop.last_scores is None and self.pipeline.has_split("val"):
             loop.last_scores = self.evaluate(self.split("val"))
         loop.seconds = time.perf_counter() - loop.t0
@@ -310,7 +322,8 @@ class StageRun:
         assert self.trainer is not None
         return evaluate(model if model is not None else self.trainer.student, dataset, self.spec.batch_size,
                         self.device, self.pipeline.collate, self.stage.metrics, world=self.world,
-                        workers=self.workers, seed=self.seed, prepare=self.prepare)
+                        workers=self.workers, seed=self.seed, prepare=self.prepare,
+                        progress=self.eval_progress if self.world.main else None)
 
     def best_model(self) -> tuple[Any, int] | None:
         """The student of ``best.pt`` and its step (None before the first evaluation); every process reads the file

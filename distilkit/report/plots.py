@@ -30,7 +30,7 @@ def save(fig: Any, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, getattr(fig, "distilkit_bottom", 0.0), 1.0, 1.0))  # a figure legend keeps its room
     fig.savefig(tmp, dpi=110)
     plt.close(fig)
     tmp.replace(path)
@@ -79,6 +79,9 @@ def loss_curves(ax: Any, terms: dict[str, tuple[list[int], list[float]]], prefix
     ax.set_title("loss per term")
     if terms:
         ax.legend(fontsize=7)
+    elif not ax.lines:
+        ax.text(0.5, 0.5, "no loss logged: the run is shorter than train.log_every", ha="center", va="center",
+                transform=ax.transAxes, fontsize=8, color="gray")
 
 
 def class_bars(ax: Any, names: list[str], colours: list[tuple[int, int, int]], values: list[list[float]],
@@ -92,8 +95,8 @@ def class_bars(ax: Any, names: list[str], colours: list[tuple[int, int, int]], v
                edgecolor="black", linewidth=0.4, hatch=None if i == 0 else "//", label=label)
     ax.set_xticks(x, names, rotation=60, ha="right", fontsize=7)
     ax.set_ylabel(what)
-    if n > 1:
-        ax.legend(fontsize=7)
+    if n > 1:  # above the plot, where it covers no bar
+        ax.legend(fontsize=7, loc="lower left", bbox_to_anchor=(0.0, 1.01), ncol=n, frameon=False)
 
 
 def task_loss(terms: dict[str, tuple[list[int], list[float]]]) -> dict[str, tuple[list[int], list[float]]]:
@@ -146,15 +149,39 @@ def read_preview(run_dir: Path) -> dict[str, np.ndarray] | None:
         return None
 
 
-def bev_row(axes: list[Any], preview: dict[str, np.ndarray], title: str = "") -> None:
+def bev_row(axes: list[Any], preview: dict[str, np.ndarray], title: str = "", model_input: str = "") -> None:
+    """Input, prediction and ground truth from above, with a legend of the classes they show (a class-id panel's
+    colours). ``model_input``: what the model reads (the results table's input column, e.g. "4 frames"), said under
+    the input panel, which shows the current scan (or image) only."""
     colours = preview.get("class_colours", np.zeros((0, 3)))
     for ax, key in zip(axes, ("input", "prediction", "target")):
         if key in preview:
-            name = {"input": "input image" if preview[key].ndim == 3 else "input scan", "prediction": "prediction",
-                    "target": "ground truth"}[key]
+            name = {"input": "input image" if preview[key].ndim == 3 else "input: the current scan",
+                    "prediction": "prediction", "target": "ground truth"}[key]
+            if key == "input" and model_input:
+                name += f"\n(the model reads {model_input})"
             bev_panel(ax, preview[key], preview["extent"], colours, f"{title}{name}")
         else:
             ax.set_axis_off()
+    class_legend(axes[-1].figure, preview)
+
+
+def class_legend(fig: Any, preview: dict[str, np.ndarray]) -> None:
+    """A legend of the classes the class-id panels show, in their colours, under the figure."""
+    from matplotlib.patches import Patch
+
+    names, colours = preview.get("class_names"), preview.get("class_colours")
+    if names is None or colours is None:
+        return
+    shown = sorted({int(c) for key in ("prediction", "target") if key in preview
+                    and preview[key].ndim == 2 and np.issubdtype(preview[key].dtype, np.integer)
+                    for c in np.unique(preview[key]) if 0 <= c < len(names)})
+    if not shown:
+        return
+    handles = [Patch(facecolor=np.asarray(colours[c]) / 255.0, edgecolor="black", linewidth=0.3, label=str(names[c]))
+               for c in shown]
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 7), fontsize=7, frameon=False)
+    fig.distilkit_bottom = 0.05 * ((len(handles) - 1) // 7 + 1)  # room kept under the axes by save()
 
 
 __all__ = ["bev_panel", "bev_row", "class_bars", "figure", "loss_curves", "read_log", "read_preview", "save",

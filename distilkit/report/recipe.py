@@ -32,25 +32,57 @@ def _score_cells(row: dict[str, Any], view: ScoreView, rich: bool = False) -> li
         view.fmt(view.main, row["val"])]
 
 
-def results_table(results: list[Any]) -> Any:
-    from rich.table import Table
+WIDE = 150  # a console at least this wide gets a column for every field; a narrower one, the compact layout
 
-    rows = [stage_row(r.summary) for r in results]
-    tables = []
-    for view, members in _groups(rows):
+
+class ResultsTable:
+    """The stages' comparison table, laid out for the console it is printed on: a column per field where it is
+    wide enough, else one column that gathers each stage's label, model, input, teacher and distillation (folded
+    as needed) beside short score headers. Scores and the status are never cut, at any width."""
+
+    def __init__(self, results: list[Any], note: str | None = None) -> None:
+        self.results, self.note = results, note
+
+    def __rich_console__(self, console: Any, options: Any) -> Any:
+        rows = [stage_row(r.summary) for r in self.results]
+        wide = options.max_width >= WIDE
+        for view, members in _groups(rows):
+            yield self._table(rows, members, view, wide)
+        if self.note:
+            yield self.note
+
+    def _table(self, rows: list[dict[str, Any]], members: list[int], view: ScoreView, wide: bool) -> Any:
+        from rich.table import Table
+
         table = Table(title=f"distilkit results — {header(view, rows[members[0]]['split'])}")
         scores = [c for c in _score_columns(view) if c not in [o[1] for o in view.others]]
-        for col in ("stage", "model", "input", "teacher", "distillation", *scores, ""):
-            table.add_column(col, justify="left" if col in ("stage", "model", "input", "teacher", "distillation", "")
-                             else "right")
-        for i in members:
+        text = ("stage", "model", "input", "teacher", "distillation") if wide else ("stage",)
+        for col in text:
+            table.add_column(col, overflow="fold", ratio=1)
+        cells = [[*_score_cells(rows[i], view, rich=True), "reused" if self.results[i].reused else "trained"]
+                 for i in members]
+        for j, col in enumerate([*scores, "status"]):
+            width = max(len(c[j]) for c in cells)
+            heading = col if wide else col.replace(" ", "\n")  # short headings wrap at their spaces, never the values
+            table.add_column(heading, justify="left" if col == "status" else "right", no_wrap=True,
+                             min_width=max(width, min(len(w) for w in heading.split("\n"))))
+        for i, score_cells in zip(members, cells):
             row = rows[i]
-            table.add_row(row["label"], row["adapter"], row["input"], row["teacher"], row["objectives"],
-                          *_score_cells(row, view, rich=True), "reused" if results[i].reused else "trained")
-        tables.append(table)
-    from rich.console import Group
+            if wide:
+                label = [row["label"], row["adapter"], row["input"], row["teacher"], row["objectives"]]
+            else:
+                detail = ", ".join(p for p in (row["adapter"], row["input"]) if p and p != "—")
+                teacher = f" ← {row['teacher']}" if row["teacher"] not in ("", "—") else ""
+                objectives = f"\n{row['objectives']}" if row["objectives"] not in ("", "—") else ""
+                label = [f"{row['label']}\n[dim]{detail}{teacher}{objectives}[/]"]
+            table.add_row(*label, *score_cells)
+        return table
 
-    return tables[0] if len(tables) == 1 else Group(*tables)
+
+def results_table(results: list[Any], note: str | None = None) -> Any:
+    """The comparison table of the stages (a rich renderable that fits its console's width; ``note``: a line
+    printed under it)."""
+    return ResultsTable(results, note)
 
 
 def class_rows(rows: list[dict[str, Any]], members: list[int], view: ScoreView,
@@ -105,7 +137,8 @@ def _seeds(default: int, results: list[Any]) -> str:
 
 def write_report(pipeline: Any, results: list[Any]) -> Path:
     """Print the comparison table and write ``report.md`` and ``report.png`` beside the stage folders."""
-    pipeline.console.print(results_table(results))
+    note = pipeline.recipe.report.note
+    pipeline.console.print(results_table(results, note))
     root: Path = pipeline.root
     rows = [stage_row(r.summary) for r in results]
     groups = _groups(rows)
@@ -129,12 +162,18 @@ def write_report(pipeline: Any, results: list[Any]) -> Path:
                         for i in members]
                 lines.append(f"| {cname} | " + " | ".join(vals) + " |")
             lines.append("")
+    if note:
+        lines += [note, ""]
     if pipeline.recipe.report.per_class:
         renderable, class_lines = class_tables(results, pipeline.resolved.data_info.class_names)
         pipeline.console.print(renderable)
         lines += class_lines
     lines += [f"![training loss and validation {groups[0][0].main[1] if groups else 'score'}](report.png)", ""]
-    atomic_write_text(root / "report.md", "\n".join(lines))
+    try:
+        atomic_write_text(root / "report.md", "\n".join(lines))
+    except PermissionError:  # a finished run in a read-only folder: the table above is its report
+        pipeline.console.print(f"[yellow]{root}: read-only, report.md not written (the table above is the report)[/]")
+        return root / "report.md"
     try:
         _plot(root / "report.png", results, rows)
     except Exception as exc:  # a plotting problem must not lose a finished run

@@ -97,7 +97,7 @@ def write_run_report(run_dir: str | Path) -> Path:
     preview = plots.read_preview(path)
     if preview is not None:
         fig, axes = plots.figure(3, width=4.5, height=4.5)
-        plots.bev_row(list(axes), preview)
+        plots.bev_row(list(axes), preview, model_input=str(summary.get("input") or ""))
         plots.save(fig, path / "bev.png")
         lines += ["## A validation scene from above", "",
                   f"The first validation scene at the best checkpoint (step {int(preview.get('step', -1))}): the input "

@@ -8,6 +8,7 @@ the same upstream stage take turns on its lock, so it is trained once.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shlex
 import subprocess
@@ -16,7 +17,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import yaml
 
@@ -149,30 +150,39 @@ class SweepRun:
         threads = max(1, cpus // jobs)
         if jobs > cpus:
             self.console.print(f"[yellow]--jobs {jobs} on {cpus} CPUs: jobs share cores (1 thread each)[/]")
-        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+        from distilkit.engine.stop import PARENT_ENV
+
+        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
+               PARENT_ENV: str(os.getpid())}  # a run stops (checkpoint written) if this process dies
         logs = self.root / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         failures: list[str] = []
+        children = Children()
 
         def one(task: Task) -> None:
             log = logs / f"{'+'.join(task.stages)}-seed{task.seed}.log"
             with open(log, "w", encoding="utf-8") as out:
-                code = subprocess.call([sys.executable, "-m", "distilkit", *task.argv(self.output), "--quiet"],
-                                       stdout=out, stderr=subprocess.STDOUT, env=env)
-            if code != 0:
+                code = children.run([sys.executable, "-m", "distilkit", *task.argv(self.output), "--quiet"],
+                                    stdout=out, stderr=subprocess.STDOUT, env=env)
+            if code is not None and code != 0 and not children.stopping:
                 tail = log.read_text(encoding="utf-8", errors="replace").strip().splitlines()[-1:] or ["(no output)"]
                 failures.append(f"{task.title}: exit status {code}: {tail[0]} (log: {log})")
 
         upstream = [t for t in todo if t.stages != (t.variant,)]
         variants = [t for t in todo if t.stages == (t.variant,)]
-        with Progress(TextColumn(f"[cyan]sweep[/] {self.sweep.name} ({jobs} jobs × {threads} threads)"), BarColumn(),
-                      MofNCompleteColumn(), TimeElapsedColumn(), console=self.console,
-                      disable=self.quiet) as progress:
+        with children.forwarding_sigterm(), \
+                Progress(TextColumn(f"[cyan]sweep[/] {self.sweep.name} ({jobs} jobs × {threads} threads)"),
+                         BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=self.console,
+                         disable=self.quiet) as progress:
             bar = progress.add_task("runs", total=len(todo))
             with ThreadPoolExecutor(max_workers=jobs) as pool:
-                for phase in (upstream, variants):  # the shared teachers first, so no job waits on another
-                    for task, _ in zip(phase, pool.map(one, phase)):
-                        progress.advance(bar)
+                try:
+                    for phase in (upstream, variants):  # the shared teachers first, so no job waits on another
+                        for task, _ in zip(phase, pool.map(one, phase)):
+                            progress.advance(bar)
+                except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the runs stop after their step, checkpoints kept
+                    children.stop()
+                    raise
         return failures
 
     # -- collecting ----------------------------------------------------------------------------------------
@@ -215,6 +225,65 @@ class SweepRun:
             self.console.print(f"[yellow]not finished (left out of the table):[/] {', '.join(missing)}")
         return write_results(self.root, self.sweep.name, records, self.sweep.baseline, self.order(), self.console,
                              missing)
+
+
+class Children:
+    """The ``distilkit run`` processes a sweep started: none is started once stopping began, and :meth:`stop` asks
+    every live one to stop (SIGTERM: it finishes its step, writes ``last.pt`` and exits) and waits for them."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self.lock = threading.Lock()
+        self.live: set[subprocess.Popen] = set()
+        self.stopping = False
+
+    def run(self, argv: list[str], **kwargs: Any) -> int | None:
+        """The exit status of ``argv`` run to its end (None: not started, the sweep is stopping)."""
+        with self.lock:
+            if self.stopping:
+                return None
+            proc = subprocess.Popen(argv, **kwargs)
+            self.live.add(proc)
+        try:
+            return proc.wait()
+        finally:
+            with self.lock:
+                self.live.discard(proc)
+
+    def stop(self, timeout: float = 600.0) -> None:
+        import signal
+
+        with self.lock:
+            self.stopping = True
+            live = list(self.live)
+        for proc in live:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        for proc in live:
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+    @contextlib.contextmanager
+    def forwarding_sigterm(self) -> Iterator[None]:
+        """SIGTERM to the sweep stops its runs as Ctrl-C does (in the main thread: KeyboardInterrupt)."""
+        import signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def on_term(signum: int, frame: Any) -> None:
+            raise KeyboardInterrupt
+
+        previous = signal.signal(signal.SIGTERM, on_term)
+        try:
+            yield
+        finally:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def run_sweep(path: str | Path, output: str | Path = "runs", seeds: list[int] | None = None, jobs: int = 1,

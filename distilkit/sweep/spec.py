@@ -160,7 +160,7 @@ def load_sweep(path: str | Path) -> Sweep:
     try:
         spec = SweepSpec.model_validate(data)
     except ValidationError as err:
-        raise RecipeError(pydantic_problems(err), source) from None
+        raise RecipeError(pydantic_problems(err, model=SweepSpec), source) from None
     if isinstance(spec.recipe, str):
         base_path = (path.parent / spec.recipe) if not Path(spec.recipe).is_absolute() else Path(spec.recipe)
         try:

@@ -1,0 +1,77 @@
+"""What ``distilkit validate`` checks beyond the recipe's own consistency: that a run will find what it needs — the
+data (a folder's files, by the dataset's registered ``check``) and every weights file a stage starts from (``teacher:
+{checkpoint: ...}``, ``init: {checkpoint: ...}``): that it exists, loads safely and fits the adapter key by key and
+shape by shape. The model is built on the meta device and the file is memory-mapped, so nothing large is read."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from distilkit.errors import DataError
+
+
+def data_problems(res: Any, has_split: Any) -> list[tuple[str, str]]:
+    """(field, problem) for each split of the data a run would read that cannot be read (one line each)."""
+    from distilkit.registry import DATASETS
+
+    check = DATASETS.entry(res.recipe.data.dataset).meta.get("check")
+    if check is None:
+        return []
+    out = []
+    for split in ("train", "val", "test"):
+        if has_split(split):
+            problem = check(res.data_params, split)
+            if problem:
+                out.append((f"data.params ({split})", problem))
+    return out
+
+
+def weights_problems(res: Any) -> list[tuple[str, str]]:
+    """(field, problem) for every checkpoint a stage would start from that is missing, unreadable or does not fit."""
+    out = []
+    for name, stage in res.stages.items():
+        spec = stage.spec
+        files = []
+        if spec.teacher is not None and spec.teacher.checkpoint and stage.teacher is not None:
+            files.append(("teacher.checkpoint", spec.teacher.checkpoint, stage.teacher, True))
+        if spec.init is not None and spec.init.checkpoint:
+            files.append(("init.checkpoint", spec.init.checkpoint, stage.student, spec.init.strict))
+        for field, path, model, strict in files:
+            problem = fit_problem(Path(path).expanduser(), model, res.data_info, strict)
+            if problem:
+                out.append((f"stages.{name}.{field}", problem))
+    return out
+
+
+def model_shapes(model: Any, info: Any) -> dict[str, tuple[int, ...]]:
+    """The state dict's shapes of a resolved model, built on the meta device (nothing allocated) where it can be."""
+    import torch
+
+    from distilkit.engine.runs import build_model
+
+    try:
+        with torch.device("meta"), torch.random.fork_rng(devices=[]):
+            built = build_model(model, info)
+    except Exception:  # an adapter that computes on real tensors while it is built
+        with torch.random.fork_rng(devices=[]):
+            built = build_model(model, info)
+    return {k: tuple(v.shape) for k, v in built.state_dict().items()}
+
+
+def fit_problem(path: Path, model: Any, info: Any, strict: bool) -> str | None:
+    """None where the weights file at ``path`` loads (read by the adapter's ``read_weights``) and fits ``model``;
+    else what is wrong with it."""
+    from distilkit.engine.checkpoints import mismatch
+
+    if not path.is_file():
+        return f"{path}: no such file"
+    try:
+        weights = model.cls.read_weights(str(path))
+    except DataError as exc:
+        return str(exc)
+    problem = mismatch(model_shapes(model, info), {k: tuple(v.shape) for k, v in weights.items()}, strict)
+    return f"{path}: weights do not fit {model.adapter!r}: {problem}" if problem else None
+
+
+__all__ = ["data_problems", "fit_problem", "model_shapes", "weights_problems"]
