@@ -27,6 +27,7 @@ class Case:
     inputs: list[Tensor]
     reference: Callable[[], Tensor] | None = None  # float64 value where the naive form does not fit
     same_value: bool = True  # False: the two forms compute different things (a sampler at other step counts)
+    note: Callable[[dict[str, Any]], str] | None = None  # a line under the table from the timed row (e.g. GFLOP/s)
 
 
 def _peak_reset(device: torch.device) -> None:
@@ -551,7 +552,13 @@ BENCHES: dict[str, Callable[[torch.device, bool], list[Case]]] = {
     "dskd": dskd_cases, "pkt": pkt_cases, "rgo2d": rgo2d_cases, "kd": kd_cases, "nst": nst_cases,
     "structural": structural_cases, "sampler": sampler_cases, "determinism": determinism_cases,
     "loader": loader_cases, "camera": camera_cases, "guidance": guidance_cases, "complete": complete_cases,
-    "kitti": kitti_cases}
+    "kitti": kitti_cases, "sparse": lambda device, quick: _sparse_cases(device, quick)}
+
+
+def _sparse_cases(device: torch.device, quick: bool) -> list[Case]:
+    from distilkit.sparse.bench import sparse_cases
+
+    return sparse_cases(device, quick)
 
 
 def _fmt_mem(b: int | None) -> str:
@@ -583,6 +590,7 @@ def run_bench(names: list[str], device: str = "cpu", quick: bool = False, repeat
                 "rel. error (vs naive, or float64)"):
         table.add_column(col, justify="left" if col in ("objective", "size") else "right")
     rows = []
+    notes: list[str] = []
     reps = repeat or (3 if not quick else 2)
     for name in names or list(BENCHES):
         for case in BENCHES[name](dev, quick):
@@ -599,10 +607,14 @@ def run_bench(names: list[str], device: str = "cpu", quick: bool = False, repeat
                     if case.same_value:
                         row.update(rel_err=abs(val - nval) / max(abs(nval), 1e-30))
             rows.append(row)
+            if case.note is not None:
+                notes.append(case.note(row))
             table.add_row(case.objective, case.size, f"{ms:,.1f}", _fmt_mem(peak),
                           f"{row['naive_ms']:,.1f}" if "naive_ms" in row else "—",
                           _fmt_mem(row.get("naive_peak")) if "naive_ms" in row else "—",
                           (f"{row['speedup']:,.0f}×" if row["speedup"] >= 10 else f"{row['speedup']:.2f}×") if "speedup" in row else "—",
                           f"{row['rel_err']:.1e}" if "rel_err" in row else "—")
     console.print(table)
+    for line in notes:
+        console.print(line, highlight=False, soft_wrap=True)
     return rows

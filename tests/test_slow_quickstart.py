@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import pytest
+import yaml
 
 from conftest import ROOT
 
@@ -39,8 +40,8 @@ def test_cross_adapter_recipe_runs_both_ways(tmp_path) -> None:
 @pytest.mark.slow
 def test_scorelidar_recipe_prints_the_table_4_comparison(tmp_path) -> None:
     """LiDiff teacher, ScoreLiDAR and Distillation-DPO students, each at 8 / 4 / 2 / 1 steps, the teacher also at 50
-    steps, without guidance, with LiDiff's DPM-Solver++ and refined; each with its seconds per scene (the speed-ups
-    themselves are measured side by side by `distilkit bench sampler guidance`, not asserted on a busy machine)."""
+    steps, without guidance and refined; each with its seconds per scene (the speed-ups themselves are measured side
+    by side by `distilkit bench sampler guidance`, not asserted on a busy machine)."""
     import json
 
     cmd = [sys.executable, "-m", "distilkit", "run", str(ROOT / "recipes" / "scorelidar.yaml"), "-o", str(tmp_path)]
@@ -49,13 +50,12 @@ def test_scorelidar_recipe_prints_the_table_4_comparison(tmp_path) -> None:
     assert "CD best" in done.stdout and "JSD best" in done.stdout
     summaries = {s["stage"]: s for s in (json.loads(p.read_text()) for p in
                                          (tmp_path / "scorelidar").glob("*/summary.json"))}
+    stages = yaml.safe_load((ROOT / "recipes" / "scorelidar.yaml").read_text())["stages"]
     steps = {"_8" if n == 8 else f"_{n}" for n in (8, 4, 2, 1)}
-    assert set(summaries) == ({f"teacher{s}" for s in steps} | {"teacher", "teacher_8_unguided", "teacher_dpm"}
-                              | {f"guided{s}" for s in steps}
-                              | {"student"} | {f"student{s}" for s in steps - {"_8"}} | {"dpo"}
-                              | {f"dpo{s}" for s in steps - {"_8"}} | {"refined_8", "refined_50"}
-                              | {f"{m}{s}_unguided" for m in ("student", "dpo", "teacher") for s in ("", "_1")}
-                              - {"teacher_unguided"} | {"teacher_8_unguided"})
+    assert set(summaries) == set(stages)  # every row of the recipe ran
+    assert {f"teacher{s}" for s in steps} | {f"student{s}" for s in steps - {"_8"}} | {"dpo", "dpo_bounded",
+                                                                                      "refined_student"} <= set(stages)
+    assert all("emd.emd" in s["test"]["best"] for s in summaries.values())  # Distillation-DPO's metric on every row
     assert summaries["refined_8"]["input"] == "6x refinement" and summaries["student_1"]["input"] == "1 step"
     assert all(s["test"]["best"]["seconds_per_sample"] > 0 for s in summaries.values())
     assert all(s["test"]["best"]["cd"] > 0 and 0 < s["test"]["best"]["jsd"] < 1 for s in summaries.values())

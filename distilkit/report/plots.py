@@ -16,6 +16,12 @@ import numpy as np
 NOT_TERMS = {"step", "event", "grad_norm", "lr", "time", "epoch"}
 
 
+def short(label: str, most: int = 40) -> str:
+    """A label as a plot shows it: at most ``most`` characters (matplotlib lays out and renders every glyph of a tick
+    label or legend entry, so a long one costs seconds; the tables carry it whole)."""
+    return label if len(label) <= most else label[: most - 1] + "…"
+
+
 def figure(ncols: int, width: float = 5.0, height: float = 4.0) -> tuple[Any, Any]:
     import matplotlib
 

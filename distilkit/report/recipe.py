@@ -190,7 +190,7 @@ def _plot(path: Path, results: list[Any], rows: list[dict[str, Any]]) -> None:
     for r in results:
         task = plots.task_loss(plots.read_log(r.run_dir)[0])
         if task:
-            ax1.plot(*task["task loss"], label=r.summary.get("label", r.name))
+            ax1.plot(*task["task loss"], label=plots.short(r.summary.get("label", r.name)))
             positive = positive or any(v > 0 for v in task["task loss"][1])
     ax1.set_xlabel("step")
     ax1.set_ylabel("task loss (without distillation terms)")
@@ -200,7 +200,7 @@ def _plot(path: Path, results: list[Any], rows: list[dict[str, Any]]) -> None:
     ax1.set_title("training loss")
     view, members = _groups(rows)[0] if rows else (None, [])
     if view is not None:  # the first metric's stages (all of them, unless stages use different metrics)
-        labels = [rows[i]["label"] for i in members]
+        labels = [plots.short(rows[i]["label"]) for i in members]
         (key, name, scale), second = view.main, view.second
         ax2.bar(labels, [scale * rows[i]["best"][key] for i in members], color="tab:blue", label=name)
         if second is not None:

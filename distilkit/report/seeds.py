@@ -294,7 +294,8 @@ def _plot(path: Path, rows: list[dict[str, Any]]) -> None:
         ax.bar(i, scale * row["main_mean"], color="#9ecae1", yerr=None if math.isnan(row["main_std"]) else
                scale * row["main_std"], capsize=3)
         ax.scatter([i] * len(row["main"]), [scale * v for v in row["main"]], color="#08519c", s=12, zorder=3)
-    ax.set_xticks(range(len(rows)), [_mark(r).replace("*", "") for r in rows], rotation=45, ha="right", fontsize=8)
+    ax.set_xticks(range(len(rows)), [plots.short(_mark(r).replace("*", ""), 60) for r in rows], rotation=45, ha="right",
+                  fontsize=8)
     ax.set_ylabel(f"{_split(rows)} {name}{' (%)' if scale == 100 else ''}, best-val checkpoint")
     ax.set_title("mean ± std over seeds; dots: single seeds")
     plots.save(fig, path)
@@ -320,7 +321,8 @@ def _forest(path: Path, rows: list[dict[str, Any]], baseline: str | None) -> Non
         ax.scatter([scale * row["delta_mean"]], [i], color=colour, s=30, zorder=3)
     ax.axvline(0.0, color="#cb181d", linewidth=1.0)
     per_row = _per_row(rows, baseline)
-    ticks = [_mark(r).replace("*", "") + (f" − {r['reference']}" if per_row else "") for r in reversed(shown)]
+    ticks = [plots.short(_mark(r).replace("*", ""), 60) + (f" − {r['reference']}" if per_row else "")
+             for r in reversed(shown)]
     ax.set_yticks(range(len(shown)), ticks, fontsize=8)
     unit = " (points)" if scale == 100 else ""
     to = "its reference stage" if per_row else f"'{baseline or '—'}'"
