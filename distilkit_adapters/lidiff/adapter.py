@@ -23,10 +23,14 @@ from distilkit_adapters.lidiff.sampler import ddim, ddim_timesteps, dpm_timestep
 
 class LiDiffParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    channels: int = Field(64, ge=4, description="width of the denoiser's point MLPs")
-    blocks: int = Field(3, ge=1, description="modulated residual blocks")
-    k_scan: int = Field(8, ge=1, description="scan neighbours of the scan encoder's local descriptor")
-    k_cond: int = Field(4, ge=1, description="nearest scan points that condition each noisy point")
+    size: Literal["tiny", "paper"] = Field(
+        "tiny", description="tiny: the CPU stand-in (a per-point MLP denoiser: every completed point an independent "
+                            "sample; the four fields below); paper: LiDiff's MinkUNetDiff and scan encoder on 5 cm "
+                            "sparse voxels (distilkit.sparse), which loads the release's diff_net.ckpt")
+    channels: int = Field(64, ge=4, description="tiny: width of the denoiser's point MLPs")
+    blocks: int = Field(3, ge=1, description="tiny: modulated residual blocks")
+    k_scan: int = Field(8, ge=1, description="tiny: scan neighbours of the scan encoder's local descriptor")
+    k_cond: int = Field(4, ge=1, description="tiny: nearest scan points that condition each noisy point")
     diffusion_steps: int = Field(1000, ge=2, description="T (LiDiff: 1000)")
     beta_start: float = Field(3.5e-5, gt=0)
     beta_end: float = Field(0.007, gt=0)
@@ -80,7 +84,12 @@ class LiDiffAdapter(Adapter):
 
     def __init__(self, params: LiDiffParams, info: DataInfo) -> None:
         super().__init__(params, info)
-        self.net = PointDenoiser(params.channels, params.blocks, params.k_scan, params.k_cond)
+        if params.size == "paper":
+            from distilkit_adapters.lidiff.minkunet import LiDiffNet
+
+            self.net: Any = LiDiffNet()
+        else:
+            self.net = PointDenoiser(params.channels, params.blocks, params.k_scan, params.k_cond)
         frozen = params.freeze_encoder if params.freeze_encoder is not None else params.generate_steps > 0
         for p in self.net.encoder.parameters():
             p.requires_grad_(not frozen)
@@ -90,7 +99,15 @@ class LiDiffAdapter(Adapter):
     @classmethod
     def describe(cls, params: BaseModel) -> str:
         n = int(getattr(params, "sample_steps"))
-        return f"{n} step{'s' if n != 1 else ''}"
+        return f"{n} step{'s' if n != 1 else ''}" + (", paper size" if getattr(params, "size") == "paper" else "")
+
+    @classmethod
+    def read_weights(cls, path: str) -> dict[str, Any]:
+        """A distilkit checkpoint, or LiDiff's released Lightning checkpoint (``diff_net.ckpt``: ``partial_enc.*`` and
+        ``model.*``, MinkowskiEngine kernels) converted to the paper-size network's names and layout."""
+        from distilkit_adapters.lidiff.weights import from_lightning
+
+        return from_lightning(super().read_weights(path), ("partial_enc.", "model."))
 
     # -- the Denoiser capability -------------------------------------------------------------------
     def sigma(self, t: Tensor) -> Tensor:

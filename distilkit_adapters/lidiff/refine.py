@@ -36,8 +36,11 @@ from distilkit_adapters.lidiff.model import _gather, _mlp
 
 class RefineParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    channels: int = Field(32, ge=4, description="width of the point MLPs")
-    k: int = Field(8, ge=1, description="neighbours of each point's edge descriptor")
+    size: Literal["tiny", "paper"] = Field(
+        "tiny", description="tiny: per-point MLPs with an edge descriptor (the CPU stand-in; channels, k, chunk); "
+                            "paper: LiDiff's refinement MinkUNet on 5 cm sparse voxels, which loads refine_net.ckpt")
+    channels: int = Field(32, ge=4, description="tiny: width of the point MLPs")
+    k: int = Field(8, ge=1, description="tiny: neighbours of each point's edge descriptor")
     offsets: int = Field(6, ge=1, description="points predicted per input point (LiDiff: 6)")
     max_offset: float = Field(1.0, gt=0, description="offsets lie in [-max_offset, max_offset] per axis (LiDiff: "
                                                      "tanh, 1 m)")
@@ -75,6 +78,20 @@ class PointRefiner(nn.Module):
         return torch.cat(out).view(len(x), self.p.offsets, 3) * self.p.max_offset
 
 
+class PaperRefiner(nn.Module):
+    """LiDiff's refinement MinkUNet (``model_refine``): (M, 3) points -> (M, offsets, 3) tanh offsets."""
+
+    def __init__(self, p: RefineParams) -> None:
+        super().__init__()
+        from distilkit_adapters.lidiff.minkunet import MinkUNet
+
+        self.p = p
+        self.model_refine = MinkUNet(out_channels=3 * p.offsets)
+
+    def forward(self, points: Tensor) -> Tensor:
+        return self.model_refine(points[None])[0].view(len(points), self.p.offsets, 3) * self.p.max_offset
+
+
 class LiDiffRefineAdapter(Adapter):
     """LiDiff's refinement network: ``coarse`` points in, ``refined`` (training) / ``completion`` (evaluation) out,
     ``offsets`` x as many points; the ``refine_cloud`` capability refines a completion for ``distilkit complete``."""
@@ -101,11 +118,20 @@ class LiDiffRefineAdapter(Adapter):
 
     def __init__(self, params: RefineParams, info: DataInfo) -> None:
         super().__init__(params, info)
-        self.net = PointRefiner(params)
+        self.net: nn.Module = PaperRefiner(params) if params.size == "paper" else PointRefiner(params)
 
     @classmethod
     def describe(cls, params: BaseModel) -> str:
-        return f"{getattr(params, 'offsets')}x refinement"
+        size = ", paper size" if getattr(params, "size") == "paper" else ""
+        return f"{getattr(params, 'offsets')}x refinement{size}"
+
+    @classmethod
+    def read_weights(cls, path: str) -> dict[str, Any]:
+        """A distilkit checkpoint, or LiDiff's released ``refine_net.ckpt`` (``model_refine.*``) converted to the
+        paper-size network's names and layout."""
+        from distilkit_adapters.lidiff.weights import from_lightning
+
+        return from_lightning(super().read_weights(path), ("model_refine.",))
 
     def refine(self, coarse: PointCloud) -> PointCloud:
         """Each scene's points, each moved by its ``offsets`` predicted offsets: (B, offsets * M_b, 3)."""
