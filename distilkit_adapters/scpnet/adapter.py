@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -19,6 +19,11 @@ from distilkit_adapters.scpnet.model import SCPNet, kernels_for_voxel, mask_inac
 
 class SCPNetParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
+    size: Literal["tiny", "paper"] = Field(
+        "tiny", description="tiny: the CPU stand-in (the paper's three-branch completion, a dense U-Net for "
+                            "segmentation; the fields below but frames); paper: the release's network — its "
+                            "completion sub-network (dense) and Cylinder3D's sparse asymmetric U-Net on "
+                            "distilkit.sparse, 7 point features, 32 channels — which loads the release's weights")
     frames: int = Field(1, ge=1, description="input scans fused (teacher: 4-5, student: 1)")
     channels: int = Field(32, ge=1, description="completion sub-network width (paper: 32)")
     point_mlp: list[Annotated[int, Field(ge=1)]] = Field(default_factory=lambda: [64, 128], min_length=1,
@@ -61,13 +66,44 @@ class SCPNetAdapter(MultiFrameLidarAdapter):
 
     def __init__(self, params: SCPNetParams, info: DataInfo) -> None:
         super().__init__(params, info)
+        if params.size == "paper":
+            from distilkit_adapters.scpnet.cylinder import SCPNetPaper
+
+            self.net: Any = SCPNetPaper(info.num_classes)
+            return
         kernels, conv = kernels_for_voxel(info.grid.voxel_size)
         self.net = SCPNet(params.channels, params.point_mlp, params.seg_channels, info.num_classes,
                           tuple(params.kernels or kernels), params.conv_kernel or conv)
         channels_last(self)
 
+    @classmethod
+    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
+        out = super().check_data(params, info)
+        grid = info.grid
+        if getattr(params, "size") == "paper" and grid is not None and (
+                grid.shape[0] % 16 or grid.shape[1] % 16 or grid.shape[2] % 4):
+            out.append(("size", f"the paper's U-Net pools x and y four times and z twice: the grid {grid.shape} must "
+                                "be divisible by 16 x 16 x 4 (SemanticKITTI's 256 x 256 x 32 at scale 1, 2 or 4)"))
+        return out
+
+    @classmethod
+    def describe(cls, params: BaseModel) -> str:
+        return super().describe(params) + (", paper size" if getattr(params, "size") == "paper" else "")
+
+    @classmethod
+    def read_weights(cls, path: str) -> dict[str, Any]:
+        """A distilkit checkpoint, or the release's state dict (spconv 1.x weights) converted to the paper-size
+        network's names and layout (:mod:`distilkit_adapters.scpnet.weights`)."""
+        from distilkit_adapters.scpnet.weights import from_release
+
+        return from_release(super().read_weights(path))
+
     def forward(self, batch: Batch) -> dict[str, Any]:
         b = select_frames(batch, self.params.frames)
+        if self.params.size == "paper":
+            sparse, completed, logits = self.net(b.inputs["points"], b.inputs["point_batch"], batch.size,
+                                                 self.info.grid)
+            return {"completion": sparse, "completion_dense": completed, "logits": logits}
         vox = self.net.voxelizer(b.inputs, self.info.grid, batch.size)
         completed = self.net.completion(vox)
         sparse = dense_to_sparse(completed, self.info.grid)
