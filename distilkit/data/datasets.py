@@ -22,6 +22,7 @@ from distilkit.data.params import (SceneParams, SemanticKittiParams, SemanticKit
                                    SyntheticParams)
 from distilkit.data.probe import cloud_plan, grid_plan
 from distilkit.data.render import CAMERA_VERSION
+from distilkit.data.proposals import proposal_file, proposal_root, read_proposal
 from distilkit.data.scribbles import pool_scribbles, read_scribbles, scribble_file, scribble_root
 from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.data import semantickitti as skio
@@ -88,7 +89,8 @@ def kitti_info(params: SemanticKittiParams) -> DataInfo:
     return DataInfo(VoxelGrid.semantickitti(params.scale), params.table(),
                     fields=LIDAR_INPUTS | LIDAR_TARGETS | (CAMERA_FIELDS if cam else frozenset())
                     | ({"occluded"} if params.occluded else frozenset())
-                    | ({"scribble"} if params.scribbles else frozenset()),
+                    | ({"scribble"} if params.scribbles else frozenset())
+                    | ({"proposal"} if params.proposals else frozenset()),
                     cameras=(dataclasses.replace(rig(cam, 0.0), depth="sparse"),) if cam is not None else (),
                     input_frames=params.input_frames)
 
@@ -137,6 +139,10 @@ def folder_problems(d: Path, frames: list[int], labelled: bool, p: SemanticKitti
         folder = scribble_root(p.root, p.scribbles)
         out += [f"{scribble_file(folder, d.name, f)}: missing (scribbles: {p.scribbles} reads it)" for f in frames
                 if not scribble_file(folder, d.name, f).is_file()]
+    if p.proposals and labelled:
+        folder = proposal_root(p.root, p.proposals)
+        out += [f"{folder / d.name / 'queries'}/{f:06d}.*: missing (proposals: {p.proposals} reads it)"
+                for f in frames if proposal_file(folder, d.name, f) is None]
     if p.camera is not None:
         wanted = sorted({max(f - k, 0) for f in frames for k in (0, *p.camera.previous)})
         out += [f"{where}/image_2/{j:06d}.png: missing (the camera's image)" for j in wanted
@@ -259,7 +265,18 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
 
     def _lidar(self, i: int) -> dict[str, np.ndarray]:
         """The fused scans, their point labels and the voxel targets of item ``i`` (full-resolution labels pooled
-        to the dataset's scale)."""
+        to the dataset's scale), and its query proposals where the parameters read them."""
+        out = self._scans_and_voxels(i)
+        if self.p.proposals:
+            d, frame = self.items[i][:2]
+            path = proposal_file(proposal_root(self.p.root, self.p.proposals), d.name, frame)
+            if path is None:
+                raise DataError(f"{proposal_root(self.p.root, self.p.proposals) / d.name / 'queries'}/{frame:06d}.*: "
+                                f"missing (proposals: {self.p.proposals} reads it)")
+            out["proposal"] = read_proposal(path, self.p.scale)
+        return out
+
+    def _scans_and_voxels(self, i: int) -> dict[str, np.ndarray]:
         d, frame, n, labelled = self.items[i]
         pts, labs, frames = [], [], []
         for k in range(self.p.input_frames):
@@ -335,6 +352,11 @@ def kitti_fingerprint(params: SemanticKittiParams) -> dict[str, Any]:
         for f in files:
             st = f.stat()
             lines.append(f"{f.relative_to(root).as_posix()} {st.st_size} {st.st_mtime_ns}")
+        if params.proposals:  # VoxFormer's proposals, wherever they lie
+            folder = proposal_root(root, params.proposals)
+            for f in sorted((folder / seq / "queries").glob("*")):
+                st = f.stat()
+                lines.append(f"proposals/{f.relative_to(folder).as_posix()} {st.st_size} {st.st_mtime_ns}")
         if params.scribbles:  # ScribbleSC's folder, wherever it lies
             folder = scribble_root(root, params.scribbles)
             for f in sorted((folder / "sequences" / seq / "voxels").glob("*.label")):

@@ -5,8 +5,9 @@ A sample is a dict of numpy arrays:
 * ``points`` (M,4) x, y, z, intensity in the current sensor frame; ``point_frame`` (M,) frame
   offset (0 = current scan); ``point_label`` (M,) segmentation train id (0 = unlabelled);
 * ``voxel_label`` (X,Y,Z) SSC train ids (0 = empty, 255 = ignore); ``invalid`` (X,Y,Z) bool;
-* optionally ``scribble`` (X,Y,Z) ScribbleSC labels (0 empty, 1-19, 254 unlabelled, 255 invalid) and ``occluded``
-  (X,Y,Z) bool (SemanticKITTI's ``.occluded``: hidden from the current viewpoint).
+* optionally ``scribble`` (X,Y,Z) ScribbleSC labels (0 empty, 1-19, 254 unlabelled, 255 invalid), ``occluded``
+  (X,Y,Z) bool (SemanticKITTI's ``.occluded``: hidden from the current viewpoint) and ``proposal`` (X/2,Y/2,Z/2)
+  uint8, VoxFormer's query proposals read from a folder (an input).
 
 :func:`collate_lidar` concatenates points with a ``point_batch`` index (inputs) and stacks the grids
 (targets), adding ``voxel_target`` = ``voxel_label`` with invalid voxels set to 255 (the training target).
@@ -45,6 +46,8 @@ def collate_lidar(samples: list[dict[str, np.ndarray]]) -> Batch:
         targets["occluded"] = torch.stack([torch.from_numpy(s["occluded"].astype(bool)) for s in samples])
     if all("scribble" in s for s in samples):  # ScribbleSC labels: 0 empty, 1-19, 254 unlabelled, 255 invalid
         targets["scribble"] = torch.stack([torch.from_numpy(s["scribble"].astype(np.int64)) for s in samples])
+    if all("proposal" in s for s in samples):  # VoxFormer's query proposals read from a folder: 1 = proposed
+        inputs["proposal"] = torch.stack([torch.from_numpy(s["proposal"].astype(np.uint8)) for s in samples])
     targets["voxel_target"] = targets["voxel_label"].masked_fill(targets["invalid"], IGNORE_INDEX)
     return Batch(inputs, targets, {"size": len(samples)})
 

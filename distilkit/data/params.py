@@ -138,6 +138,11 @@ class SemanticKittiParams(BaseModel):
                                                     "layout: sequences/NN/voxels/NNNNNN.label, raw ids of the "
                                                     "scribbled voxels, 0 elsewhere; relative paths are under root), "
                                                     "read as the target `scribble`; none: no scribbles")
+    proposals: str | None = Field(None, description="a folder of VoxFormer's query proposals (its release's layout: "
+                                                     "NN/queries/NNNNNN.<tag>, bit-packed 128x128x16 occupancy; "
+                                                     "relative paths are under root, e.g. sequences_msnet3d_sweep10), "
+                                                     "read as the input `proposal` of a voxformer stage (no stage-1 "
+                                                     "model needed); none: no proposals")
 
     _scale = field_validator("scale")(_check_scale)
 

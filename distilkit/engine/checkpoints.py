@@ -68,12 +68,34 @@ def read_state_dict(path: str | Path) -> dict[str, Any]:
     return obj
 
 
-def mismatch(own: dict[str, tuple[int, ...]], given: dict[str, tuple[int, ...]], strict: bool = True) -> str | None:
+class PartialWeights(dict):
+    """The weights of one part of a model, by design (a pretrained image backbone): every weight of the model under
+    ``scope`` must be there (under ``strict``), the rest of the model keeps its initial weights. ``ignored``: what
+    the file held that the model has no place for by design, said in the log (e.g. an ImageNet classifier)."""
+
+    def __init__(self, weights: dict[str, Any], scope: str, ignored: tuple[str, ...] = ()) -> None:
+        super().__init__(weights)
+        self.scope, self.ignored = scope, ignored
+
+
+def whole_problem(weights: dict[str, Any]) -> str | None:
+    """Why ``weights`` cannot be a whole model (a teacher's): they are one part of it (:class:`PartialWeights`)."""
+    scope = getattr(weights, "scope", "")
+    if not scope:
+        return None
+    return (f"holds only {scope}* (a pretrained part of the model, e.g. an ImageNet backbone): a teacher's "
+            "checkpoint must hold the whole model; start a student from it with `init: {checkpoint: ...}`")
+
+
+def mismatch(own: dict[str, tuple[int, ...]], given: dict[str, tuple[int, ...]], strict: bool = True,
+             scope: str = "") -> str | None:
     """Every key of ``given`` (a file's shapes) that does not fit ``own`` (a model's), named: missing, unexpected and
     of another shape (with both shapes); None where they fit (not ``strict``: only keys of another shape count,
-    missing and unexpected ones being left out by design)."""
+    missing and unexpected ones being left out by design). ``scope``: only the model's keys under it are expected
+    (:class:`PartialWeights`)."""
+    scope = getattr(given, "scope", scope)
     misfit = [f"{k} {tuple(given[k])} (model: {tuple(own[k])})" for k in given if k in own and given[k] != own[k]]
-    missing = [k for k in own if k not in given] if strict else []
+    missing = [k for k in own if k.startswith(scope) and k not in given] if strict else []
     unexpected = [k for k in given if k not in own] if strict else []
     parts = [f"{len(keys)} {what}: {', '.join(keys)}" for keys, what in
              ((missing, "missing"), (unexpected, "unexpected"), (misfit, "of another shape")) if keys]
@@ -82,18 +104,21 @@ def mismatch(own: dict[str, tuple[int, ...]], given: dict[str, tuple[int, ...]],
 
 def load_weights(model: torch.nn.Module, weights: dict[str, Any], strict: bool, source: str) -> list[str]:
     """Load ``weights`` into ``model``; strict: all must fit, else the ones that fit by name and shape.
-    Returns what was left out (names), for the log. A misfit under ``strict`` is a DataError naming every key."""
+    Returns what was left out (names), for the log. A misfit under ``strict`` is a DataError naming every key.
+    :class:`PartialWeights` load one part of the model (its ``scope``); what the file held beyond the model by
+    design (``ignored``) is listed too, as ``ignored: ...``."""
     own = model.state_dict()
+    scope = getattr(weights, "scope", "")
     problem = mismatch({k: tuple(v.shape) for k, v in own.items()}, {k: tuple(v.shape) for k, v in weights.items()},
-                       strict)
+                       strict, scope)
     if strict and problem:
         raise DataError(f"{source}: weights do not fit {type(model).__name__}: {problem} (set strict: false to load "
                         "the ones that fit)")
     misfit = [k for k, v in weights.items() if k in own and tuple(own[k].shape) != tuple(v.shape)]
-    missing = [k for k in own if k not in weights]
+    missing = [k for k in own if k.startswith(scope) and k not in weights]
     fit = {k: v for k, v in weights.items() if k in own and k not in misfit}
     model.load_state_dict(fit, strict=False)
-    return sorted(missing + misfit)
+    return sorted(missing + misfit) + [f"ignored: {name}" for name in getattr(weights, "ignored", ())]
 
 
 
@@ -138,4 +163,5 @@ class Checkpoints:
         return f"the last checkpoint ({self.folder / 'last.pt'}, step {self.saved_step}) is kept"
 
 
-__all__ = ["Checkpoints", "load_checkpoint", "load_weights", "read_state_dict"]
+__all__ = ["Checkpoints", "PartialWeights", "load_checkpoint", "load_weights", "mismatch", "read_state_dict",
+           "whole_problem"]

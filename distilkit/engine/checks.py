@@ -34,11 +34,11 @@ def weights_problems(res: Any) -> list[tuple[str, str]]:
         spec = stage.spec
         files = []
         if spec.teacher is not None and spec.teacher.checkpoint and stage.teacher is not None:
-            files.append(("teacher.checkpoint", spec.teacher.checkpoint, stage.teacher, True))
+            files.append(("teacher.checkpoint", spec.teacher.checkpoint, stage.teacher, True, True))
         if spec.init is not None and spec.init.checkpoint:
-            files.append(("init.checkpoint", spec.init.checkpoint, stage.student, spec.init.strict))
-        for field, path, model, strict in files:
-            problem = fit_problem(Path(path).expanduser(), model, res.data_info, strict)
+            files.append(("init.checkpoint", spec.init.checkpoint, stage.student, spec.init.strict, False))
+        for field, path, model, strict, whole in files:
+            problem = fit_problem(Path(path).expanduser(), model, res.data_info, strict, whole)
             if problem:
                 out.append((f"stages.{name}.{field}", problem))
     return out
@@ -59,10 +59,10 @@ def model_shapes(model: Any, info: Any) -> dict[str, tuple[int, ...]]:
     return {k: tuple(v.shape) for k, v in built.state_dict().items()}
 
 
-def fit_problem(path: Path, model: Any, info: Any, strict: bool) -> str | None:
+def fit_problem(path: Path, model: Any, info: Any, strict: bool, whole: bool = False) -> str | None:
     """None where the weights file at ``path`` loads (read by the adapter's ``read_weights``) and fits ``model``;
-    else what is wrong with it."""
-    from distilkit.engine.checkpoints import mismatch
+    else what is wrong with it. ``whole``: the file must hold the whole model (a teacher's), not a part of it."""
+    from distilkit.engine.checkpoints import mismatch, whole_problem
 
     if not path.is_file():
         return f"{path}: no such file"
@@ -70,7 +70,10 @@ def fit_problem(path: Path, model: Any, info: Any, strict: bool) -> str | None:
         weights = model.cls.read_weights(str(path))
     except DataError as exc:
         return str(exc)
-    problem = mismatch(model_shapes(model, info), {k: tuple(v.shape) for k, v in weights.items()}, strict)
+    if whole and whole_problem(weights):
+        return f"{path}: {whole_problem(weights)}"
+    problem = mismatch(model_shapes(model, info), {k: tuple(v.shape) for k, v in weights.items()}, strict,
+                       getattr(weights, "scope", ""))
     return f"{path}: weights do not fit {model.adapter!r}: {problem}" if problem else None
 
 

@@ -14,7 +14,7 @@ from typing import Any
 import torch
 
 from distilkit.adapter import Adapter
-from distilkit.engine.checkpoints import load_checkpoint, load_weights
+from distilkit.engine.checkpoints import load_checkpoint, load_weights, whole_problem
 from distilkit.errors import DataError
 
 
@@ -96,7 +96,10 @@ def load_run(source: str | Path, which: str = "best", *, model: Any = None, info
         model, info = model or found, info or found_info
     with torch.random.fork_rng(devices=[]):
         built = build_model(model, info, role)
-    load_weights(built, model.cls.read_weights(str(path)), strict, f"{role} {path}")
+    weights = model.cls.read_weights(str(path))
+    if whole_problem(weights):
+        raise DataError(f"{role} {path}: {whole_problem(weights)}")
+    load_weights(built, weights, strict, f"{role} {path}")
     built = built.to(device)
     return freeze(built) if frozen else built.train(False)  # type: ignore[return-value]
 

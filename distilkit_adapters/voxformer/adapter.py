@@ -2,9 +2,12 @@
 predicted depth) and ``voxformer`` (stage 2; with ``geometry: ground-truth`` Scribble2Scene's Teacher-Labeler).
 
 Stage 2 reads its proposals from a frozen stage-1 model through an auxiliary edge (``aux: {proposal: {from: ...}}``
-puts the proposal model's occupancy scores in the batch as ``proposal``), not as a teacher. Its size is a parameter:
-``size: tiny`` for tests and CPUs, ``size: paper`` for VoxFormer's (128 channels, 3 cross-attention layers, 8 heads
-and points, a stride-16 encoder); any single field given overrides the preset.
+puts the proposal model's occupancy scores in the batch as ``proposal``), not as a teacher, or from a folder of
+VoxFormer's proposal files (``data.params.proposals``). Its size is a parameter: ``size: tiny`` (the CPU stand-in: a
+small ResNet of basic blocks, 3-D convolutions mixing the queries) for tests and CPUs, ``size: paper`` for
+VoxFormer's network (ResNet-50 with torchvision's names to its stride-16 stage + FPN, 128 channels, 3 deformable
+cross-attention and 2 deformable self-attention layers, 8 heads and points); any single field given overrides the
+preset.
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from distilkit.adapter import Adapter
 from distilkit.choices import Choice
@@ -24,12 +27,13 @@ from distilkit.registry import ADAPTERS
 from distilkit.structures import VoxelGrid
 from distilkit_adapters.voxformer.model import VoxFormerNet
 from distilkit_adapters.voxformer.proposal import QueryProposal
+from distilkit_adapters.voxformer.weights import from_torchvision
 
 SIZES: dict[str, dict[str, Any]] = {
     "tiny": {"widths": [8, 16, 32], "channels": 16, "heads": 2, "points": 4, "cross_layers": 2, "mix_layers": 1,
-             "bev_width": 16},
+             "bev_width": 16, "encoder": "small", "mixing": "conv"},
     "paper": {"widths": [64, 128, 256, 512, 1024], "channels": 128, "heads": 8, "points": 8, "cross_layers": 3,
-              "mix_layers": 2, "bev_width": 64},
+              "mix_layers": 2, "bev_width": 64, "encoder": "resnet50", "mixing": "deformable-3d"},
 }
 Width = Annotated[int, Field(ge=1)]
 
@@ -57,13 +61,30 @@ class VoxFormerParams(_SizedParams):
     heads: int | None = Field(None, ge=1, description="cross-attention heads (paper: 8)")
     points: int | None = Field(None, ge=1, description="sampling points per head and frame (paper: 8)")
     cross_layers: int | None = Field(None, ge=1, description="deformable cross-attention layers (paper: 3)")
-    mix_layers: int | None = Field(None, ge=0, description="residual 3-D convolution blocks over the query volume")
+    mix_layers: int | None = Field(None, ge=0, description="layers that mix the query volume (paper: 2 deformable "
+                                                           "self-attention layers)")
+    encoder: Literal["small", "resnet50"] | None = Field(
+        None, description="image encoder: small (a ResNet of basic blocks, `widths`) or resnet50 (ResNet-50 to its "
+                          "third stage with torchvision's names, stride 16, frozen batch norms and first stage, as "
+                          "VoxFormer; `init: {checkpoint: resnet50-19c8e357.pth}` loads ImageNet weights into it)")
+    mixing: Literal["conv", "deformable-3d", "deformable-plane"] | None = Field(
+        None, description="how the query volume is mixed: conv (residual 3-D convolutions, the CPU stand-in), "
+                          "deformable-3d (deformable self-attention in the volume: the paper, the release's deform3D "
+                          "configs) or deformable-plane (the release's VoxFormer-S/T: 2-D deformable attention over "
+                          "the flat queries folded to a plane)")
     frames: int = Field(1, ge=1, description="images read: the current one and the frames before it the data gives "
                                              "(VoxFormer-S: 1, VoxFormer-T: 5)")
     geometry: Literal["proposals", "ground-truth"] = Field(
-        "proposals", description="where the occupied queries come from: a frozen stage-1 model's scores (batch "
-                                 "input `proposal`, from an aux edge) or the dense ground truth at half resolution "
+        "proposals", description="where the occupied queries come from: the batch input `proposal` (a frozen "
+                                 "stage-1 model's scores through an aux edge, or a folder of VoxFormer's proposal "
+                                 "files: data.params.proposals) or the dense ground truth at half resolution "
                                  "(Scribble2Scene's Teacher-Labeler)")
+
+    @model_validator(mode="after")
+    def _encoder_widths(self) -> "VoxFormerParams":
+        if self.value("encoder") == "resnet50" and self.widths is not None:
+            raise ValueError("`widths` sizes the small encoder; encoder: resnet50 has ResNet-50's")
+        return self
 
 
 def _camera_problems(info: DataInfo, frames: int = 1) -> list[tuple[str, str]]:
@@ -141,7 +162,14 @@ class VoxFormerAdapter(Adapter):
         super().__init__(params, info)
         v = params.value
         self.net = VoxFormerNet(v("widths"), v("channels"), v("heads"), v("points"), params.frames, v("cross_layers"),
-                                v("mix_layers"), info.num_classes, info.grid)
+                                v("mix_layers"), info.num_classes, info.grid, v("encoder"), v("mixing"))
+
+    @classmethod
+    def read_weights(cls, path: str) -> dict[str, Any]:
+        """A distilkit checkpoint or state dict, or torchvision's ResNet-50 ImageNet file (``resnet50-19c8e357.pth``)
+        for the ``encoder: resnet50`` backbone alone (:mod:`.weights`: the rest of the model keeps its initial
+        weights; use it as a stage's ``init``)."""
+        return from_torchvision(super().read_weights(path))
 
     @classmethod
     def inputs(cls, params: BaseModel) -> frozenset[str]:
@@ -154,10 +182,13 @@ class VoxFormerAdapter(Adapter):
         if self.params.geometry == "ground-truth":
             return pool_occupancy(batch.field("voxel_target").long(), 2, self.info.classes.ignore_index) == 1
         proposal = batch.field("proposal")
+        dims = ", ".join(map(str, shape))
+        if proposal.dim() == 4 and tuple(proposal.shape[1:]) == tuple(shape):  # occupancy read from a folder
+            return proposal != 0
         if proposal.dim() != 5 or proposal.shape[1] != 2 or tuple(proposal.shape[2:]) != tuple(shape):
-            raise ValueError(f"voxformer: the batch input `proposal` must be (B, 2, {', '.join(map(str, shape))}) "
-                             f"empty/occupied scores (a voxformer-proposal stage through an aux edge), got "
-                             f"{tuple(proposal.shape)}")
+            raise ValueError(f"voxformer: the batch input `proposal` must be (B, 2, {dims}) empty/occupied scores "
+                             f"(a voxformer-proposal stage through an aux edge) or (B, {dims}) occupancy "
+                             f"(data.params.proposals), got {tuple(proposal.shape)}")
         return proposal.argmax(dim=1) == 1
 
     def forward(self, batch: Batch) -> dict[str, Any]:

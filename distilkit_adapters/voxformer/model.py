@@ -3,8 +3,10 @@
 Images of one or more frames -> image encoder + FPN -> voxel queries on the half-resolution grid: the proposed
 (occupied) ones read the image features by deformable cross-attention around their centres' projections, the others
 take a shared mask embedding -> 3-D mixing -> completion head: trilinear x2 to the full grid, LayerNorm + Linear to
-class scores. Where VoxFormer mixes the queries by deformable self-attention over the flattened grid, this model
-uses residual 3-D convolutions (the same receptive role, simpler on a CPU).
+class scores. The image encoder is a small ResNet (``encoder: small``) or ResNet-50 with torchvision's names
+(``encoder: resnet50``, :mod:`.resnet`); the queries are mixed by residual 3-D convolutions (``mixing: conv``, the
+CPU stand-in) or by VoxFormer's deformable self-attention (``mixing: deformable-3d | deformable-plane``,
+:mod:`.self_attention`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,10 @@ from torch import Tensor, nn
 from distilkit.structures import SparseVoxels, VoxelGrid
 from distilkit_adapters.voxformer.attention import DeformableCrossAttention, project
 from distilkit_adapters.voxformer.backbone import ImageEncoder
+from distilkit_adapters.voxformer.resnet import ResNetEncoder
+from distilkit_adapters.voxformer.self_attention import DeformableSelfAttention
+
+MIXINGS = ("conv", "deformable-3d", "deformable-plane")
 
 
 class MixBlock(nn.Module):
@@ -35,15 +41,21 @@ class VoxFormerNet(nn.Module):
     """The stage-2 network on ``grid`` (the full SSC grid); queries live on ``grid.coarsen(2)``."""
 
     def __init__(self, widths: list[int], channels: int, heads: int, points: int, frames: int, cross_layers: int,
-                 mix_layers: int, num_classes: int, grid: VoxelGrid) -> None:
+                 mix_layers: int, num_classes: int, grid: VoxelGrid, encoder: str = "small",
+                 mixing: str = "conv") -> None:
         super().__init__()
+        if mixing not in MIXINGS:
+            raise ValueError(f"mixing must be one of {', '.join(MIXINGS)}, got {mixing!r}")
         self.grid, self.query_grid = grid, grid.coarsen(2)
-        self.encoder = ImageEncoder(widths, channels)
+        self.encoder = ResNetEncoder(channels) if encoder == "resnet50" else ImageEncoder(widths, channels)
         self.queries = nn.Embedding(int(torch.tensor(self.query_grid.shape).prod()), channels)
         self.pos = nn.Sequential(nn.Linear(3, channels), nn.ReLU(), nn.Linear(channels, channels))
         self.mask_embed = nn.Parameter(torch.zeros(channels))
         self.cross = nn.ModuleList(DeformableCrossAttention(channels, heads, points, frames) for _ in range(cross_layers))
-        self.mix = nn.Sequential(*(MixBlock(channels) for _ in range(mix_layers)))
+        self.mixing = mixing
+        self.mix = (nn.Sequential(*(MixBlock(channels) for _ in range(mix_layers))) if mixing == "conv" else
+                    nn.ModuleList(DeformableSelfAttention(channels, heads, points, mixing.split("-")[1])
+                                  for _ in range(mix_layers)))
         self.norm = nn.LayerNorm(channels)
         self.classifier = nn.Linear(channels, num_classes)
 
@@ -71,9 +83,17 @@ class VoxFormerNet(nn.Module):
             q = layer(q, pos, sample, pixels, seen, feats, tuple(images.shape[-2:]))
         grid_idx = torch.stack(torch.meshgrid(*(torch.arange(s, device=images.device) for s in (x, y, z)),
                                               indexing="ij"), -1).view(-1, 3)
-        volume = (self.mask_embed + self.positions(grid_idx)).view(1, x, y, z, -1).repeat(b, 1, 1, 1, 1)
-        volume = volume.index_put((sample, coords[:, 1], coords[:, 2], coords[:, 3]), q + pos)
-        mixed = self.mix(volume.permute(0, 4, 1, 2, 3))
+        grid_pos = self.positions(grid_idx)
+        conv = self.mixing == "conv"  # convolutions see the positions in the volume; attention adds them itself
+        base = self.mask_embed + grid_pos if conv else self.mask_embed.expand(len(grid_idx), -1)
+        volume = base.reshape(1, x, y, z, -1).repeat(b, 1, 1, 1, 1)
+        volume = volume.index_put((sample, coords[:, 1], coords[:, 2], coords[:, 3]), q + pos if conv else q)
+        mixed = volume.permute(0, 4, 1, 2, 3)
+        if conv:
+            mixed = self.mix(mixed)
+        else:  # VoxFormer: the query volume attends to itself
+            for layer in self.mix:
+                mixed = layer(mixed, grid_pos)
         up = F.interpolate(mixed, scale_factor=2, mode="trilinear", align_corners=False)
         logits = self.classifier(self.norm(up.permute(0, 2, 3, 4, 1))).permute(0, 4, 1, 2, 3)
         return feats, SparseVoxels(coords, q, self.query_grid.shape, self.query_grid), logits
