@@ -14,6 +14,20 @@ import distilkit  # noqa: F401  first: it sets MKL's reproducibility before any 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURES = Path(__file__).resolve().parent / "fixtures"  # copied in; tests never read outside the repo
 
+EXPORT_SET = ["beams=16", "azimuth_steps=256", "gt_frames=5", "seed=3"]  # a small exported SemanticKITTI folder
+
+
+def export_kitti(root: Path, *extra: str) -> Path:
+    """A SemanticKITTI folder of two 11-scan sequences exported from the synthetic streets into ``root``
+    (``extra``: more export-kitti arguments, e.g. ``--camera``, then ``--set`` values)."""
+    from distilkit.cli import main
+
+    flags = [a for a in extra if a.startswith("--")]
+    values = [a for a in extra if not a.startswith("--")]
+    assert main(["data", "export-kitti", str(root), "--frames", "11", *flags, "--set", *EXPORT_SET, *values]) == 0
+    return root
+
+
 TINY_DATA = {"scale": 8, "num_train": 2, "num_val": 1, "num_test": 1, "input_frames": 2, "gt_frames": 3, "beams": 16,
              "azimuth_steps": 256}
 

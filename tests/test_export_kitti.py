@@ -5,18 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import folder_recipe
+from conftest import export_kitti, folder_recipe
 from distilkit.cli import main
 from distilkit.data import semantickitti as sk
-
-SET = ["beams=16", "azimuth_steps=256", "gt_frames=5", "seed=3"]
 
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    root = tmp_path_factory.mktemp("kitti")
-    assert main(["data", "export-kitti", str(root), "--frames", "11", "--set", *SET]) == 0
-    return root
+    return export_kitti(tmp_path_factory.mktemp("kitti"))
 
 
 def test_the_folder_has_semantickittis_layout_and_reads_back(exported) -> None:

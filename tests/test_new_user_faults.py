@@ -16,21 +16,18 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import FIXTURES, ROOT, folder_recipe, tiny_recipe
+from conftest import FIXTURES, ROOT, export_kitti, folder_recipe, tiny_recipe
 from distilkit.cli import main
 from distilkit.data import semantickitti as sk
 from distilkit.data.pointfiles import read_points
 from distilkit.errors import DataError
 
 SCAN = FIXTURES / "semantickitti-sample" / "sequences" / "00" / "velodyne" / "000000.bin"
-SET = ["beams=16", "azimuth_steps=256", "gt_frames=5", "seed=3"]
 
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    root = tmp_path_factory.mktemp("kitti")
-    assert main(["data", "export-kitti", str(root), "--frames", "11", "--set", *SET]) == 0
-    return root
+    return export_kitti(tmp_path_factory.mktemp("kitti"))
 
 
 def copy_of(exported: Path, tmp_path: Path) -> Path:

@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch import nn
 
-from distilkit.cli import main
+from conftest import export_kitti
 from distilkit.engine.checkpoints import PartialWeights, load_weights
 from distilkit.errors import DataError
 from distilkit_adapters.voxformer.resnet import Bottleneck, ResNetEncoder, frozen_fraction
@@ -179,9 +179,7 @@ def test_batch_norms_and_the_first_stage_stay_frozen_in_training() -> None:
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
-    root = tmp_path_factory.mktemp("vf_kitti")
-    assert main(["data", "export-kitti", str(root), "--frames", "11", "--camera", "--set", "beams=16",
-                 "azimuth_steps=256", "gt_frames=5", "seed=3", "camera={height: 24, width: 80}"]) == 0
+    root = export_kitti(tmp_path_factory.mktemp("vf_kitti"), "--camera", "camera={height: 24, width: 80}")
     from distilkit.data import semantickitti as skio
     from distilkit.data.proposals import write_proposal
 

@@ -113,6 +113,16 @@ def _up(inc: int, out: int, skip: int, level: int) -> nn.ModuleList:
                                         ResidualBlock(out, out, key=f"subm{level}"))])
 
 
+def _add_levels(module: nn.Module, cs: list[int], decoder: bool) -> None:
+    """The four down stages (``stage1``..``stage4``) and, with ``decoder``, the four up stages (``up1``..``up4``) of
+    channel widths ``cs``, under the release's names."""
+    for level in range(1, 5):
+        setattr(module, f"stage{level}", _stage(cs[level - 1], cs[level - 1], cs[level], level))
+    if decoder:
+        for i in range(1, 5):
+            setattr(module, f"up{i}", _up(cs[3 + i], cs[4 + i], cs[4 - i], 4 - i))
+
+
 def _mlp(a: int, b: int, c: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(a, b), nn.LeakyReLU(0.1, inplace=True), nn.Linear(b, c))
 
@@ -133,10 +143,7 @@ class MinkGlobalEnc(nn.Module):
         super().__init__()
         cs = [int(cr * c) for c in CHANNELS]
         self.stem = _stem(in_channels, cs[0])
-        self.stage1 = _stage(cs[0], cs[0], cs[1], 1)
-        self.stage2 = _stage(cs[1], cs[1], cs[2], 2)
-        self.stage3 = _stage(cs[2], cs[2], cs[3], 3)
-        self.stage4 = _stage(cs[3], cs[3], cs[4], 4)
+        _add_levels(self, cs, decoder=False)
 
     def forward(self, scan: Tensor) -> EncodedScan:
         vox = voxelize(scan, RESOLUTION, align=STRIDE)
@@ -176,14 +183,7 @@ class MinkUNetDiff(nn.Module):
             hidden = cs[4] if name.startswith("stage") or name == "up1" else out
             setattr(self, latemp, _mlp(cs[4] + cs[4], hidden, out))
             setattr(self, temp, _mlp(self.embed_dim, self.embed_dim, cs[4]))
-        self.stage1 = _stage(cs[0], cs[0], cs[1], 1)
-        self.stage2 = _stage(cs[1], cs[1], cs[2], 2)
-        self.stage3 = _stage(cs[2], cs[2], cs[3], 3)
-        self.stage4 = _stage(cs[3], cs[3], cs[4], 4)
-        self.up1 = _up(cs[4], cs[5], cs[3], 3)
-        self.up2 = _up(cs[5], cs[6], cs[2], 2)
-        self.up3 = _up(cs[6], cs[7], cs[1], 1)
-        self.up4 = _up(cs[7], cs[8], cs[0], 0)
+        _add_levels(self, cs, decoder=True)
         self.last = nn.Sequential(nn.Linear(cs[8], 20), nn.LeakyReLU(0.1, inplace=True), nn.Linear(20, 3))
 
     def _weights(self, level: int, x: SparseConvTensor, stride: int, vox, enc: EncodedScan, temb: Tensor) -> Tensor:
@@ -225,14 +225,7 @@ class MinkUNet(nn.Module):
         super().__init__()
         cs = [int(cr * c) for c in CHANNELS]
         self.stem = _stem(in_channels, cs[0])
-        self.stage1 = _stage(cs[0], cs[0], cs[1], 1)
-        self.stage2 = _stage(cs[1], cs[1], cs[2], 2)
-        self.stage3 = _stage(cs[2], cs[2], cs[3], 3)
-        self.stage4 = _stage(cs[3], cs[3], cs[4], 4)
-        self.up1 = _up(cs[4], cs[5], cs[3], 3)
-        self.up2 = _up(cs[5], cs[6], cs[2], 2)
-        self.up3 = _up(cs[6], cs[7], cs[1], 1)
-        self.up4 = _up(cs[7], cs[8], cs[0], 0)
+        _add_levels(self, cs, decoder=True)
         self.last = nn.Sequential(nn.Linear(cs[8], 20), nn.LeakyReLU(0.1, inplace=True), nn.Linear(20, out_channels),
                                   nn.Tanh())
 
