@@ -9,6 +9,8 @@ An adapter is an ``nn.Module`` registered in :data:`distilkit.registry.ADAPTERS`
 * ``PREDICTION_TAP``: the tap (of any kind) that evaluation scores, with the metrics registered for its kind;
 * ``DEFAULT_TASK_LOSSES``: task losses used when a recipe stage names none;
 * ``VERSION``: bump it when the model's behaviour changes, so that stages using it retrain.
+* ``NETWORKS``: for each ``size`` the model has ("" when it has none), whether it builds the paper's network or a
+  CPU stand-in; ``validate`` and ``distilkit list adapters`` show it (override ``network`` when other fields decide).
 
 ``forward(batch)`` takes the collated :class:`~distilkit.data.batch.Batch` (built by the dataset's
 registered collate) and returns a dict with (at least) every declared tap. ``check_data`` lets an
@@ -42,6 +44,7 @@ class Adapter(nn.Module, ABC):
     PREDICTION_TAP: ClassVar[str] = "logits"
     DEFAULT_TASK_LOSSES: ClassVar[list[dict[str, Any]]] = [{"name": "ce", "weight": 1.0}]
     VERSION: ClassVar[int] = 1
+    NETWORKS: ClassVar[dict[str, str]] = {}  # by ``params.size`` ("" without one): the paper's network or a stand-in
 
     def __init__(self, params: BaseModel, info: DataInfo) -> None:
         super().__init__()
@@ -89,6 +92,12 @@ class Adapter(nn.Module, ABC):
     def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
         """(parameter, problem) pairs for parameters this data cannot serve (default: none)."""
         return []
+
+    @classmethod
+    def network(cls, params: BaseModel) -> str:
+        """What these parameters build — the paper's network or a CPU stand-in — for ``validate`` and ``list
+        adapters`` (default: ``NETWORKS`` at ``params.size``, or at "" for an adapter without sizes)."""
+        return cls.NETWORKS.get(str(getattr(params, "size", "")), "")
 
     @classmethod
     def describe(cls, params: BaseModel) -> str:

@@ -133,9 +133,22 @@ def _cmd_validate(args: argparse.Namespace) -> int:
             + (f"; {', '.join(t.name for t in s.distill)}" if s.distill else "") + ")"
             for n, s in res.stages.items())
         print(f"{path}: ok — {len(res.stages)} stage(s): {stages}")
+        for line in _networks(res):
+            print(f"  {line}")
         if not args.no_memory:
             _validate_memory(res)
     return 0
+
+
+def _networks(res: Any) -> list[str]:
+    """One line per distinct model of the recipe: its adapter and whether it is the paper's network or a stand-in."""
+    seen: dict[str, list[str]] = {}
+    for name, stage in res.stages.items():
+        spec = stage.student
+        what = spec.cls.network(spec.params)
+        if what:
+            seen.setdefault(f"{spec.adapter}: {what}", []).append(name)
+    return [f"model of {', '.join(stages)} — {line}" for line, stages in seen.items()]
 
 
 def _validate_memory(res: Any) -> None:
@@ -190,9 +203,10 @@ def _cmd_list(args: argparse.Namespace) -> int:
         table.add_column(_LIST_COLUMN[kind])
         if kind == "adapters":
             table.add_column("parameters (default)")
+            table.add_column("network (by size)")
         for e in reg:
             also = reg.aliases_of(e.name)
-            extra = [_params_cell(e.obj.Params)] if kind == "adapters" else []
+            extra = [_params_cell(e.obj.Params), _networks_cell(e.obj)] if kind == "adapters" else []
             table.add_row(e.name + (f" (also {', '.join(also)})" if also else ""), e.description, e.paper,
                           _list_cell(kind, e), *extra)
         console.print(table)
@@ -216,6 +230,14 @@ def _params_cell(params: Any) -> str:
         default = field.get_default(call_default_factory=True)
         out.append(f"{name}={json.dumps(default, default=str)}")
     return "\n".join(out) or "—"
+
+
+def _networks_cell(adapter: Any) -> str:
+    """What each size of an adapter builds: the paper's network or a CPU stand-in."""
+    networks = getattr(adapter, "NETWORKS", {})
+    if "" in networks:
+        return networks[""]
+    return "\n".join(f"{size}: {what}" for size, what in networks.items()) or "—"
 
 
 def _list_cell(kind: str, entry: object) -> str:

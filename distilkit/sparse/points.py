@@ -39,16 +39,25 @@ def voxelize(points: Tensor, resolution: float, align: int = 1, features: Tensor
     points' ``features`` (default: the points themselves, LiDiff's), batch-major rows sorted by (batch, x, y, z)."""
     b, m, _ = points.shape
     feats = points if features is None else features
-    coords = torch.round(points.detach() / resolution).long().reshape(-1, 3)
     batch = torch.arange(b, device=points.device).repeat_interleave(m)
+    return voxelize_flat(points.reshape(b * m, 3), batch, b, resolution, align, feats.reshape(b * m, -1),
+                         rounding="round")
+
+
+def voxelize_flat(points: Tensor, batch: Tensor, batch_size: int, resolution: float, align: int = 1,
+                  features: Tensor | None = None, rounding: str = "round") -> Voxelized:
+    """:func:`voxelize` for (P, 3) points with their (P,) batch indices; ``rounding`` ``round`` (MinkowskiEngine's
+    ``round(p / r)``) or ``floor`` (a voxel grid's cells ``[i r, (i + 1) r)``)."""
+    flat = points if features is None else features
+    scaled = points.detach() / resolution
+    coords = (torch.round(scaled) if rounding == "round" else torch.floor(scaled)).long()
     low = coords.min(dim=0).values if coords.numel() else torch.zeros(3, dtype=torch.long, device=points.device)
     shift = torch.div(low, align, rounding_mode="floor") * align
     grid = coords - shift
     size = (grid.max(dim=0).values + 1) if grid.numel() else torch.ones(3, dtype=torch.long, device=points.device)
     size = ((size + align - 1) // align) * align  # a whole number of the coarsest voxels
-    key = ((batch * size[0] + grid[:, 0]) * size[1] + grid[:, 1]) * size[2] + grid[:, 2]
+    key = ((batch.long() * size[0] + grid[:, 0]) * size[1] + grid[:, 1]) * size[2] + grid[:, 2]
     keys, rows = torch.unique(key, return_inverse=True)
-    flat = feats.reshape(b * m, -1)
     summed = flat.new_zeros((len(keys), flat.shape[1])).index_add_(0, rows, flat)
     counts = torch.bincount(rows, minlength=len(keys)).clamp_min(1).to(flat.dtype)
     indices = torch.empty((len(keys), 4), dtype=torch.long, device=points.device)
@@ -58,8 +67,8 @@ def voxelize(points: Tensor, resolution: float, align: int = 1, features: Tensor
     r = r // size[1]
     indices[:, 1] = r % size[0]
     indices[:, 0] = r // size[0]
-    tensor = SparseConvTensor(summed / counts[:, None], indices.int(), [int(s) for s in size], b)
+    tensor = SparseConvTensor(summed / counts[:, None], indices.int(), [int(s) for s in size], batch_size)
     return Voxelized(tensor, rows, shift, resolution)
 
 
-__all__ = ["Voxelized", "voxelize"]
+__all__ = ["Voxelized", "voxelize", "voxelize_flat"]

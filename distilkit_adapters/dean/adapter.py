@@ -45,6 +45,7 @@ class DeanLabelerAdapter(Adapter):
     """Voxel segmentation of the complete geometry; taps ``features`` (volume) and ``logits``."""
 
     Params = DeanParams
+    NETWORKS = {"": "CPU stand-in: the dense U-Net the LiDAR adapters share (the paper's is Cylinder3D)"}
     TAPS = {"features": "volume_features", "logits": "voxel_logits"}
     PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "partial_ce", "weight": 1.0, "params": {"class_weights": "none"}}]

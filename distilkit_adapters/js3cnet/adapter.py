@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+import torch
 
 from distilkit.choices import Choice
 from distilkit.data.batch import Batch
@@ -20,6 +22,17 @@ from distilkit_adapters.js3cnet.model import JS3CNet
 
 class JS3CNetParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
+    size: Literal["tiny", "paper"] = Field(
+        "tiny", description="tiny: the CPU stand-in (a dense U-Net on the completion grid, the fields below); paper: "
+                            "the release's network — a sparse U-Net of `levels` levels on a grid of half the "
+                            "completion voxel (0.1 m at 0.2 m) on distilkit.sparse, SSCNet's decoder, the "
+                            "point-voxel interaction — with m = seg_channels, the decoder's width ssc_channels; "
+                            "embed and pvi_hidden are m there")
+    levels: int = Field(7, ge=2, le=8, description="paper size: U-Net levels, widths m, 2m, ... (release: 7)")
+    fuse_k: int = Field(5, ge=1, description="paper size: points averaged per completion voxel (release: first 5)")
+    pvi_queries: Literal["near", "all"] = Field(
+        "near", description="paper size: coarse voxels that query neighbours in the PVI — near: occupied or next to "
+                            "an occupied one (default); all: every one (the release)")
     frames: int = Field(1, ge=1, description="input scans fused (SCPNet appendix: multi-frame teacher)")
     seg_channels: int = Field(16, ge=1, description="segmentation U-Net width (paper: m = 16)")
     embed: int = Field(16, ge=1, description="shape-embedding width D_e")
@@ -38,6 +51,14 @@ class JS3CNetAdapter(MultiFrameLidarAdapter):
         Choice("segmentation resolution", "a dense U-Net on the 0.2 m completion grid (CPU-sized)",
                "§4: 0.05 m grids for the SparseConv U-Net", "JS3C_default_kitti.yaml: 0.1 m (scale 10)",
                ""),
+        Choice("PVI queries (size: paper)", "coarse voxels occupied or next to one query k neighbours; every "
+               "coarse voxel is fused (`pvi_queries: near`)", "§3.3: the coarse completion's voxels",
+               "every non-zero coarse voxel queries (262,144 at 256 x 256 x 32)", "`pvi_queries: all`"),
+        Choice("voxel pooling (size: paper)", "mean of each voxel's first `fuse_k` points", "§3.2: mean pooling",
+               "first 5 points, a voxel with fewer padded by its first point (weighting it more)", ""),
+        Choice("point classifier (size: paper)", "K outputs (class 0, unlabelled, never a target); the SSC input "
+               "takes the K - 1 labelled ones", "19 classes", "`linear` 16 -> 19", "a release `linear` needs a row "
+               "for class 0"),
         Choice("PVI refinement", "residual: FC([aggregated, coarse logits]) added to the coarse logits",
                "Fig. 3: the PVI output replaces the coarse completion", "FC(m + 20 -> 20) replaces them; a final ReLU "
                "on the logits (left out here)"),
@@ -49,9 +70,18 @@ class JS3CNetAdapter(MultiFrameLidarAdapter):
     PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "uncertainty_multitask", "weight": 1.0}]
     VERSION = 2  # 2: channels-last volumes
+    NETWORKS = {"tiny": "CPU stand-in: a dense U-Net on the completion grid, a 3-block SSC decoder, a residual PVI",
+                "paper": "the paper's network: the release's 7-level sparse U-Net at half the completion voxel, "
+                         "SSCNet's decoder, the point-voxel interaction"}
 
     def __init__(self, params: JS3CNetParams, info: DataInfo) -> None:
         super().__init__(params, info)
+        if params.size == "paper":
+            from distilkit_adapters.js3cnet.paper import JS3CNetPaper
+
+            self.net: Any = JS3CNetPaper(info.num_classes, params.seg_channels, params.levels, params.ssc_channels,
+                                         params.knn, params.fuse_k, params.pvi_queries)
+            return
         self.net = JS3CNet(info.grid, info.num_classes, params.seg_channels, params.embed, params.ssc_channels,
                            params.pvi_hidden, params.knn)
         channels_last(self)
@@ -62,9 +92,17 @@ class JS3CNetAdapter(MultiFrameLidarAdapter):
             return info.grid.coarsen(2)
         return super().tap_grid(tap, params, info)
 
+    @classmethod
+    def describe(cls, params: BaseModel) -> str:
+        return super().describe(params) + (", paper size" if getattr(params, "size") == "paper" else "")
+
     def forward(self, batch: Batch) -> dict[str, Any]:
         b = select_frames(batch, self.params.frames)
-        out = self.net(b.inputs, batch.size)
+        if self.params.size == "paper":
+            out = self.net(b.inputs["points"], b.inputs["point_batch"], batch.size, self.info.grid)
+            out["point_keep"] = torch.ones(len(b.inputs["points"]), dtype=torch.bool, device=out["logits"].device)
+        else:
+            out = self.net(b.inputs, batch.size)
         shape = tuple(out["ssc_dense"].shape[2:])
         return {
             "logits": out["logits"],
@@ -79,5 +117,6 @@ class JS3CNetAdapter(MultiFrameLidarAdapter):
 
 
 ADAPTERS.add("js3cnet", JS3CNetAdapter,
-             description="JS3C-Net: segmentation branch, SSC decoder and point-voxel interaction (dense CPU variant)",
+             description="JS3C-Net: segmentation branch, SSC decoder and point-voxel interaction (size: tiny, a dense CPU "
+                         "stand-in; size: paper, the release's sparse U-Net)",
              paper="Yan et al., JS3C-Net, AAAI 2021", consumes=tuple(JS3CNetAdapter.TAPS.values()))

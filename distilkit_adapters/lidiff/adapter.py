@@ -81,6 +81,9 @@ class LiDiffAdapter(Adapter):
     PREDICTION_TAP = "completion"
     DEFAULT_TASK_LOSSES = [{"name": "lidiff", "taps": {"student": "eps_pred", "noise": "eps"}}]
     VERSION = 3  # 2: n sampler steps are n network evaluations (none at t = 0); 3: the condition dropped per batch
+    NETWORKS = {"tiny": "CPU stand-in: a per-point MLP denoiser (every completed point an independent sample)",
+                "paper": "the paper's network: MinkUNetDiff and the scan encoder on 5 cm sparse voxels (loads "
+                         "diff_net.ckpt)"}
 
     def __init__(self, params: LiDiffParams, info: DataInfo) -> None:
         super().__init__(params, info)

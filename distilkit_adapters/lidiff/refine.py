@@ -108,6 +108,8 @@ class LiDiffRefineAdapter(Adapter):
     PREDICTION_TAP = "completion"
     DEFAULT_TASK_LOSSES = [{"name": "chamfer", "taps": {"student": "refined"}}]
     VERSION = 2  # 2: trained on jittered ground truth by default (LiDiff)
+    NETWORKS = {"tiny": "CPU stand-in: a per-point MLP refiner",
+                "paper": "the paper's network: LiDiff's refinement MinkUNet (loads refine_net.ckpt)"}
 
     @classmethod
     def inputs(cls, params: BaseModel) -> frozenset[str]:

@@ -63,6 +63,9 @@ class SCPNetAdapter(MultiFrameLidarAdapter):
     DEFAULT_TASK_LOSSES = [{"name": "ce", "weight": 1.0}, {"name": "lovasz", "weight": 1.0}]
 
     VERSION = 2  # 2: grid-scaled kernels, empty logits outside the active set, channels-last volumes
+    NETWORKS = {"tiny": "CPU stand-in: the three-branch completion sub-network and a dense 2-scale U-Net",
+                "paper": "the paper's network: the release's completion sub-network + Cylinder3D's sparse asymmetric "
+                         "U-Net (loads the release's spconv 1.x state dict)"}
 
     def __init__(self, params: SCPNetParams, info: DataInfo) -> None:
         super().__init__(params, info)

@@ -108,6 +108,9 @@ class VoxFormerProposalAdapter(Adapter):
     )
 
     Params = ProposalParams
+    NETWORKS = {size: "CPU stand-in at both sizes: a depth head and a bird's-eye U-Net (VoxFormer's stage 1 is "
+                      "MobileStereoNet + LMSCNet: read its proposal files with data.params.proposals instead)"
+                for size in ("tiny", "paper")}
     INPUTS = CAMERA_INPUTS
     TAPS = {"depth": "depth_map", "occupancy": "occupancy_logits"}
     PREDICTION_TAP = "occupancy"
@@ -153,6 +156,20 @@ class VoxFormerAdapter(Adapter):
     )
 
     Params = VoxFormerParams
+    NETWORKS = {"tiny": "CPU stand-in: a small ResNet of basic blocks, 3-D convolutions mixing the queries",
+                "paper": "the paper's network: ResNet-50 with torchvision's names (loads its ImageNet file) + FPN, "
+                         "deformable cross- and self-attention"}
+
+    @classmethod
+    def network(cls, params: BaseModel) -> str:
+        encoder, mixing = params.value("encoder"), params.value("mixing")  # type: ignore[attr-defined]
+        if encoder == "resnet50" and mixing.startswith("deformable"):
+            return cls.NETWORKS["paper"] + f" ({mixing[len('deformable-'):]})"
+        if (encoder, mixing) == ("small", "conv"):
+            return cls.NETWORKS["tiny"]
+        return (f"CPU stand-in: a {'ResNet-50' if encoder == 'resnet50' else 'small ResNet of basic blocks'}, "
+                f"{'3-D convolutions mixing' if mixing == 'conv' else mixing + ' self-attention over'} the queries")
+
     TAPS = {"image_features": "image_features", "query_features": "sparse_features", "logits": "voxel_logits"}
     PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "weighted_ce", "weight": 1.0}, {"name": "sem_scal", "weight": 1.0},
