@@ -28,6 +28,7 @@ class Case:
     reference: Callable[[], Tensor] | None = None  # float64 value where the naive form does not fit
     same_value: bool = True  # False: the two forms compute different things (a sampler at other step counts)
     note: Callable[[dict[str, Any]], str] | None = None  # a line under the table from the timed row (e.g. GFLOP/s)
+    measure: Callable[[], tuple[float, int | None, float]] | None = None  # its own (ms, peak bytes, value)
 
 
 def _peak_reset(device: torch.device) -> None:
@@ -552,13 +553,20 @@ BENCHES: dict[str, Callable[[torch.device, bool], list[Case]]] = {
     "dskd": dskd_cases, "pkt": pkt_cases, "rgo2d": rgo2d_cases, "kd": kd_cases, "nst": nst_cases,
     "structural": structural_cases, "sampler": sampler_cases, "determinism": determinism_cases,
     "loader": loader_cases, "camera": camera_cases, "guidance": guidance_cases, "complete": complete_cases,
-    "kitti": kitti_cases, "sparse": lambda device, quick: _sparse_cases(device, quick)}
+    "kitti": kitti_cases, "sparse": lambda device, quick: _sparse_cases(device, quick),
+    "networks": lambda device, quick: _networks_cases(device, quick)}
 
 
 def _sparse_cases(device: torch.device, quick: bool) -> list[Case]:
     from distilkit.sparse.bench import sparse_cases
 
     return sparse_cases(device, quick)
+
+
+def _networks_cases(device: torch.device, quick: bool) -> list[Case]:
+    from distilkit.netbench import networks_cases
+
+    return networks_cases(device, quick)
 
 
 def _fmt_mem(b: int | None) -> str:
@@ -595,7 +603,7 @@ def run_bench(names: list[str], device: str = "cpu", quick: bool = False, repeat
     for name in names or list(BENCHES):
         for case in BENCHES[name](dev, quick):
             with console.status(f"{case.objective} {case.size}"):
-                ms, peak, val = time_fb(case.fast, case.inputs, dev, reps)
+                ms, peak, val = case.measure() if case.measure else time_fb(case.fast, case.inputs, dev, reps)
                 row = {"objective": case.objective, "size": case.size, "fast_ms": ms, "fast_peak": peak, "value": val}
                 if case.reference is not None:
                     with torch.no_grad():

@@ -318,6 +318,7 @@ BENCH_NAMES: dict[str, str] = {
     "complete": "`distilkit complete` on a 125,000-point scan, with and without refinement",
     "kitti": "reading, fusing and evaluating SemanticKITTI-sized frames",
     "sparse": "a Cylinder3D-sized submanifold 3x3x3 layer (GFLOP/s vs sgemm) against dense conv3d",
+    "networks": "each family's network at size tiny and paper: parameters, a training step's time and memory",
 }
 
 

@@ -109,7 +109,7 @@ def _tensor_bytes(obj: Any) -> int:
     return 0
 
 
-def _peak_of_step(step: Any, device: Any) -> int:
+def peak_of_step(step: Any, device: Any) -> int:
     """Peak bytes PyTorch allocates while ``step()`` runs, above what was allocated before."""
     import torch
 
@@ -145,7 +145,7 @@ def measure_step(res: Any, stage_name: str, params: Any) -> tuple[float, float]:
         weights = sum(_tensor_bytes(list(m.parameters())) + _tensor_bytes(list(m.buffers())) for m in modules)
         before = weights + _tensor_bytes(batch.inputs) + _tensor_bytes(batch.targets)
         trainer.student.train()
-        peak = _peak_of_step(lambda: trainer.train_step(batch, 0), trainer.device)
+        peak = peak_of_step(lambda: trainer.train_step(batch, 0), trainer.device)
         fixed = weights + _tensor_bytes([p.grad for p in trainer.trainable if p.grad is not None])
         fixed += sum(_tensor_bytes(list(opt.state.values()))
                      for opt in [trainer.optimizer, *[o for o in trainer.own_optimizers if o is not None]])

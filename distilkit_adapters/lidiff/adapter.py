@@ -118,7 +118,7 @@ class LiDiffAdapter(Adapter):
         return (1.0 - self.alphas_cumprod[t]).sqrt()
 
     def predict_noise(self, x_t: Tensor, t: Tensor, condition: Tensor, guidance: float = 1.0,
-                      encoded: tuple[Tensor, Tensor] | None = None) -> Tensor:
+                      encoded: tuple[Tensor, Tensor | None] | None = None) -> Tensor:
         """eps_hat (B, M, 3) of noisy points (B, M, 3) at timesteps t (B,), given the scan (B, N, 3); with
         classifier-free guidance eps_u + w (eps_c - eps_u) when ``guidance`` != 1. The unconditional input is LiDiff's
         all-zero scan, given as one point at the origin: N copies of it have the same neighbours and features (the
@@ -135,10 +135,13 @@ class LiDiffAdapter(Adapter):
         """LiDiff's dropped condition, an all-zero scan, as one point (B, 1, 3)."""
         return condition.new_zeros((condition.shape[0], 1, 3))
 
-    def encode(self, condition: Tensor) -> tuple[Tensor, Tensor]:
-        """The scan encoder's features of the scan and of the unconditional input: they depend on neither x_t nor t,
-        so a sampler computes them once."""
-        return self.net.encoder(condition), self.net.encoder(self.unconditional(condition))
+    def encode(self, condition: Tensor, unconditional: bool = True) -> tuple[Tensor, Tensor | None]:
+        """The scan encoder's features of the scan and (``unconditional``: only guidance needs them) of the
+        unconditional input: they depend on neither x_t nor t, so a sampler computes them once. (A one-point
+        unconditional scan in a batch of one cannot pass the paper-size encoder's batch norms in training mode:
+        ScoreLiDAR's generator samples without guidance, so it never encodes one.)"""
+        return (self.net.encoder(condition),
+                self.net.encoder(self.unconditional(condition)) if unconditional else None)
 
     def timesteps(self, steps: int) -> list[int]:
         """The ``steps`` timesteps the sampler evaluates the network at (one each, none at t = 0)."""
@@ -170,7 +173,7 @@ class LiDiffAdapter(Adapter):
         w = self.params.guidance if guidance is None else guidance
         x_init, x = self.start(condition, generator, noise)
         b = x.shape[0]
-        encoded = self.encode(condition)
+        encoded = self.encode(condition, unconditional=w != 1.0)
 
         def eps(x_t: Tensor, t: int) -> Tensor:
             tt = torch.full((b,), t, dtype=torch.long, device=x_t.device)
