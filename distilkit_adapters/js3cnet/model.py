@@ -42,6 +42,23 @@ def pixel_shuffle_3d(x: Tensor, r: int) -> Tensor:
     return x.reshape(b, c_out, x_ * r, y_ * r, z_ * r)
 
 
+def relation_features(q_xyz: Tensor, s_xyz: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """The PVI's relation of each query to its k nearest supports: (Q, k, 10) [offset, centre, support xyz,
+    distance] and the supports' indices (Q, k)."""
+    dist, idx = knn(q_xyz, s_xyz, k)
+    nb = s_xyz[idx]  # (Q, k, 3)
+    return torch.cat([nb - q_xyz[:, None], q_xyz[:, None].expand_as(nb), nb, dist[..., None]], dim=-1), idx
+
+
+def near_queries(occupied: Tensor, batch_size: int, shape: tuple[int, int, int]) -> Tensor:
+    """(B, X/2, Y/2, Z/2) bool: the coarse voxels with an occupied child or next to one, from the occupied voxels'
+    flat indices over (B, X, Y, Z)."""
+    occ = torch.zeros(batch_size * shape[0] * shape[1] * shape[2], device=occupied.device)
+    occ[occupied] = 1.0
+    coarse = F.max_pool3d(occ.view(batch_size, 1, *shape), 2)
+    return F.max_pool3d(coarse, 3, stride=1, padding=1)[:, 0] > 0
+
+
 class ResBlock(nn.Module):
     def __init__(self, c: int, dilation: int = 1) -> None:
         super().__init__()
@@ -82,9 +99,7 @@ class PointVoxelInteraction(nn.Module):
     def forward(self, q_xyz: Tensor, q_logits: Tensor, s_xyz: Tensor, s_feat: Tensor) -> Tensor:
         if s_xyz.shape[0] == 0 or q_xyz.shape[0] == 0:
             return q_logits
-        dist, idx = knn(q_xyz, s_xyz, self.k)
-        nb = s_xyz[idx]  # (Q,k,3)
-        rel = torch.cat([nb - q_xyz[:, None], q_xyz[:, None].expand_as(nb), nb, dist[..., None]], dim=-1)
+        rel, idx = relation_features(q_xyz, s_xyz, self.k)
         w = self.weight_net(rel.reshape(-1, 10)).view(*idx.shape, -1)
         agg = (w * self.value(s_feat)[idx]).mean(1)
         return q_logits + self.refine(torch.cat([agg, q_logits], 1))
@@ -128,10 +143,7 @@ class JS3CNet(nn.Module):
         ssc_in[uniq] = vpool
         feat, coarse = self.ssc(ssc_in.view(batch_size, x, y, z, -1).permute(0, 4, 1, 2, 3))
         # PVI on coarse voxels near the input
-        occ = torch.zeros(n_vox, device=pts.device)
-        occ[uniq] = 1.0
-        occ_c = F.max_pool3d(occ.view(batch_size, 1, x, y, z), 2)
-        query = F.max_pool3d(occ_c, 3, stride=1, padding=1)[:, 0] > 0  # (B, X/2, Y/2, Z/2)
+        query = near_queries(uniq, batch_size, grid.shape)
         qc = query.nonzero()  # (Q,4)
         cgrid = grid.coarsen(2)
         q_xyz = cgrid.centers(qc[:, 1:])

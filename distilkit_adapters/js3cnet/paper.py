@@ -33,13 +33,12 @@ from __future__ import annotations
 from collections import OrderedDict
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
-from distilkit.geometry.knn import knn
 from distilkit.sparse import SparseConv3d, SparseConvTensor, SparseInverseConv3d, SubMConv3d
 from distilkit.sparse.points import voxelize_flat
 from distilkit.structures import VoxelGrid
+from distilkit_adapters.js3cnet.model import near_queries, pixel_shuffle_3d, relation_features
 
 
 def _bn(c: int) -> nn.BatchNorm1d:
@@ -168,9 +167,7 @@ class Interaction(nn.Module):
         """(Q, m): the relation-weighted mean of each query's k nearest supports' features."""
         if q_xyz.shape[0] == 0 or s_xyz.shape[0] == 0:
             return s_feat.new_zeros(q_xyz.shape[0], s_feat.shape[1])
-        dist, idx = knn(q_xyz, s_xyz, self.k)
-        nb = s_xyz[idx]  # (Q, k, 3)
-        rel = torch.cat([nb - q_xyz[:, None], q_xyz[:, None].expand_as(nb), nb, dist[..., None]], -1)
+        rel, idx = relation_features(q_xyz, s_xyz, self.k)
         w = self.relation_w(rel.permute(0, 2, 1))  # (Q, m, k)
         return (w * s_feat[idx].permute(0, 2, 1)).mean(2)
 
@@ -181,13 +178,6 @@ class CompletHead(nn.Module):
         self.Decoder = SSCNetDecoder(cin, m, num_classes)
         self.interaction_module = Interaction(m_seg, num_classes, k)
         self.upsample = nn.Sequential(nn.Conv3d(num_classes, num_classes * 8, 1), nn.BatchNorm3d(num_classes * 8))
-
-
-def pixel_shuffle_3d(x: Tensor, r: int) -> Tensor:
-    """(B, C r^3, X, Y, Z) -> (B, C, X r, Y r, Z r), the release's ``PixelShuffle3D`` channel order."""
-    b, c, x_, y_, z_ = x.shape
-    x = x.view(b, c // r ** 3, r, r, r, x_, y_, z_).permute(0, 1, 5, 2, 6, 3, 7, 4)
-    return x.reshape(b, c // r ** 3, x_ * r, y_ * r, z_ * r)
 
 
 def first_k_mean(values: Tensor, groups: Tensor, n_groups: int, k: int) -> Tensor:
@@ -227,11 +217,9 @@ class JS3CNetPaper(nn.Module):
         dense[uniq] = pooled
         feat, coarse = self.complet_head.Decoder(dense.view(batch_size, x, y, z, -1).permute(0, 4, 1, 2, 3))
         # point-voxel interaction: supports = completion voxels with points, queries = coarse voxels
-        occ = torch.zeros(batch_size * x * y * z, device=points.device)
-        occ[uniq] = 1.0
-        occ_c = F.max_pool3d(occ.view(batch_size, 1, x, y, z), 2)
-        query = (F.max_pool3d(occ_c, 3, stride=1, padding=1)[:, 0] > 0) if self.pvi_queries == "near" \
-            else torch.ones_like(occ_c[:, 0], dtype=torch.bool)
+        query = near_queries(uniq, batch_size, grid.shape)
+        if self.pvi_queries == "all":
+            query = torch.ones_like(query)
         qc = query.nonzero()
         q_xyz = grid.coarsen(2).centers(qc[:, 1:])
         s_coords = torch.stack(torch.unravel_index(uniq, (batch_size, x, y, z)), 1)
