@@ -152,7 +152,7 @@ def _networks(res: Any) -> list[str]:
 
 
 def _validate_memory(res: Any) -> None:
-    """Each training stage's memory per step (one step at small sizes, scaled), with a warning where it does not
+    """Each training stage's memory per step (two steps at small sizes, scaled), with a warning where it does not
     fit in what the machine has free."""
     from distilkit.console import make_console
     from distilkit.engine.memory import estimate_stage
@@ -160,7 +160,7 @@ def _validate_memory(res: Any) -> None:
     console = make_console()
     for name in res.order:
         try:
-            with console.status(f"stage {name}: one training step at a small size, to estimate its memory"):
+            with console.status(f"stage {name}: two training steps at a small size, to estimate its memory"):
                 estimate = estimate_stage(res, name)
         except Exception as exc:  # the estimate is advice: a probe that fails must not fail validation
             console.print(f"[yellow]stage {name}: memory not estimated ({type(exc).__name__}: {exc})[/]")
@@ -389,7 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("recipes", nargs="+", help="recipe YAML files")
     v.add_argument("--set", nargs="+", action="extend", metavar="PATH=VALUE", default=None,
                    help="override recipe fields by dotted path, e.g. --set stages.student.train.steps=10")
-    v.add_argument("--no-memory", action="store_true", help="skip the memory estimate (one training step of each "
+    v.add_argument("--no-memory", action="store_true", help="skip the memory estimate (two training steps of each "
                    "stage at a small size)")
     v.set_defaults(fn=_cmd_validate)
     ls = sub.add_parser("list", **_doc("list"), help="registered adapters, objectives, task losses, datasets, metrics, optimizers, "

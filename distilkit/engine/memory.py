@@ -1,13 +1,15 @@
 """Peak memory of one training step, estimated before training (``distilkit validate``), and the one-line error
 when a stage runs out of memory anyway.
 
-The estimate runs the stage's real training step — student, teacher (random weights: the same tensors), every
-term, backward and the optimizer's first step — on one sample of a small copy of the data (the dataset's
-:class:`~distilkit.data.probe.ProbePlan`), and records the peak of the bytes PyTorch holds (the profiler's
-allocation events on the CPU, ``max_memory_allocated`` on CUDA). What does not grow with the batch or the grid —
-parameters, their gradients, the optimizer's state — is counted once; the rest is taken per sample, scaled to
-the recipe's size and multiplied by ``train.batch_size``; extrapolated sizes get a range (see :func:`estimate_stage`).
-It counts PyTorch's tensors, not the Python process around them (about 0.5 GB more).
+The estimate runs the stage's real training step twice — student, teacher (random weights: the same tensors),
+every term, backward and the optimizer's step; the second as every later step is, with the optimizer's state — on
+one sample of a small copy of the data (the dataset's :class:`~distilkit.data.probe.ProbePlan`), and records the
+peak of the bytes PyTorch holds (the profiler's allocation events on the CPU, the allocator's counters on CUDA), in
+two phases: the model's (forward, losses, backward) and the optimizer's step. What does not grow with the batch —
+parameters, the optimizer's state and its step's temporaries — is counted once; the rest is taken per sample, scaled
+to the recipe's size and multiplied by ``train.batch_size``; extrapolated sizes get a range (see
+:func:`estimate_stage`).
+It counts PyTorch's tensors, not the Python process around them (about 0.5 GiB more).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from typing import Any, Iterator
 
 from distilkit.errors import DistilkitError
 
-GB = 1024**3
+GIB = 1024**3
 
 
 class OutOfMemoryError(DistilkitError):
@@ -45,11 +47,11 @@ class MemoryEstimate:
     @property
     def figure(self) -> str:
         if self.high <= 1.1 * self.low:
-            return f"about {self.high / GB:.2f} GB"
-        return f"{self.low / GB:.1f}-{self.high / GB:.1f} GB"
+            return f"about {self.high / GIB:.2f} GiB"
+        return f"{self.low / GIB:.1f}-{self.high / GIB:.1f} GiB"
 
     def line(self) -> str:
-        free = f" of {self.available / GB:.1f} GB free" if self.available is not None else ""
+        free = f" of {self.available / GIB:.1f} GiB free" if self.available is not None else ""
         return (f"stage {self.stage}: {self.figure} per training step on the {self.device} "
                 f"(batch {self.batch_size}, {self.size}; {self.how}){free}")
 
@@ -57,10 +59,10 @@ class MemoryEstimate:
         """What to say when the step may not fit in what is free (None: it fits with room to spare)."""
         if self.available is None or self.high <= 0.8 * self.available:
             return None
-        free = f"the {self.available / GB:.1f} GB free on the {self.device}"
+        free = f"the {self.available / GIB:.1f} GiB free on the {self.device}"
         if self.low > self.available:
-            return f"stage {self.stage} needs at least {self.low / GB:.1f} GB per training step, more than {free}"
-        return f"stage {self.stage} may need up to {self.high / GB:.1f} GB per training step, close to or more than {free}"
+            return f"stage {self.stage} needs at least {self.low / GIB:.1f} GiB per training step, more than {free}"
+        return f"stage {self.stage} may need up to {self.high / GIB:.1f} GiB per training step, close to or more than {free}"
 
 
 def available_memory(device: str) -> int | None:
@@ -109,32 +111,107 @@ def _tensor_bytes(obj: Any) -> int:
     return 0
 
 
-def peak_of_step(step: Any, device: Any) -> int:
-    """Peak bytes PyTorch allocates while ``step()`` runs, above what was allocated before."""
-    import torch
+@dataclass(frozen=True)
+class StepPeaks:
+    """Peak bytes allocated during one step above what was live before it, by phase: ``model`` outside the
+    optimizers' steps (forward, losses, backward, the objectives' own updates), and for each optimizer step
+    (``Optimizer.step``, in order) the bytes live as it began and its peak."""
 
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-        base = torch.cuda.memory_allocated(device)
-        torch.cuda.reset_peak_memory_stats(device)
-        step()
+    model: int
+    optimizer: list[tuple[int, int]]
+
+    @property
+    def peak(self) -> int:
+        return max([self.model, *(peak for _, peak in self.optimizer)])
+
+
+def _cuda_peaks(step: Any, device: Any) -> StepPeaks:
+    import torch
+    from torch.optim.optimizer import register_optimizer_step_post_hook, register_optimizer_step_pre_hook
+
+    torch.cuda.synchronize(device)
+    base = torch.cuda.memory_allocated(device)
+    model, windows, held = 0, [], [0]
+
+    def since_reset() -> int:
         torch.cuda.synchronize(device)
         return int(torch.cuda.max_memory_allocated(device) - base)
+
+    def pre(*_: Any) -> None:
+        nonlocal model
+        model = max(model, since_reset())
+        held[0] = int(torch.cuda.memory_allocated(device) - base)
+        torch.cuda.reset_peak_memory_stats(device)
+
+    def post(*_: Any) -> None:
+        windows.append((held[0], since_reset()))
+        torch.cuda.reset_peak_memory_stats(device)
+
+    torch.cuda.reset_peak_memory_stats(device)
+    hooks = [register_optimizer_step_pre_hook(pre), register_optimizer_step_post_hook(post)]
+    try:
+        step()
+    finally:
+        for hook in hooks:
+            hook.remove()
+    return StepPeaks(max(model, since_reset()), windows)
+
+
+def step_peaks(step: Any, device: Any) -> StepPeaks:
+    """Run ``step()`` and return its peaks by phase (the profiler's allocation events on the CPU, split at the
+    ``Optimizer.step`` ranges PyTorch records; the allocator's peak counters and optimizer hooks on CUDA)."""
+    if device.type == "cuda":
+        return _cuda_peaks(step, device)
     from torch.profiler import ProfilerActivity, profile
 
     with _quiet_stderr(), profile(activities=[ProfilerActivity.CPU], profile_memory=True) as prof:
         step()
-    events = sorted((e.start_ns(), e.nbytes()) for e in prof.profiler.kineto_results.events() if e.name() == "[memory]")
-    live = peak = 0
-    for _, nbytes in events:
+    events = list(prof.profiler.kineto_results.events())
+    ranges = sorted((e.start_ns(), e.end_ns()) for e in events if e.name().startswith("Optimizer.step#"))
+    allocations = sorted((e.start_ns(), e.nbytes()) for e in events if e.name() == "[memory]")
+    live = model = 0
+    windows: list[list[int]] = []
+    i = 0
+    for t, nbytes in allocations:
+        while i < len(ranges) and t > ranges[i][1]:
+            i += 1
+        inside = i < len(ranges) and ranges[i][0] <= t
+        if inside and len(windows) <= i:
+            windows.extend([live, live] for _ in range(i + 1 - len(windows)))
         live += nbytes
-        peak = max(peak, live)
-    return peak
+        if inside:
+            windows[i][1] = max(windows[i][1], live)
+        else:
+            model = max(model, live)
+    return StepPeaks(model, [(held, peak) for held, peak in windows])
 
 
-def measure_step(res: Any, stage_name: str, params: Any) -> tuple[float, float]:
-    """One training step of ``stage_name`` at batch size 1 on the first training sample of the data ``params``:
-    (bytes that do not grow with the data — parameters, gradients, optimizer state —, peak bytes in all)."""
+def peak_of_step(step: Any, device: Any) -> int:
+    """Peak bytes PyTorch allocates while ``step()`` runs, above what was allocated before."""
+    return step_peaks(step, device).peak
+
+
+@dataclass(frozen=True)
+class StepMemory:
+    """Bytes of one training step as it is after the first (the optimizer's state and the last gradients live):
+    ``kept`` — parameters, buffers and optimizer state, which do not grow with the batch or the grid —; ``model`` —
+    the peak outside the optimizer's step —; ``optimizer`` — what was live as the optimizer's step began — and
+    ``temporaries`` — what that step allocates on top (its own, a fixed amount)."""
+
+    kept: float
+    model: float
+    optimizer: float
+    temporaries: float
+
+    @property
+    def total(self) -> float:
+        return max(self.model, self.optimizer + self.temporaries)
+
+
+def measure_step(res: Any, stage_name: str, params: Any) -> StepMemory:
+    """Two training steps of ``stage_name`` at batch size 1 on the first training sample of the data ``params``,
+    measured by phase: the model's phase is the larger of the two (a first step may do one-off work, e.g. fill a
+    cache), the optimizer's is the second's (its state exists from then on)."""
     from distilkit.engine.probe import probe_trainer
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -142,18 +219,54 @@ def measure_step(res: Any, stage_name: str, params: Any) -> tuple[float, float]:
         batch = trainer.first_batch()
         modules = [trainer.student, trainer.task, trainer.objectives, trainer.connectors,
                    *([trainer.teacher] if trainer.teacher is not None else [])]
-        weights = sum(_tensor_bytes(list(m.parameters())) + _tensor_bytes(list(m.buffers())) for m in modules)
-        before = weights + _tensor_bytes(batch.inputs) + _tensor_bytes(batch.targets)
+        optimizers = [trainer.optimizer, *[o for o in trainer.own_optimizers if o is not None]]
+
+        def held() -> tuple[float, float]:
+            """(bytes live between steps, of which kept whatever the data)"""
+            weights = sum(_tensor_bytes(list(m.parameters())) + _tensor_bytes(list(m.buffers())) for m in modules)
+            kept = weights + sum(_tensor_bytes(list(opt.state.values())) for opt in optimizers)
+            grads = _tensor_bytes([p.grad for p in trainer.trainable if p.grad is not None])
+            return kept + grads + _tensor_bytes(batch.inputs) + _tensor_bytes(batch.targets), kept
+
         trainer.student.train()
-        peak = peak_of_step(lambda: trainer.train_step(batch, 0), trainer.device)
-        fixed = weights + _tensor_bytes([p.grad for p in trainer.trainable if p.grad is not None])
-        fixed += sum(_tensor_bytes(list(opt.state.values()))
-                     for opt in [trainer.optimizer, *[o for o in trainer.own_optimizers if o is not None]])
-    return float(fixed), float(before + peak)
+        model = 0.0
+        for i in range(2):
+            before, kept = held()
+            peaks = step_peaks(lambda: trainer.train_step(batch, i), trainer.device)
+            model = max(model, before + peaks.model)
+        held_at, top = max(peaks.optimizer, key=lambda w: w[1], default=(0, 0))
+    return StepMemory(kept, model, before + held_at, float(top - held_at))
+
+
+def _bounds(points: list[tuple[float, float]], target: float, peak: bool = True) -> tuple[float, float]:
+    """Bounds at ``target`` of a per-sample cost measured at (size, bytes) ``points``, taking it to be a sum of
+    parts that grow as size^p with 0 <= p <= 1 (a dense grid: p = 1; active voxels of a surface: about 2/3; the
+    scan's points: 0), or with ``peak`` the largest of several such sums (the peak of a step that passes through
+    phases). Either's growth rate only rises with the size, so continuing the rate between the two probes bounds it
+    from below. From above: a sum by the line through the probes (all of the growth in a p = 1 part); a peak by
+    growing in proportion to the size (a phase below the others at both probes may overtake them)."""
+    import math
+
+    (s1, v1), (s2, v2) = points[0], points[-1]
+    v1, v2 = max(v1, 0.0), max(v2, 0.0)
+    if s1 == s2 or target == s2:
+        return (v2 * target / s2,) * 2
+    high = v2 * target / s2 if peak else max(v2, v2 + (v2 - v1) / (s2 - s1) * (target - s2))
+    if v1 <= 0 or v2 <= 0:
+        return high, high
+    rate = min(max(math.log(v2 / v1) / math.log(s2 / s1), 0.0), 1.0)
+    return v2 * (target / s2) ** rate, high
 
 
 def estimate_stage(res: Any, stage_name: str) -> MemoryEstimate | None:
-    """The estimate for one stage (None: the stage does not train, or its data has no probe plan)."""
+    """The estimate for one stage (None: the stage does not train, or its data has no probe plan).
+
+    Each probe's step is split in two phases — the model's (forward and backward) and the optimizer's step — whose
+    peaks grow differently: the model's with the data; the optimizer's is what the model phase leaves live plus its
+    own temporaries, a fixed amount (for Adam a few copies of the parameters: at small probe sizes it is the step's
+    peak, and scaling it with the grid would overstate a large grid). Each phase's per-sample part is bounded at
+    the recipe's size by :func:`_bounds`, times ``train.batch_size``, plus what is kept whatever the batch (the
+    parameters and the optimizer's state; bounded the same way, as a model's parameters may grow with the grid)."""
     from distilkit.engine.stage import pick_device
     from distilkit.registry import DATASETS
 
@@ -165,16 +278,18 @@ def estimate_stage(res: Any, stage_name: str) -> MemoryEstimate | None:
     if probe is None:
         return None
     plan = probe(res.data_params)
-    measured = [(size, *measure_step(res, stage_name, params)) for params, size in plan.probes]
-    fixed = measured[-1][1]
-    per_sample = [(size, total - fixed) for size, _, total in measured]
-    (s1, v1), (s2, v2) = per_sample[0], per_sample[-1]
-    # The peak is that of the phase that dominates (e.g. a point branch at small grids, the voxels at large ones),
-    # so between two probes the line through them bounds it from below and scaling the larger probe in proportion
-    # to the size from above (measured here: 0.70 and 1.41 x the full-grid peak for a point-heavy SCPNet, 1.03 and
-    # 1.09 x for a light one).
-    high = v2 * plan.target / s2
-    low = v2 + (v2 - v1) / (s2 - s1) * (plan.target - s2) if s2 != s1 else high
+    measured = [(size, measure_step(res, stage_name, params)) for params, size in plan.probes]
+    b = train.batch_size
+
+    def bound(part: Any, peak: bool = True) -> tuple[float, float]:
+        return _bounds([(size, part(m)) for size, m in measured], plan.target, peak)
+
+    kept = bound(lambda m: m.kept, peak=False)  # grows with the grid where parameters do (VoxFormer's queries)
+    temporaries = bound(lambda m: m.temporaries, peak=False)
+    model = bound(lambda m: m.model - m.kept)
+    held = bound(lambda m: m.optimizer - m.kept)
+    low, high = (kept[j] + max(b * model[j], b * held[j] + temporaries[j]) for j in (0, 1))
+    (s1, _), (s2, _) = measured[0], measured[-1]
     if plan.target == s2:
         how = "measured"
     elif s1 == s2:
@@ -182,9 +297,7 @@ def estimate_stage(res: Any, stage_name: str) -> MemoryEstimate | None:
     else:
         how = f"extrapolated from {s1:,.0f} and {s2:,.0f} {plan.unit}"
     device = str(pick_device(train.device))
-    b = train.batch_size
-    return MemoryEstimate(stage_name, fixed + b * max(min(low, high), 0.0), fixed + b * max(high, low, 0.0), b,
-                          plan.describe, how, device, available_memory(device))
+    return MemoryEstimate(stage_name, low, high, b, plan.describe, how, device, available_memory(device))
 
 
 def is_out_of_memory(exc: BaseException) -> bool:
@@ -224,5 +337,5 @@ def out_of_memory(stage: Any, info: Any, exc: BaseException, kept: str) -> OutOf
         "the model's size; `distilkit validate` estimates the memory a training step needs.")
 
 
-__all__ = ["MemoryEstimate", "OutOfMemoryError", "available_memory", "estimate_stage", "is_out_of_memory",
-           "measure_step", "out_of_memory"]
+__all__ = ["MemoryEstimate", "OutOfMemoryError", "StepMemory", "StepPeaks", "available_memory", "estimate_stage",
+           "is_out_of_memory", "measure_step", "out_of_memory", "peak_of_step", "step_peaks"]
