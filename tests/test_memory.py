@@ -160,6 +160,7 @@ def test_other_runtime_errors_are_not_taken_for_memory() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("full_grid")  # one at a time: each holds gigabytes (tests/test_paper_recipes.py)
 def test_the_full_grid_estimate_brackets_the_measured_peak() -> None:
     """A recipe at SemanticKITTI's full grid: measured at 64x64x8 and 128x128x16, the range holds the peak of a
     real step at 256x256x32 (batch 1)."""

@@ -81,18 +81,23 @@ FULL_GRID = [("js3cnet", "student_dskd"), ("scpnet", "student"), ("scribble2scen
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("full_grid")  # one at a time: each holds gigabytes
 @pytest.mark.parametrize("name, stage", FULL_GRID, ids=[n for n, _ in FULL_GRID])
 def test_the_memory_estimate_brackets_the_measured_peak_of_a_paper_network(name, stage, folder) -> None:
     """validate's estimate at the full 256 x 256 x 32 grid — extrapolated from probes at 64 x 64 x 8 and
     128 x 128 x 16, as validate does — against a training step measured there (batch 1, the optimizer's state
-    live). Minutes: SCPNet's dense completion sub-network at the full grid is an 11 GiB step."""
+    live). Minutes: SCPNet's dense completion sub-network at the full grid is an 11 GiB step; VoxFormer runs at 32
+    channels instead of the paper's 128 (5 GiB instead of 16.5: it must fit beside another test in 24 GiB; the
+    paper's width is measured in the README)."""
     from distilkit.data.probe import _one_scene
     from distilkit.engine.memory import estimate_stage, measure_step
     from distilkit.engine.resolve import resolve
 
     path = ROOT / "recipes" / "paper" / f"{name}.yaml"
     sets = overrides(name, folder) + ["stages.*.train.batch_size=1"]
-    if name != "scribble2scene":  # (its overrides set the frames of the models that have them)
+    if name == "scribble2scene":  # (its overrides set the frames of the models that have them)
+        sets += ["stages.teacher_labeler.model.params.channels=32", "stages.student.model.params.channels=32"]
+    else:
         sets += ["data.params.input_frames=2", "stages.*.model.params.frames=2"]
     res = resolve(load_recipe(path, parse_overrides(sets)), str(path))
     estimate = estimate_stage(res, stage)
