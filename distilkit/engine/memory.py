@@ -194,7 +194,7 @@ def peak_of_step(step: Any, device: Any) -> int:
 @dataclass(frozen=True)
 class StepMemory:
     """Bytes of one training step as it is after the first (the optimizer's state and the last gradients live):
-    ``kept`` — parameters, buffers and optimizer state, which do not grow with the batch or the grid —; ``model`` —
+    ``kept`` — parameters, buffers and optimizer state, which do not grow with the batch —; ``model`` —
     the peak outside the optimizer's step —; ``optimizer`` — what was live as the optimizer's step began — and
     ``temporaries`` — what that step allocates on top (its own, a fixed amount)."""
 
