@@ -115,9 +115,9 @@ def networks_cases(device: torch.device, quick: bool) -> list[Any]:
 
 def measure(step: Any, model: Any, device: torch.device) -> tuple[float, int, float]:
     """(milliseconds of the second step, peak bytes of the first — parameters and gradients included —, loss)."""
-    from distilkit.engine.memory import peak_of_step
+    from distilkit.engine.memory import _tensor_bytes, peak_of_step
 
-    weights = sum(p.numel() * p.element_size() for p in [*model.parameters(), *model.buffers()])
+    weights = _tensor_bytes([*model.parameters(), *model.buffers()])
     peak = peak_of_step(lambda: step().backward(), device)
     if device.type == "cuda":
         torch.cuda.synchronize(device)

@@ -75,15 +75,19 @@ def test_a_paper_recipe_validates_with_its_memory_estimate_and_runs_two_steps_at
     assert finished, "no stage wrote its weights"
 
 
-# (recipe, stage) whose full-grid step is measured against validate's estimate; LiDiff's data (point clouds of a
-# fixed size) is measured at the recipe's own size, so its estimate is a measurement (checked above)
-FULL_GRID = [("js3cnet", "student_dskd"), ("scpnet", "student"), ("scribble2scene", "student")]
+# (recipe, stage, its --set values beyond the folder's) whose full-grid step is measured against validate's estimate;
+# LiDiff's data (point clouds of a fixed size) is measured at the recipe's own size, so its estimate is a measurement
+# (checked above). Scribble2Scene's overrides already set the frames of the models that have them.
+TWO_FRAMES = ["data.params.input_frames=2", "stages.*.model.params.frames=2"]
+FULL_GRID = [("js3cnet", "student_dskd", TWO_FRAMES), ("scpnet", "student", TWO_FRAMES),
+             ("scribble2scene", "student", ["stages.teacher_labeler.model.params.channels=32",
+                                            "stages.student.model.params.channels=32"])]
 
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("full_grid")  # one at a time: each holds gigabytes
-@pytest.mark.parametrize("name, stage", FULL_GRID, ids=[n for n, _ in FULL_GRID])
-def test_the_memory_estimate_brackets_the_measured_peak_of_a_paper_network(name, stage, folder) -> None:
+@pytest.mark.parametrize("name, stage, sets", FULL_GRID, ids=[n for n, _, _ in FULL_GRID])
+def test_the_memory_estimate_brackets_the_measured_peak_of_a_paper_network(name, stage, sets, folder) -> None:
     """validate's estimate at the full 256 x 256 x 32 grid — extrapolated from probes at 64 x 64 x 8 and
     128 x 128 x 16, as validate does — against a training step measured there (batch 1, the optimizer's state
     live). Minutes: SCPNet's dense completion sub-network at the full grid is an 11 GiB step; VoxFormer runs at 32
@@ -94,11 +98,7 @@ def test_the_memory_estimate_brackets_the_measured_peak_of_a_paper_network(name,
     from distilkit.engine.resolve import resolve
 
     path = ROOT / "recipes" / "paper" / f"{name}.yaml"
-    sets = overrides(name, folder) + ["stages.*.train.batch_size=1"]
-    if name == "scribble2scene":  # (its overrides set the frames of the models that have them)
-        sets += ["stages.teacher_labeler.model.params.channels=32", "stages.student.model.params.channels=32"]
-    else:
-        sets += ["data.params.input_frames=2", "stages.*.model.params.frames=2"]
+    sets = overrides(name, folder) + ["stages.*.train.batch_size=1", *sets]
     res = resolve(load_recipe(path, parse_overrides(sets)), str(path))
     estimate = estimate_stage(res, stage)
     peak = measure_step(res, stage, _one_scene(res.data_params)).total

@@ -131,20 +131,21 @@ def _cuda_peaks(step: Any, device: Any) -> StepPeaks:
 
     torch.cuda.synchronize(device)
     base = torch.cuda.memory_allocated(device)
-    model, windows, held = 0, [], [0]
+    model, held = 0, 0
+    windows: list[tuple[int, int]] = []
 
     def since_reset() -> int:
         torch.cuda.synchronize(device)
         return int(torch.cuda.max_memory_allocated(device) - base)
 
     def pre(*_: Any) -> None:
-        nonlocal model
+        nonlocal model, held
         model = max(model, since_reset())
-        held[0] = int(torch.cuda.memory_allocated(device) - base)
+        held = int(torch.cuda.memory_allocated(device) - base)
         torch.cuda.reset_peak_memory_stats(device)
 
     def post(*_: Any) -> None:
-        windows.append((held[0], since_reset()))
+        windows.append((held, since_reset()))
         torch.cuda.reset_peak_memory_stats(device)
 
     torch.cuda.reset_peak_memory_stats(device)
