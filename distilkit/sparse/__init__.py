@@ -4,7 +4,7 @@ between the two unchanged). Neighbour maps by voxel hashing, then gather, a GEMM
 autograd through features and weights; the same bits in every process on the CPU; no dense grid. ``distilkit bench
 sparse`` times it at a real scan's occupancy."""
 
-from distilkit.sparse.conv import SparseConv3d, SparseInverseConv3d, SubMConv3d
+from distilkit.sparse.conv import SparseConv3d, SparseInverseConv3d, SubMConv3d, name_modules
 from distilkit.sparse.tensor import SparseConvTensor
 
-__all__ = ["SparseConv3d", "SparseConvTensor", "SparseInverseConv3d", "SubMConv3d"]
+__all__ = ["SparseConv3d", "SparseConvTensor", "SparseInverseConv3d", "SubMConv3d", "name_modules"]

@@ -1,11 +1,32 @@
-"""Sparse 3-D convolution modules with spconv 2.x's names, arguments and weight layout.
+"""Sparse 3-D convolution modules with spconv's names, arguments and weight layout, in spconv 2.x's or spconv 1.x's
+semantics of ``indice_key``.
 
 ``weight`` is (out, k0, k1, k2, in) — spconv 2.2+'s layout (2.1 mostly, 2.0 had (k0, k1, k2, out, in) and 1.x
 (k0, k1, k2, in, out): :func:`distilkit.sparse.convert.to_spconv2` converts those) — and ``bias`` (out,), so a state
-dict moves between spconv and distilkit unchanged. ``indice_key`` names a neighbour map kept on the tensor: a
-submanifold convolution with the key of an earlier one reuses its map, and ``SparseInverseConv3d(indice_key=K)``
-inverts the strided ``SparseConv3d(indice_key=K)`` that produced its input's ancestors, back onto that
-convolution's input sites (spconv's decoder pattern).
+dict moves between spconv and distilkit unchanged. ``indice_key`` names a neighbour map kept on the tensor; what a
+key that already exists means depends on ``semantics``:
+
+* ``"spconv2"`` (the default; spconv 2.x, ``spconv/pytorch/conv.py``): a submanifold convolution reuses the map of
+  an earlier one with its key, which must have the same kernel, dilation, grid and number of voxels (else the same
+  ``ValueError`` as spconv); a strided convolution whose key exists is an error (spconv asserts); a new map is added
+  to the *output's* copy of the dictionary, so it is seen downstream only.
+* ``"spconv1"`` (spconv 1.x, ``spconv/conv.py`` and ``indiceConv`` in ``src/spconv/spconv_ops.cc`` at 1.2.1): a
+  convolution whose key exists reuses that map *whatever its own kernel*, and the dictionary is shared by every
+  tensor of the network. spconv 1.x views the filters as (-1, in, out) and loops over the stored map's offsets only,
+  so the stored map's i-th offset multiplies the i-th (in, out) slice of this convolution's kernel flattened in C
+  order over (k0, k1, k2): a 3x3x3 kernel on a stored 1x3x3 map uses only its slice ``[:, 0]`` at the 1x3x3
+  offsets; the stored map's centre (its middle offset, every site with itself) multiplies the middle slice. A kernel
+  with fewer offsets than the stored map is an error (spconv 1.x reads past its filters). spconv 1.x's submanifold
+  padding ignores dilation, so a dilated convolution is refused in this mode. Cylinder3D / SCPNet were trained this
+  way (one key for the four convolutions of a block).
+
+``SparseInverseConv3d(indice_key=K)`` inverts the strided ``SparseConv3d(indice_key=K)`` that produced its input's
+ancestors, back onto that convolution's input sites (spconv's decoder pattern). A 1x1x1 convolution (stride 1) is a
+matrix product on the features in both versions: no map, no key.
+
+spconv's keywords that only tune speed (``algo``, ``fp32_accum``, ``large_kernel_fast_algo``,
+``record_voxel_count``, ``use_hash``, ``fused_bn``) are accepted and ignored, ``name`` names the layer in errors;
+any other keyword is a ``TypeError``.
 
 Pure PyTorch (:mod:`distilkit.sparse.rulebook`, :mod:`distilkit.sparse.function`): no dense grid is allocated,
 autograd flows through features and weights, and the CPU results are the same bits in any process.
@@ -14,23 +35,44 @@ autograd flows through features and weights, and the CPU results are the same bi
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Any, Literal, Sequence
 
 import torch
 from torch import Tensor, nn
 
 from distilkit.sparse.function import rulebook_conv
-from distilkit.sparse.rulebook import Rulebook, strided, submanifold, triple
+from distilkit.sparse.rulebook import Rulebook, output_shape, strided, submanifold, triple
 from distilkit.sparse.tensor import SparseConvTensor
+
+Semantics = Literal["spconv1", "spconv2"]
+SEMANTICS = ("spconv1", "spconv2")
+SPEED_ONLY = frozenset({"algo", "fp32_accum", "large_kernel_fast_algo", "record_voxel_count", "use_hash", "fused_bn"})
+
+
+def _options(kind: str, options: dict[str, Any]) -> str | None:
+    """The layer's ``name`` among spconv's keywords; any keyword that is not speed-only is an error."""
+    unknown = sorted(set(options) - SPEED_ONLY - {"name"})
+    if unknown:
+        raise TypeError(f"{kind}: unexpected keyword argument{'s' if len(unknown) > 1 else ''} "
+                        f"{', '.join(map(repr, unknown))} (accepted and ignored, as they only tune spconv's speed: "
+                        f"{', '.join(sorted(SPEED_ONLY))}; name: the layer's name in errors)")
+    name = options.get("name")
+    return None if name is None else str(name)
 
 
 class _SparseConvolution(nn.Module):
-    """What the three kinds share: the weight (out, k0, k1, k2, in), the bias, spconv's initialisation."""
+    """What the three kinds share: the weight (out, k0, k1, k2, in), the bias, spconv's initialisation, the key's
+    semantics."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Sequence[int], stride: int | Sequence[int],
                  padding: int | Sequence[int], dilation: int | Sequence[int], bias: bool,
-                 indice_key: str | None) -> None:
+                 indice_key: str | None, semantics: str, options: dict[str, Any]) -> None:
         super().__init__()
+        self.layer_name = _options(type(self).__name__, options)
+        if semantics not in SEMANTICS:
+            raise ValueError(f"{type(self).__name__}: semantics must be one of {', '.join(SEMANTICS)}, got "
+                             f"{semantics!r}")
+        self.semantics = semantics
         self.in_channels, self.out_channels = int(in_channels), int(out_channels)
         self.kernel_size = triple(kernel_size, "kernel_size")
         self.stride, self.padding = triple(stride, "stride"), triple(padding, "padding")
@@ -49,21 +91,61 @@ class _SparseConvolution(nn.Module):
             b = 1 / math.sqrt(fan_in) if fan_in > 0 else 0.0
             nn.init.uniform_(self.bias, -b, b)
 
+    @property
+    def volume(self) -> int:
+        return math.prod(self.kernel_size)
+
     def kernel_matrices(self) -> Tensor:
         """The weight as (K, in, out): one matrix per kernel index in C order."""
         return self.weight.permute(1, 2, 3, 4, 0).reshape(-1, self.in_channels, self.out_channels)
 
-    def _run(self, x: SparseConvTensor, book: Rulebook, rows_out: int) -> Tensor:
+    def describe(self) -> str:
+        """How errors name this layer: its name (``name=``, or the model's via :func:`name_modules`) and shape."""
+        key = f", indice_key={self.indice_key!r}" if self.indice_key else ""
+        what = f"{type(self).__name__}({self.in_channels} -> {self.out_channels}, kernel {self.kernel_size}{key})"
+        return f"{self.layer_name}: {what}" if self.layer_name else what
+
+    def _check_input(self, x: SparseConvTensor) -> None:
         if x.features.shape[1] != self.in_channels:
-            raise ValueError(f"{type(self).__name__}: {x.features.shape[1]} input channels, expected "
-                             f"{self.in_channels}")
-        out = rulebook_conv(x.features, self.kernel_matrices(), book, rows_out)
+            raise ValueError(f"{self.describe()}: {x.features.shape[1]} input channels, expected {self.in_channels}")
+        if x.features.dtype != self.weight.dtype:
+            raise ValueError(f"{self.describe()}: {x.features.dtype} features against {self.weight.dtype} weights "
+                             f"(convert one: model.to({x.features.dtype}) or features.to({self.weight.dtype}))")
+
+    def _run(self, x: SparseConvTensor, book: Rulebook, rows_out: int) -> Tensor:
+        """The convolution on ``book``, with this kernel's first ``book.volume`` slices (all of them unless spconv
+        1.x reuses a smaller stored map)."""
+        if book.volume > self.volume:
+            raise ValueError(f"{self.describe()}: the stored map of indice_key {self.indice_key!r} has "
+                             f"{book.volume} kernel offsets, more than this kernel's {self.volume} (spconv 1.x would "
+                             "read past the filters)")
+        matrices = self.kernel_matrices()
+        out = rulebook_conv(x.features, matrices if book.volume == self.volume else matrices[:book.volume], book,
+                            rows_out)
         return out + self.bias if self.bias is not None else out
+
+    def _matmul(self, x: SparseConvTensor) -> SparseConvTensor:
+        """A 1x1x1 stride-1 convolution, as both spconv versions compute it: a product on the features."""
+        out = torch.mm(x.features, self.kernel_matrices()[0])
+        return x.derived(out + self.bias if self.bias is not None else out)
+
+    def _kept(self, x: SparseConvTensor) -> Rulebook | None:
+        kept = x.indice_dict.get(self.indice_key) if self.indice_key else None
+        return kept if isinstance(kept, Rulebook) else None
+
+    def _store(self, x: SparseConvTensor, book: Rulebook) -> dict[str, Any]:
+        """The dictionary the output carries: spconv 1.x shares one and adds to it, spconv 2.x adds to a copy."""
+        if not self.indice_key:
+            return x.indice_dict
+        store = x.indice_dict if self.semantics == "spconv1" else dict(x.indice_dict)
+        store[self.indice_key] = book
+        return store
 
     def extra_repr(self) -> str:
         key = f", indice_key={self.indice_key!r}" if self.indice_key else ""
+        sem = f", semantics={self.semantics!r}" if self.semantics != "spconv2" else ""
         return (f"{self.in_channels}, {self.out_channels}, kernel_size={self.kernel_size}, stride={self.stride}, "
-                f"padding={self.padding}, dilation={self.dilation}, bias={self.bias is not None}{key}")
+                f"padding={self.padding}, dilation={self.dilation}, bias={self.bias is not None}{key}{sem}")
 
 
 class SubMConv3d(_SparseConvolution):
@@ -72,25 +154,58 @@ class SubMConv3d(_SparseConvolution):
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Sequence[int] = 3, stride: int = 1,
                  padding: int | Sequence[int] = 0, dilation: int | Sequence[int] = 1, groups: int = 1,
-                 bias: bool = True, indice_key: str | None = None, **_: object) -> None:
+                 bias: bool = True, indice_key: str | None = None, semantics: Semantics = "spconv2",
+                 **options: Any) -> None:
         if groups != 1:
             raise ValueError("SubMConv3d: groups other than 1 are not supported")
-        super().__init__(in_channels, out_channels, kernel_size, stride, padding, dilation, bias, indice_key)
+        super().__init__(in_channels, out_channels, kernel_size, stride, padding, dilation, bias, indice_key,
+                         semantics, options)
+        if semantics == "spconv1" and self.dilation != (1, 1, 1):
+            raise ValueError(f"{self.describe()}: spconv 1.x's submanifold padding ignores dilation "
+                             f"{self.dilation}; that convolution is not reproduced (use semantics='spconv2')")
 
     def rulebook(self, x: SparseConvTensor) -> Rulebook:
-        kept = x.indice_dict.get(self.indice_key) if self.indice_key else None
-        if isinstance(kept, Rulebook) and kept.in_indices is kept.out_indices and kept.in_indices is x.indices \
-                and kept.kernel == self.kernel_size and kept.dilation == self.dilation:
-            return kept
-        book = submanifold(x.indices, x.spatial_shape, self.kernel_size, self.dilation)
-        if self.indice_key:
-            x.indice_dict[self.indice_key] = book
-        return book
+        """The neighbour map this convolution runs on (stored under its key on the output; see :meth:`forward`)."""
+        return self._map(x)[0]
+
+    def _map(self, x: SparseConvTensor) -> tuple[Rulebook, dict[str, Any]]:
+        kept = self._kept(x)
+        if kept is None:
+            book = submanifold(x.indices, x.spatial_shape, self.kernel_size, self.dilation,
+                               x.sorted_keys if x.sorted_keys is not None else None)
+            return book, self._store(x, book)
+        if self.semantics == "spconv1":
+            if not kept.subm:
+                raise ValueError(f"{self.describe()}: indice_key {self.indice_key!r} holds a strided convolution's "
+                                 "map; spconv 1.x would run this submanifold convolution on it")
+        else:
+            self._check_reuse(x, kept)
+        if kept.in_indices.shape[0] != x.indices.shape[0]:
+            raise ValueError(f"{self.describe()}: subm with same indice_key must have same num of indices, expect "
+                             f"{kept.in_indices.shape[0]}, input {x.indices.shape[0]}")
+        return kept, x.indice_dict
+
+    def _check_reuse(self, x: SparseConvTensor, kept: Rulebook) -> None:
+        """spconv 2.x's checks of a reused key (``_check_subm_reuse_valid``), with its messages."""
+        if not kept.subm:
+            raise ValueError(f"{self.describe()}: indice_key {self.indice_key!r} holds a strided convolution's map "
+                             "(spconv 2.x: only support reuse subm indices)")
+        if kept.kernel != self.kernel_size:
+            raise ValueError(f"{self.describe()}: subm with same indice_key must have same kernel size, expect "
+                             f"{list(kept.kernel)}, this layer {list(self.kernel_size)}")
+        if kept.dilation != self.dilation:
+            raise ValueError(f"{self.describe()}: subm with same indice_key must have same dilation, expect "
+                             f"{list(kept.dilation)}, this layer {list(self.dilation)}")
+        if list(kept.in_shape) != list(x.spatial_shape):
+            raise ValueError(f"{self.describe()}: subm with same indice_key must have same spatial structure, expect "
+                             f"{list(kept.in_shape)}, input {list(x.spatial_shape)}")
 
     def forward(self, x: SparseConvTensor) -> SparseConvTensor:
-        book = self.rulebook(x)
-        out = self._run(x, book, x.features.shape[0])
-        return SparseConvTensor(out, x.indices, x.spatial_shape, x.batch_size, x.indice_dict)
+        self._check_input(x)
+        if self.volume == 1:
+            return self._matmul(x)
+        book, store = self._map(x)
+        return x.derived(self._run(x, book, x.features.shape[0]), indice_dict=store)
 
 
 class SparseConv3d(_SparseConvolution):
@@ -98,17 +213,36 @@ class SparseConv3d(_SparseConvolution):
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Sequence[int] = 3,
                  stride: int | Sequence[int] = 1, padding: int | Sequence[int] = 0, dilation: int | Sequence[int] = 1,
-                 groups: int = 1, bias: bool = True, indice_key: str | None = None, **_: object) -> None:
+                 groups: int = 1, bias: bool = True, indice_key: str | None = None,
+                 semantics: Semantics = "spconv2", **options: Any) -> None:
         if groups != 1:
             raise ValueError("SparseConv3d: groups other than 1 are not supported")
-        super().__init__(in_channels, out_channels, kernel_size, stride, padding, dilation, bias, indice_key)
+        super().__init__(in_channels, out_channels, kernel_size, stride, padding, dilation, bias, indice_key,
+                         semantics, options)
+
+    def _map(self, x: SparseConvTensor) -> tuple[Rulebook, dict[str, Any]]:
+        kept = self._kept(x)
+        if kept is not None:
+            if self.semantics == "spconv2" or kept.subm:
+                raise ValueError(f"{self.describe()}: indice_key {self.indice_key!r} already exists in this sparse "
+                                 "tensor (spconv 2.x reuses submanifold maps only: give this strided convolution a "
+                                 "key of its own)")
+            if kept.in_indices.shape[0] != x.indices.shape[0]:
+                raise ValueError(f"{self.describe()}: the stored map of indice_key {self.indice_key!r} reads "
+                                 f"{kept.in_indices.shape[0]} voxels, the input has {x.indices.shape[0]}")
+            return kept, x.indice_dict  # spconv 1.x: the stored map, whatever this kernel
+        book = strided(x.indices, x.spatial_shape, self.kernel_size, self.stride, self.padding, self.dilation)
+        return book, self._store(x, book)
 
     def forward(self, x: SparseConvTensor) -> SparseConvTensor:
-        book = strided(x.indices, x.spatial_shape, self.kernel_size, self.stride, self.padding, self.dilation)
-        if self.indice_key:
-            x.indice_dict[self.indice_key] = book
+        self._check_input(x)
+        if self.volume == 1 and self.stride == (1, 1, 1) and self.padding == (0, 0, 0):
+            return self._matmul(x)
+        book, store = self._map(x)
+        shape = (book.out_shape if self.semantics == "spconv2" else
+                 output_shape(x.spatial_shape, self.kernel_size, self.stride, self.padding, self.dilation))
         out = self._run(x, book, book.out_indices.shape[0])
-        return SparseConvTensor(out, book.out_indices, book.out_shape, x.batch_size, x.indice_dict)
+        return x.derived(out, book.out_indices, shape, store)
 
 
 class SparseInverseConv3d(_SparseConvolution):
@@ -116,23 +250,41 @@ class SparseInverseConv3d(_SparseConvolution):
     sites and grid (conv_transpose3d there)."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Sequence[int], indice_key: str,
-                 bias: bool = True, **_: object) -> None:
-        super().__init__(in_channels, out_channels, kernel_size, 1, 0, 1, bias, indice_key)
+                 bias: bool = True, semantics: Semantics = "spconv2", **options: Any) -> None:
+        super().__init__(in_channels, out_channels, kernel_size, 1, 0, 1, bias, indice_key, semantics, options)
 
     def forward(self, x: SparseConvTensor) -> SparseConvTensor:
-        book = x.indice_dict.get(self.indice_key) if self.indice_key else None
-        if not isinstance(book, Rulebook) or book.in_indices is book.out_indices:
+        self._check_input(x)
+        book = self._kept(x)
+        if book is None or book.subm:
             raise KeyError(f"SparseInverseConv3d(indice_key={self.indice_key!r}): no strided SparseConv3d with that "
                            f"key ran on this tensor's ancestors (keys: {', '.join(map(str, x.indice_dict)) or 'none'})")
-        if book.kernel != self.kernel_size:
-            raise ValueError(f"SparseInverseConv3d(indice_key={self.indice_key!r}): kernel {self.kernel_size}, but "
-                             f"the convolution it inverts had {book.kernel}")
+        if self.semantics == "spconv1":
+            if book.volume != self.volume:  # spconv 1.x: "inverse conv must have same kernel size as its couple conv"
+                raise ValueError(f"{self.describe()}: kernel of {self.volume} offsets, but the convolution it "
+                                 f"inverts had {book.volume}")
+        else:
+            if book.kernel != self.kernel_size:
+                raise ValueError(f"SparseInverseConv3d(indice_key={self.indice_key!r}): kernel {self.kernel_size}, "
+                                 f"but the convolution it inverts had {book.kernel}")
+            if list(x.spatial_shape) != list(book.out_shape):
+                raise ValueError(f"{self.describe()}: Inverse with same indice_key must have same spatial structure "
+                                 f"(spatial shape), expect {list(book.out_shape)}, input {list(x.spatial_shape)}")
         if x.features.shape[0] != book.out_indices.shape[0]:
             raise ValueError(f"SparseInverseConv3d(indice_key={self.indice_key!r}): {x.features.shape[0]} input "
                              f"voxels, but the convolution it inverts produced {book.out_indices.shape[0]}")
         back = book.inverse()
         out = self._run(x, back, back.out_indices.shape[0])
-        return SparseConvTensor(out, back.out_indices, back.out_shape, x.batch_size, x.indice_dict)
+        return x.derived(out, back.out_indices, back.out_shape)
 
 
-__all__ = ["SparseConv3d", "SparseInverseConv3d", "SubMConv3d"]
+def name_modules(model: nn.Module, prefix: str = "") -> nn.Module:
+    """Give every sparse convolution of ``model`` without a ``name`` its name in the model (``prefix`` first), so
+    that errors name the layer as ``model.named_modules()`` does; returns ``model``."""
+    for name, module in model.named_modules():
+        if isinstance(module, _SparseConvolution) and module.layer_name is None:
+            module.layer_name = prefix + name
+    return model
+
+
+__all__ = ["SEMANTICS", "Semantics", "SparseConv3d", "SparseInverseConv3d", "SubMConv3d", "name_modules"]

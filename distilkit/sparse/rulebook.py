@@ -38,10 +38,16 @@ class Rulebook:
     in_shape: Triple
     kernel: Triple
     dilation: Triple = (1, 1, 1)
+    subm: bool = False  # a submanifold map (outputs at the input's sites), else a strided one or its inverse
 
     @property
     def pairs(self) -> int:
         return int(self.in_idx.numel())
+
+    @property
+    def volume(self) -> int:
+        """The number of kernel offsets the map holds."""
+        return len(self.bounds) - 1
 
     def inverse(self) -> "Rulebook":
         """The map back: the output's rows feed the input's sites, kernel index by kernel index."""
@@ -81,15 +87,20 @@ def _assemble(ins: list[Tensor], outs: list[Tensor]) -> tuple[Tensor, Tensor, li
     return torch.cat(ins), torch.cat(outs), bounds
 
 
-def submanifold(indices: Tensor, shape: Sequence[int], kernel: Triple, dilation: Triple) -> Rulebook:
+def sort_keys(indices: Tensor, shape: Sequence[int]) -> tuple[Tensor, Tensor]:
+    """(sorted keys, the stable sort's permutation) of (N, 4) indices inside the grid ``shape``."""
+    return torch.sort(keys(indices, shape), stable=True)
+
+
+def submanifold(indices: Tensor, shape: Sequence[int], kernel: Triple, dilation: Triple,
+                sorted_keys: tuple[Tensor, Tensor] | None = None) -> Rulebook:
     """Submanifold convolution's map: outputs at the inputs' sites, each reading its neighbours at the kernel's
-    offsets about the centre (odd kernels)."""
+    offsets about the centre (odd kernels). ``sorted_keys``: :func:`sort_keys` of ``indices``, when known."""
     if any(k % 2 == 0 for k in kernel):
         raise ValueError(f"a submanifold convolution needs an odd kernel (centred on each site), got {kernel}")
     device = indices.device
     shape = tuple(int(s) for s in shape)
-    key = keys(indices, shape)
-    sorted_keys, order = torch.sort(key)
+    sorted_keys, order = sorted_keys if sorted_keys is not None else sort_keys(indices, shape)
     coords = indices.long()
     rows = torch.arange(coords.shape[0], device=device)
     ins, outs = [], []
@@ -107,7 +118,8 @@ def submanifold(indices: Tensor, shape: Sequence[int], kernel: Triple, dilation:
         ins.append(src[found])
         outs.append(rows[inside][found])
     in_idx, out_idx, bounds = _assemble(ins, outs)
-    return Rulebook(in_idx, out_idx, bounds, indices, shape, indices, shape, kernel, dilation)  # type: ignore[arg-type]
+    return Rulebook(in_idx, out_idx, bounds, indices, shape, indices, shape, kernel, dilation,  # type: ignore[arg-type]
+                    subm=True)
 
 
 def output_shape(shape: Sequence[int], kernel: Triple, stride: Triple, padding: Triple, dilation: Triple) -> Triple:
@@ -161,4 +173,4 @@ def _from_keys(k: Tensor, shape: Sequence[int]) -> Tensor:
     return out.int()
 
 
-__all__ = ["Rulebook", "keys", "output_shape", "strided", "submanifold", "triple"]
+__all__ = ["Rulebook", "keys", "output_shape", "sort_keys", "strided", "submanifold", "triple"]

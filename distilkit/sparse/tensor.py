@@ -4,6 +4,12 @@
 ``indice_dict`` keeps the neighbour maps (rulebooks) of the convolutions that ran on it by their ``indice_key``, so a
 later submanifold convolution with the same key, or the inverse of a strided one, reuses them instead of hashing
 again (spconv's contract: a tensor and the ones derived from it by ``replace_feature`` share the dictionary).
+
+A tensor built from outside (not derived by a convolution or ``replace_feature``) has its indices checked, O(N) and
+one sort: every batch index in [0, batch_size), every coordinate in [0, spatial_shape), no voxel twice. spconv
+accepts all three silently, and each changes the result (a duplicate's copies get different outputs; a coordinate
+past the grid lands on the next batch's voxels). The sort is kept for the first submanifold map built on the
+tensor, which would sort the same keys.
 """
 
 from __future__ import annotations
@@ -13,12 +19,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from distilkit.sparse.rulebook import sort_keys
+
 
 class SparseConvTensor:
     """A batch of sparse 3-D grids (spconv 2.x's API)."""
 
     def __init__(self, features: Tensor, indices: Tensor, spatial_shape: Any, batch_size: int,
-                 indice_dict: dict[str, Any] | None = None) -> None:
+                 indice_dict: dict[str, Any] | None = None, *, _checked: bool = False) -> None:
         shape = tuple(int(s) for s in spatial_shape)
         if len(shape) != 3:
             raise ValueError(f"SparseConvTensor: spatial_shape must have 3 sizes (X, Y, Z), got {shape}")
@@ -34,12 +42,26 @@ class SparseConvTensor:
         self.spatial_shape = list(shape)
         self.batch_size = int(batch_size)
         self.indice_dict: dict[str, Any] = {} if indice_dict is None else indice_dict
+        # (sorted keys, permutation) of the indices, when the check below sorted them
+        self.sorted_keys: tuple[Tensor, Tensor] | None = None if _checked else check_indices(indices, shape,
+                                                                                              self.batch_size)
+
+    def derived(self, features: Tensor, indices: Tensor | None = None, spatial_shape: Any = None,
+                indice_dict: dict[str, Any] | None = None) -> "SparseConvTensor":
+        """A tensor computed from this one (a layer's output): its indices are not checked again; the same indices
+        keep the sorted keys."""
+        same = indices is None or indices is self.indices
+        out = SparseConvTensor(features, self.indices if indices is None else indices,
+                               self.spatial_shape if spatial_shape is None else spatial_shape, self.batch_size,
+                               self.indice_dict if indice_dict is None else indice_dict, _checked=True)
+        out.sorted_keys = self.sorted_keys if same else None
+        return out
 
     def replace_feature(self, features: Tensor) -> "SparseConvTensor":
         """The same voxels (and neighbour maps) with other features, e.g. after a BatchNorm or an activation."""
         if features.shape[0] != self.features.shape[0]:
             raise ValueError(f"replace_feature: {features.shape[0]} rows for {self.features.shape[0]} voxels")
-        return SparseConvTensor(features, self.indices, self.spatial_shape, self.batch_size, self.indice_dict)
+        return self.derived(features)
 
     @property
     def shape(self) -> list[int]:
@@ -63,11 +85,37 @@ class SparseConvTensor:
         channels_last = dense.permute(0, 2, 3, 4, 1)
         active = channels_last.abs().sum(dim=-1) > 0
         indices = active.nonzero().int()
-        return cls(channels_last[active], indices, dense.shape[2:], dense.shape[0])
+        return cls(channels_last[active], indices, dense.shape[2:], dense.shape[0], _checked=True)
 
     def __repr__(self) -> str:
         return (f"SparseConvTensor({self.features.shape[0]} voxels x {self.features.shape[1]} channels, "
                 f"spatial_shape={self.spatial_shape}, batch_size={self.batch_size})")
 
 
-__all__ = ["SparseConvTensor"]
+def check_indices(indices: Tensor, shape: tuple[int, ...], batch_size: int) -> tuple[Tensor, Tensor]:
+    """Raise a ``ValueError`` naming the first row of (N, 4) ``indices`` outside [0, batch_size) x [0, shape), or
+    the first that repeats an earlier row; return the keys' sort (:func:`distilkit.sparse.rulebook.sort_keys`)."""
+    if batch_size < 0:
+        raise ValueError(f"SparseConvTensor: batch_size must be >= 0, got {batch_size}")
+    c = indices.long()
+    if c.shape[0]:
+        upper = torch.tensor([batch_size, *shape], device=c.device)
+        bad = ((c < 0) | (c >= upper)).any(dim=1)
+        if bool(bad.any()):
+            row = int(bad.nonzero()[0, 0])
+            b, x, y, z = c[row].tolist()
+            what = (f"batch index {b} outside [0, {batch_size})" if not 0 <= b < batch_size else
+                    f"coordinate ({x}, {y}, {z}) outside the grid [0, {shape[0]}) x [0, {shape[1]}) x [0, {shape[2]})")
+            raise ValueError(f"SparseConvTensor: indices row {row} = ({b}, {x}, {y}, {z}): {what}")
+    sorted_keys, order = sort_keys(c, shape)
+    same = sorted_keys[1:] == sorted_keys[:-1]
+    if bool(same.any()):
+        later, earlier = order[1:][same], order[:-1][same]
+        first = int(torch.argmin(later))
+        row, before = int(later[first]), int(earlier[first])
+        raise ValueError(f"SparseConvTensor: indices row {row} = {tuple(c[row].tolist())} repeats row {before} "
+                         "(each voxel must appear once: merge the duplicates' features first)")
+    return sorted_keys, order
+
+
+__all__ = ["SparseConvTensor", "check_indices"]

@@ -34,6 +34,13 @@ class SCPNetParams(BaseModel):
                                         "the grid so the receptive field stays ~1.6 m)")
     conv_kernel: int | None = Field(None, ge=1, le=15, description="ConvBlock kernel of the middle branch, odd, 1-15 "
                                                                    "(paper: 3; default: scaled to the grid)")
+    semantics: Literal["spconv1", "spconv2"] = Field(
+        "spconv1", description="size paper: spconv1 = SCPNet's release (spconv 1.2.1: a block's convolutions share "
+                               "one indice_key and run on the first one's neighbourhood; its checkpoints), spconv2 = "
+                               "Cylinder3D's spconv 2.x ports (a key per convolution, every kernel as written)")
+    voxelization: Literal["release", "grid"] = Field(
+        "release", description="size paper: release = SCPNet's dataloader (voxels of range / (grid - 1), 0.2008 m, "
+                               "x shifted by -25.6 m in the point features), grid = the data's 0.2 m voxels and raw x")
 
     @field_validator("kernels", "conv_kernel")
     @classmethod
@@ -55,6 +62,16 @@ class SCPNetAdapter(MultiFrameLidarAdapter):
                "DSKD is not in the release", "`taps: {student: TAP, teacher: TAP}`"),
         Choice("label rectification's scan", "the current scan's instance boxes (`rectify: true`)",
                "Algorithm 1, per frame", "rectifies with the 5 fused scans (multiscan = 4)"),
+        Choice("sparse convolutions' shared keys (size: paper)", "spconv 1.x's reuse, as SCPNet's checkpoints were "
+               "trained: a block's four convolutions on its first one's 1x3x3 or 3x1x3 offsets, an UpBlock's conv3 "
+               "with its kernel's slice [:, 0], the ReconBlock's gates on 3x1x1 offsets",
+               "§3.1 / Cylinder3D: asymmetric 1x3x3 / 3x1x3 / 3x3x3 kernels as written",
+               "Codes-for-SCPNet (spconv 1.2.1): one indice_key per block; Cylinder3D's spconv 2.x ports: a key per "
+               "convolution (bef1..bef4, up1..up3), every kernel as written", "`semantics: spconv2`"),
+        Choice("voxelisation (size: paper)", "the release's: voxels of range / (grid - 1) (0.2008, 0.2008, 0.2065 m), "
+               "x shifted by -25.6 m in the point features", "0.2 m voxels (SemanticKITTI's grid)",
+               "dataset_semantickitti.py: intervals = crop_range / (grid_size - 1), xyz[:, 0] -= 25.6",
+               "`voxelization: grid`"),
     )
 
     Params = SCPNetParams
@@ -62,17 +79,20 @@ class SCPNetAdapter(MultiFrameLidarAdapter):
     PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "ce", "weight": 1.0}, {"name": "lovasz", "weight": 1.0}]
 
-    VERSION = 2  # 2: grid-scaled kernels, empty logits outside the active set, channels-last volumes
+    VERSION = 3  # 3: size paper in spconv 1.x semantics, the release's voxels; 2: grid-scaled kernels, empty
+    # logits outside the active set, channels-last volumes
     NETWORKS = {"tiny": "CPU stand-in: the three-branch completion sub-network and a dense 2-scale U-Net",
                 "paper": "the paper's network: the release's completion sub-network + Cylinder3D's sparse asymmetric "
-                         "U-Net (loads the release's spconv 1.x state dict)"}
+                         "U-Net in spconv 1.x's key semantics (loads the release's spconv 1.x state dict; "
+                         "semantics: spconv2 for Cylinder3D's spconv 2.x ports)"}
 
     def __init__(self, params: SCPNetParams, info: DataInfo) -> None:
         super().__init__(params, info)
         if params.size == "paper":
             from distilkit_adapters.scpnet.cylinder import SCPNetPaper
 
-            self.net: Any = SCPNetPaper(info.num_classes)
+            self.net: Any = SCPNetPaper(info.num_classes, semantics=params.semantics,
+                                        voxelization=params.voxelization)
             return
         kernels, conv = kernels_for_voxel(info.grid.voxel_size)
         self.net = SCPNet(params.channels, params.point_mlp, params.seg_channels, info.num_classes,
@@ -88,6 +108,13 @@ class SCPNetAdapter(MultiFrameLidarAdapter):
             out.append(("size", f"the paper's U-Net pools x and y four times and z twice: the grid {grid.shape} must "
                                 "be divisible by 16 x 16 x 4 (SemanticKITTI's 256 x 256 x 32 at scale 1, 2 or 4)"))
         return out
+
+    @classmethod
+    def network(cls, params: BaseModel) -> str:
+        if getattr(params, "size") == "paper" and getattr(params, "semantics") == "spconv2":
+            return ("the paper's network with Cylinder3D's spconv 2.x ports' keys (a key per convolution, every "
+                    "kernel as written: their checkpoints, not SCPNet's)")
+        return super().network(params)
 
     @classmethod
     def describe(cls, params: BaseModel) -> str:
