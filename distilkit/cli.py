@@ -196,6 +196,9 @@ def _cmd_list(args: argparse.Namespace) -> int:
     for kind, reg in ALL_REGISTRIES.items():
         if args.kind and args.kind != kind.split()[0].rstrip("s") and args.kind != kind:
             continue
+        if kind == "adapters" and console.width < 120:  # six columns do not read at 80: one block per adapter
+            _print_adapter_blocks(console, reg)
+            continue
         table = Table(title=kind, title_justify="left")
         table.add_column("name", style="bold")
         table.add_column("description")
@@ -213,6 +216,25 @@ def _cmd_list(args: argparse.Namespace) -> int:
     for msg in plugin_errors:
         console.print(f"[yellow]warning:[/] {msg}")
     return 0
+
+
+def _print_adapter_blocks(console: Any, reg: Any) -> None:
+    """``distilkit list adapters`` on a narrow console: each adapter's fields as a two-column table."""
+    from rich.table import Table
+
+    console.print("adapters")
+    for e in reg:
+        also = reg.aliases_of(e.name)
+        block = Table(title=e.name + (f" (also {', '.join(also)})" if also else ""), title_justify="left",
+                      title_style="bold", show_header=False, expand=True)
+        block.add_column("field", style="dim", no_wrap=True)
+        block.add_column("value", ratio=1)
+        for field, value in (("description", e.description), ("paper", e.paper),
+                             (_LIST_COLUMN["adapters"], _list_cell("adapters", e)),
+                             ("parameters", _params_cell(e.obj.Params).replace("\n", ", ")),
+                             ("network", _networks_cell(e.obj))):
+            block.add_row(field, value)
+        console.print(block)
 
 
 _LIST_COLUMN = {"adapters": "taps (name: kind)", "objectives": "reads (tap kinds)", "task losses": "reads (tap kinds)",

@@ -4,15 +4,18 @@ progress bar."""
 from __future__ import annotations
 
 import contextlib
+import os
 import shutil
 from typing import Any, Callable, Iterator
 
 
 def make_console(quiet: bool = False, **kwargs: Any) -> Any:
+    """A console as wide as the terminal; off a terminal (a pipe, a CI log) 160 columns or more, unless ``COLUMNS``
+    says how wide (rich reads it)."""
     from rich.console import Console
 
     console = Console(quiet=quiet, **kwargs)
-    if not console.is_terminal:
+    if not console.is_terminal and not os.environ.get("COLUMNS", "").isdigit():
         console = Console(quiet=quiet, width=max(shutil.get_terminal_size((160, 24)).columns, 160), **kwargs)
     return console
 

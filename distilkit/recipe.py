@@ -181,7 +181,9 @@ class TrainSpec(_Strict):
                             "(Gram-based objectives keep their float64 accumulation); fp16 uses a gradient scaler")
     metric: str = Field("miou", description="validation score that selects best.pt: a score of the metric for the "
                                             "adapter's prediction kind ('miou', 'iou', ...), or 'METRIC.SCORE' "
-                                            "('ssc.miou'); see `distilkit list metrics`")
+                                            "('ssc.miou'); see `distilkit list metrics`. Left out: miou, or where "
+                                            "no metric of the prediction kind has one, its first score (cd for "
+                                            "point clouds)")
     metrics: list[str] = Field(default_factory=list, description="further registered metrics scored at every "
                                                                  "evaluation beside `metric`'s (reported as "
                                                                  "METRIC.SCORE)")

@@ -8,6 +8,10 @@ import pytest
 if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest -n N: one thread per worker (before torch loads), so the
     os.environ["OMP_NUM_THREADS"] = "1"  # workers share the cores instead of fighting over them
     os.environ["MKL_NUM_THREADS"] = "1"
+    # xdist's workers inherit COLUMNS=80 / LINES=24 from execnet; distilkit honours COLUMNS (a user's width), so the
+    # workers print as a plain pipe does, like the tests run with -n 0
+    os.environ.pop("COLUMNS", None)
+    os.environ.pop("LINES", None)
 
 import distilkit  # noqa: F401  first: it sets MKL's reproducibility before any test multiplies a matrix
 

@@ -262,6 +262,22 @@ def test_a_lidiff_teacher_trains_and_is_scored_by_the_completion_metric(tmp_path
     assert "| CD best |" in (tmp_path / "runs" / "lidiff" / "report.md").read_text()
 
 
+def test_a_lidiff_stage_without_a_metric_is_selected_by_chamfer_and_a_named_miou_is_refused() -> None:
+    """Left out, ``train.metric`` is the prediction kind's own (cd for point clouds; miou for voxels, as before);
+    named, it must exist (issue 33: the default miou failed validate for LiDiff)."""
+    from distilkit.engine.resolve import resolve
+    from distilkit.errors import RecipeError
+
+    recipe = {"schema_version": 1, "name": "lidiff", "seed": 0,
+              "data": {"dataset": "synthetic-scenes", "params": DATA},
+              "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL}, "train": {"steps": 2}}}}
+    metric = resolve(recipe_from_dict(recipe)).stages["teacher"].metric
+    assert (metric.name, metric.key) == ("completion", "cd")
+    recipe["stages"]["teacher"]["train"]["metric"] = "miou"
+    with pytest.raises(RecipeError, match="stages.teacher.train.metric"):
+        resolve(recipe_from_dict(recipe))
+
+
 def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -> None:
     """Teacher pre-training, then a 1-step student initialised from it: VSD (LoRA aux, own SGD) + structural."""
     from distilkit.engine.checkpoints import load_checkpoint

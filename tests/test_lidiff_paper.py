@@ -132,6 +132,37 @@ def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_na
     text = str(err.value)
     assert "1 missing: net.model.last.0.weight" in text and "1 unexpected: net.model.extra.weight" in text
     assert "net.model.stem.0.weight (32, 3, 3, 3, 4) (model: (32, 3, 3, 3, 3))" in text
+    # a key is named as the file spells it too (a kernel, not a weight)
+    del bad["model.up1.1.0.downsample.0.kernel"]
+    torch.save({"state_dict": bad}, tmp_path / "bad.ckpt")
+    with pytest.raises(DataError, match=r"net\.model\.up1\.1\.0\.downsample\.0\.weight \(in the file: "
+                                        r"model\.up1\.1\.0\.downsample\.0\.kernel\)"):
+        load_weights(lidiff(duplicate=4), type(model).read_weights(str(tmp_path / "bad.ckpt")), True, "bad.ckpt")
+
+
+@pytest.mark.parametrize("shape,why", [((27 * 4 * 32,), r"\(3456,\)"), ((9, 3, 32), "9 offsets is not a cube")])
+def test_a_malformed_minkowski_kernel_is_named_and_a_nan_refused(tmp_path, shape, why) -> None:
+    from distilkit.engine.checkpoints import load_weights
+    from distilkit.engine.checks import fit_problem
+
+    model = lidiff(duplicate=4)
+    state = release_layout(model.state_dict(), {"partial_enc.": 0, "model.": 0})
+    state["model.stem.0.kernel"] = torch.zeros(shape)
+    torch.save({"state_dict": state}, tmp_path / "bad.ckpt")
+    with pytest.raises(DataError, match=r"model\.stem\.0\.kernel: .*" + why):
+        type(model).read_weights(str(tmp_path / "bad.ckpt"))
+
+    class Spec:  # the resolved model spec validate passes
+        cls = type(model)
+
+    assert "model.stem.0.kernel" in fit_problem(tmp_path / "bad.ckpt", Spec, None, True)
+    state = release_layout(model.state_dict(), {"partial_enc.": 0, "model.": 0})
+    state["model.stage2.0.net.0.kernel"][3, 1, 2] = float("nan")
+    state["model.stage2.0.net.0.kernel"][0, 0, 0] = float("inf")
+    torch.save({"state_dict": state}, tmp_path / "nan.ckpt")
+    with pytest.raises(DataError, match=r"net\.model\.stage2\.0\.net\.0\.weight \(in the file: "
+                                        r"model\.stage2\.0\.net\.0\.kernel\) holds 2 NaN or infinite values"):
+        load_weights(lidiff(duplicate=4), type(model).read_weights(str(tmp_path / "nan.ckpt")), True, "nan.ckpt")
 
 
 def test_lidiffs_refine_net_ckpt_loads_with_the_same_forward(tmp_path) -> None:

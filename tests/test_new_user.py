@@ -75,6 +75,14 @@ def test_validate_names_a_missing_an_unreadable_and_a_misfit_checkpoint(tmp_path
     torch.save(other, tmp_path / "partial.pt")
     recipe["stages"]["from_file"]["init"]["checkpoint"] = str(tmp_path / "partial.pt")
     assert main(["validate", str(write(tmp_path, recipe)), "--no-memory"]) == 0
+    # NaN or infinite weights are refused, the key named
+    poisoned = dict(good)
+    poisoned[wide] = poisoned[wide].clone()
+    poisoned[wide][0, 0] = float("nan")
+    torch.save(poisoned, tmp_path / "nan.pt")
+    recipe["stages"]["from_file"]["init"] = {"checkpoint": str(tmp_path / "nan.pt")}
+    assert main(["validate", str(write(tmp_path, recipe)), "--no-memory"]) == 2
+    assert f"nan.pt: {wide} holds 1 NaN or infinite values" in capsys.readouterr().err
 
 
 def test_names_that_cannot_be_folder_names_are_refused(tmp_path, capsys) -> None:
@@ -169,6 +177,14 @@ def test_adapter_parameters_are_documented_where_a_user_looks(tmp_path, capsys) 
     assert "`proposal` only from an auxiliary model" in reference
     assert main(["list", "adapters"]) == 0
     assert "seg_channels=" in capsys.readouterr().out
+    with pytest.MonkeyPatch.context() as mp:  # an 80-column terminal: one block per adapter, no line past 80
+        mp.setenv("COLUMNS", "80")
+        assert main(["list", "adapters"]) == 0
+    narrow = capsys.readouterr().out
+    assert max(len(line) for line in narrow.splitlines()) <= 80
+    from distilkit.registry import ADAPTERS
+
+    assert all(f"\n{e.name}" in narrow for e in ADAPTERS) and narrow.count("│ network ") == len(list(ADAPTERS))
     assert main(["schema"]) == 0
     schema = json.loads(capsys.readouterr().out)
     rules = schema["$defs"]["ModelSpec"]["allOf"]

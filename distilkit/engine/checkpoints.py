@@ -68,6 +68,24 @@ def read_state_dict(path: str | Path) -> dict[str, Any]:
     return obj
 
 
+class ImportedWeights(dict):
+    """A released file's weights under the model's names (an adapter's ``read_weights`` converted them): errors name
+    a key as the model calls it and as the file spells it. ``spelled``: the file's key of each key it has;
+    ``file_name(key, shape)``: how the file would spell a key of the model's (of that shape) that it lacks."""
+
+    def __init__(self, weights: dict[str, Any], spelled: dict[str, str],
+                 file_name: Callable[[str, tuple[int, ...]], str]) -> None:
+        super().__init__(weights)
+        self.spelled, self.file_name = spelled, file_name
+
+
+def spelling(weights: dict[str, Any]) -> Callable[[str, tuple[int, ...]], str] | None:
+    """How the file behind ``weights`` spells a key of the model's (None: as the model does)."""
+    if not isinstance(weights, ImportedWeights):
+        return None
+    return lambda key, shape: weights.spelled.get(key) or weights.file_name(key, shape)
+
+
 class PartialWeights(dict):
     """The weights of one part of a model, by design (a pretrained image backbone): every weight of the model under
     ``scope`` must be there (under ``strict``), the rest of the model keeps its initial weights. ``ignored``: what
@@ -88,15 +106,24 @@ def whole_problem(weights: dict[str, Any]) -> str | None:
 
 
 def mismatch(own: dict[str, tuple[int, ...]], given: dict[str, tuple[int, ...]], strict: bool = True,
-             scope: str = "") -> str | None:
+             scope: str = "", spell: Callable[[str, tuple[int, ...]], str] | None = None) -> str | None:
     """Every key of ``given`` (a file's shapes) that does not fit ``own`` (a model's), named: missing, unexpected and
     of another shape (with both shapes); None where they fit (not ``strict``: only keys of another shape count,
     missing and unexpected ones being left out by design). ``scope``: only the model's keys under it are expected
-    (:class:`PartialWeights`)."""
+    (:class:`PartialWeights`). ``spell`` (:func:`spelling`): a key is also named as the file spells it."""
     scope = getattr(given, "scope", scope)
-    misfit = [f"{k} {tuple(given[k])} (model: {tuple(own[k])})" for k in given if k in own and given[k] != own[k]]
-    missing = [k for k in own if k.startswith(scope) and k not in given] if strict else []
-    unexpected = [k for k in given if k not in own] if strict else []
+
+    def file(k: str, shape: tuple[int, ...]) -> str:
+        spelled = spell(k, shape) if spell else k
+        return "" if spelled == k else f" (in the file: {spelled})"
+
+    def name(k: str, shape: tuple[int, ...]) -> str:
+        return k + file(k, shape)
+
+    misfit = [f"{k} {tuple(given[k])} (model: {tuple(own[k])}){file(k, given[k])}" for k in given
+              if k in own and given[k] != own[k]]
+    missing = [name(k, own[k]) for k in own if k.startswith(scope) and k not in given] if strict else []
+    unexpected = [name(k, given[k]) for k in given if k not in own] if strict else []
     parts = [f"{len(keys)} {what}: {', '.join(keys)}" for keys, what in
              ((missing, "missing"), (unexpected, "unexpected"), (misfit, "of another shape")) if keys]
     return "; ".join(parts) or None
@@ -110,16 +137,35 @@ def load_weights(model: torch.nn.Module, weights: dict[str, Any], strict: bool, 
     own = model.state_dict()
     scope = getattr(weights, "scope", "")
     problem = mismatch({k: tuple(v.shape) for k, v in own.items()}, {k: tuple(v.shape) for k, v in weights.items()},
-                       strict, scope)
+                       strict, scope, spelling(weights))
     if strict and problem:
         raise DataError(f"{source}: weights do not fit {type(model).__name__}: {problem} (set strict: false to load "
                         "the ones that fit)")
     misfit = [k for k, v in weights.items() if k in own and tuple(own[k].shape) != tuple(v.shape)]
     missing = [k for k in own if k.startswith(scope) and k not in weights]
     fit = {k: v for k, v in weights.items() if k in own and k not in misfit}
+    bad = not_finite(weights, fit)
+    if bad:
+        raise DataError(f"{source}: {bad}; refusing to load it")
     model.load_state_dict(fit, strict=False)
     return sorted(missing + misfit) + [f"ignored: {name}" for name in getattr(weights, "ignored", ())]
 
+
+def not_finite(weights: dict[str, Any], only: Any = None) -> str | None:
+    """The first floating-point tensor of ``weights`` (of the keys in ``only``, if given) holding NaN or infinite
+    values, named (as the file spells it too) with how many; None where every value is finite."""
+    spell = spelling(weights)
+    for key, value in weights.items():
+        if only is not None and key not in only:
+            continue
+        if isinstance(value, torch.Tensor) and value.is_floating_point():
+            finite = torch.isfinite(value)
+            if not bool(finite.all()):
+                spelled = spell(key, tuple(value.shape)) if spell else key
+                named = key if spelled == key else f"{key} (in the file: {spelled})"
+                return (f"{named} holds {int((~finite).sum()):,} NaN or infinite values of "
+                        f"{value.numel():,}")
+    return None
 
 
 class Checkpoints:
@@ -163,5 +209,5 @@ class Checkpoints:
         return f"the last checkpoint ({self.folder / 'last.pt'}, step {self.saved_step}) is kept"
 
 
-__all__ = ["Checkpoints", "PartialWeights", "load_checkpoint", "load_weights", "mismatch", "read_state_dict",
-           "whole_problem"]
+__all__ = ["Checkpoints", "ImportedWeights", "PartialWeights", "load_checkpoint", "load_weights", "mismatch",
+           "not_finite", "read_state_dict", "spelling", "whole_problem"]

@@ -62,19 +62,22 @@ def model_shapes(model: Any, info: Any) -> dict[str, tuple[int, ...]]:
 def fit_problem(path: Path, model: Any, info: Any, strict: bool, whole: bool = False) -> str | None:
     """None where the weights file at ``path`` loads (read by the adapter's ``read_weights``) and fits ``model``;
     else what is wrong with it. ``whole``: the file must hold the whole model (a teacher's), not a part of it."""
-    from distilkit.engine.checkpoints import mismatch, whole_problem
+    from distilkit.engine.checkpoints import mismatch, not_finite, spelling, whole_problem
 
     if not path.is_file():
         return f"{path}: no such file"
     try:
         weights = model.cls.read_weights(str(path))
     except DataError as exc:
-        return str(exc)
+        return str(exc) if str(path) in str(exc) else f"{path}: {exc}"
     if whole and whole_problem(weights):
         return f"{path}: {whole_problem(weights)}"
     problem = mismatch(model_shapes(model, info), {k: tuple(v.shape) for k, v in weights.items()}, strict,
-                       getattr(weights, "scope", ""))
-    return f"{path}: weights do not fit {model.adapter!r}: {problem}" if problem else None
+                       getattr(weights, "scope", ""), spelling(weights))
+    if problem:
+        return f"{path}: weights do not fit {model.adapter!r}: {problem}"
+    bad = not_finite(weights)
+    return f"{path}: {bad}" if bad else None
 
 
 __all__ = ["data_problems", "fit_problem", "model_shapes", "weights_problems"]

@@ -272,9 +272,11 @@ def param_groups(given: list[Any] | None, task: list[ResolvedTerm], distill: lis
 
 
 def resolve_metric(wanted: str, model: ResolvedModel, info: Any, path: str,
-                   problems: list[tuple[str, str]]) -> ResolvedMetric | None:
+                   problems: list[tuple[str, str]], chosen: bool = True) -> ResolvedMetric | None:
     """``train.metric`` ("KEY" or "METRIC.KEY") among the metrics registered for the kind of the adapter's
-    prediction tap whose targets the data provides; the first registered that reports KEY."""
+    prediction tap whose targets the data provides; the first registered that reports KEY. Not ``chosen`` (the
+    recipe left the default): where no such metric reports it, the score that the first metric of the adapter's
+    predictions selects by (its ``SELECTS``: LiDiff's point clouds, ``cd``)."""
     tap = model.cls.PREDICTION_TAP
     kind = model.cls.TAPS.get(tap)
     if kind is None:
@@ -287,6 +289,9 @@ def resolve_metric(wanted: str, model: ResolvedModel, info: Any, path: str,
     for entry in usable:
         if (not name or entry.name == name) and key in entry.obj.KEYS:
             return ResolvedMetric(entry.name, entry.obj, key)
+    own = [e for e in usable if e.obj.SELECTS]
+    if not chosen and own:
+        return ResolvedMetric(own[0].name, own[0].obj, own[0].obj.SELECTS)
     offered = ", ".join(f"{e.name}.{k}" for e in usable for k in e.obj.KEYS) or "none"
     problems.append((f"{path}.train.metric", f"no registered metric scores {kind} predictions (tap {tap!r}) with "
                                              f"{wanted!r} on this data (available: {offered})"))
@@ -443,7 +448,9 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
                                                       f"other params than this stage's {student.adapter!r}: its "
                                                       "weights may not fit (set `strict: false` to load the ones "
                                                       "that fit by name and shape)"))
-        metric = resolve_metric(spec.train.metric, student, info, path, problems) if student is not None else None
+        chosen = "metric" in spec.train.model_fields_set  # unset: miou, or the prediction kind's own first score
+        metric = resolve_metric(spec.train.metric, student, info, path, problems, chosen) if student is not None \
+            else None
         extras = extra_metrics(spec.train.metrics, student, info, path, problems) if student is not None else []
         hooks = resolve_hooks(spec.train.hooks, path, problems)
         if info is not None:

@@ -51,8 +51,11 @@ def _per_scene(values: Tensor) -> Tensor:
 
 
 def _weight(weight: float | Tensor, like: Tensor) -> Tensor:
-    w = weight.detach() if isinstance(weight, Tensor) else torch.tensor(float(weight))
-    return w.to(device=like.device, dtype=like.dtype).expand_as(like)
+    """``weight`` in ``like``'s dtype and device (a number is made there: made in float32 and cast, a float64
+    gradient would carry float32's rounding of it), broadcast to ``like``."""
+    if isinstance(weight, Tensor):
+        return weight.detach().to(device=like.device, dtype=like.dtype).expand_as(like)
+    return torch.full_like(like, float(weight))
 
 
 def implicit_reward(eps: Tensor, eps_teacher: Tensor, eps_aux: Tensor, weight: float | Tensor = 1.0) -> Tensor:

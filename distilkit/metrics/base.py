@@ -22,6 +22,7 @@ class Metric(ABC):
     TARGETS: ClassVar[frozenset[str]] = frozenset()
     KEYS: ClassVar[tuple[str, ...]] = ()
     LOWER_IS_BETTER: ClassVar[frozenset[str]] = frozenset()
+    SELECTS: ClassVar[str] = ""  # the score that picks best.pt when a recipe names none ("": never by default)
     # how reports show the scores: a title, (key, header, scale) columns (default: every key as it is),
     # and a per-class list with the train id of its first entry
     TITLE: ClassVar[str] = ""

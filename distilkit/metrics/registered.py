@@ -50,6 +50,7 @@ class SSCScore(Metric):
     flagged ``invalid`` left out, one confusion matrix over the split."""
 
     SCORES = "voxel_logits"
+    SELECTS = "miou"
     TARGETS = frozenset({"voxel_label", "invalid"})
     RANGES = (12.8, 25.6)  # VoxFormer's inner boxes; the whole grid (51.2 m on SemanticKITTI) is miou / iou
     KEYS = ("miou", "iou", "precision", "recall", *(f"{s}_{range_key(r)}" for r in RANGES for s in ("miou", "iou")))
@@ -112,6 +113,7 @@ class OccupancyScore(Metric):
     numbers)."""
 
     SCORES = "occupancy_logits"
+    SELECTS = "iou"
     TARGETS = frozenset({"voxel_label", "invalid"})
     KEYS = ("iou", "precision", "recall")
     TITLE = "occupancy (query proposals) in %"
@@ -145,6 +147,7 @@ class SceneCompletionScore(Metric):
     completion applies it before any refinement.)"""
 
     SCORES = "points"
+    SELECTS = "cd"
     TARGETS = frozenset({"scene_eval", "scene_eval_lengths"})
     KEYS = ("cd", "jsd", "iou_50cm", "iou_20cm", "iou_10cm", "precision", "recall", "fscore", "jsd_3d",
             "iou_50cm_rounded", "iou_20cm_rounded", "iou_10cm_rounded")

@@ -12,8 +12,10 @@ prefixes ``net.``; ``load_weights`` names every key that does not fit.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any
 
+from distilkit.engine.checkpoints import ImportedWeights
 from distilkit.errors import DataError
 from distilkit.sparse.convert import spconv1_to_spconv2
 
@@ -31,20 +33,29 @@ def sparse_layout(key: str, shape: tuple[int, ...]) -> str:
     return "1.x" if one else "2.x"
 
 
+def _file_name(lead: str, key: str, shape: tuple[int, ...]) -> str:
+    """How the release spells a model key it lacks: no ``net.``, its DataParallel prefix if it had one."""
+    return lead + (key[len("net."):] if key.startswith("net.") else key)
+
+
 def from_release(weights: dict[str, Any]) -> dict[str, Any]:
     """``weights`` as they are when they are distilkit's, else the release's converted (see the module)."""
+    prefixed = any(k.startswith("module.") for k in weights)
     stripped = {k[len("module."):] if k.startswith("module.") else k: v for k, v in weights.items()}
     if not any(k.startswith(PREFIXES) for k in stripped):
         return weights
     out: dict[str, Any] = {}
+    spelled: dict[str, str] = {}
     for key, value in stripped.items():
         module = key.split(".")[1] if key.startswith("cylinder_3d_spconv_seg.") else ""
         if (key.startswith("cylinder_3d_spconv_seg.") and key.endswith(".weight") and value.dim() == 5
                 and not module.startswith(DENSE)):
             if sparse_layout(key, tuple(value.shape)) == "1.x":
                 value = spconv1_to_spconv2(value)
-        out[("net." + key) if key.startswith(PREFIXES) else key] = value
-    return out
+        name = ("net." + key) if key.startswith(PREFIXES) else key
+        out[name] = value
+        spelled[name] = ("module." if prefixed else "") + key
+    return ImportedWeights(out, spelled, partial(_file_name, "module." if prefixed else ""))
 
 
 __all__ = ["from_release", "sparse_layout"]
