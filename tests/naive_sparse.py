@@ -76,3 +76,42 @@ class Spconv1:
         for i, n, o in pairs:
             out[n] = out[n] + feats[o] @ flat[i]
         return out, in_coords
+
+
+class SparseConvNet:
+    """SparseConvNet's rules (``Metadata/SubmanifoldConvolutionRules.h``, ``ConvolutionRules.h``,
+    ``RectangularRegions.h``) by dictionary lookups: weights (filter volume, 1, in, out), the filter index in C order
+    (last axis fastest) over the input region of an output — p - 1 .. p + 1 for a 3^3 submanifold convolution,
+    2 o .. 2 o + 1 for the size-2 stride-2 convolution — each slice applied as ``features @ W``."""
+
+    @staticmethod
+    def subm(feats: Tensor, coords: Coords, w: Tensor) -> Tensor:
+        where = {c: n for n, c in enumerate(coords)}
+        out = feats.new_zeros(len(coords), w.shape[3])
+        for n, c in enumerate(coords):
+            for i, d in enumerate(product((-1, 0, 1), repeat=3)):
+                j = where.get((c[0], c[1] + d[0], c[2] + d[1], c[3] + d[2]))
+                if j is not None:
+                    out[n] = out[n] + feats[j] @ w[i, 0]
+        return out
+
+    @staticmethod
+    def down(feats: Tensor, coords: Coords, w: Tensor) -> tuple[Tensor, Coords, list[tuple[int, int, int]]]:
+        """(outputs, their sites (sorted), the pairs (filter index, input row, output row))."""
+        out_coords = sorted({(c[0], c[1] // 2, c[2] // 2, c[3] // 2) for c in coords})
+        row = {c: m for m, c in enumerate(out_coords)}
+        out = feats.new_zeros(len(out_coords), w.shape[3])
+        pairs = []
+        for n, c in enumerate(coords):
+            o = (c[0], c[1] // 2, c[2] // 2, c[3] // 2)
+            i = 4 * (c[1] - 2 * o[1]) + 2 * (c[2] - 2 * o[2]) + (c[3] - 2 * o[3])
+            out[row[o]] = out[row[o]] + feats[n] @ w[i, 0]
+            pairs.append((i, n, row[o]))
+        return out, out_coords, pairs
+
+    @staticmethod
+    def up(feats: Tensor, pairs: list[tuple[int, int, int]], rows: int, w: Tensor) -> Tensor:
+        out = feats.new_zeros(rows, w.shape[3])
+        for i, n, o in pairs:
+            out[n] = out[n] + feats[o] @ w[i, 0]
+        return out

@@ -30,13 +30,15 @@ def batch():
 
 def test_the_modules_carry_the_releases_names_and_shapes() -> None:
     state = {k[len("net."):]: tuple(v.shape) for k, v in js3c().state_dict().items()}
-    deepest = "seg_head.backbone_net" + ".u" * 6
-    assert state["seg_head.input_conv.0.weight"] == (16, 3, 3, 3, 1)  # one input feature (use_coords: False)
-    assert state[deepest + ".blocks.block0.conv_layers.2.weight"] == (112, 3, 3, 3, 112)  # 7 m at the 7th level
-    assert deepest + ".conv.2.weight" not in state
-    assert state["seg_head.backbone_net.conv.2.weight"] == (32, 2, 2, 2, 16)
-    assert state["seg_head.backbone_net.deconv.2.weight"] == (16, 2, 2, 2, 32)
-    assert state["seg_head.backbone_net.blocks_tail.block0.conv_layers.2.weight"] == (16, 3, 3, 3, 32)
+    unet = "seg_head.sparseModel.2"
+    deepest = unet + ".2.1.2" * 6
+    assert state["seg_head.sparseModel.1.weight"] == (27, 1, 1, 16)  # one input feature (use_coords: False)
+    assert state[deepest + ".0.1.1.weight"] == (27, 1, 112, 112)  # 7 m at the 7th level, residual blocks
+    assert deepest + ".2.1.1.weight" not in state
+    assert state[unet + ".2.1.1.weight"] == (8, 1, 16, 32) and state[unet + ".2.1.4.weight"] == (8, 1, 32, 16)
+    assert state[unet + ".4.0.weight"] == (32, 16)  # the NetworkInNetwork shortcut of the first tail block
+    assert unet + ".0.1.0.num_batches_tracked" not in state and state[unet + ".0.1.0.running_var"] == (16,)
+    assert state["seg_head.linear.weight"] == (19, 16)
     assert state["seg_head.shape_embedding.conv.weight"] == (16, 16, 1)
     assert state["seg_head.shape_embedding.bn.bn.weight"] == (16,)
     assert state["complet_head.Decoder.b1_conv1.0.weight"] == (16, 35, 7, 7, 7)  # 19 labelled classes + m = 16
@@ -46,18 +48,17 @@ def test_the_modules_carry_the_releases_names_and_shapes() -> None:
     assert state["complet_head.interaction_module.relation_w.conv.weight"] == (16, 10, 1)
     assert state["complet_head.interaction_module.fuse_mlps.fc.weight"] == (20, 36)
     assert state["complet_head.upsample.0.weight"] == (160, 20, 1, 1, 1)
-    assert js3c(levels=5).state_dict()["net.seg_head.backbone_net.u.u.u.u.blocks.block0.conv_layers.2.weight"].shape \
-        == (80, 3, 3, 3, 80)
+    assert js3c(levels=5).state_dict()["net." + unet + ".2.1.2" * 4 + ".0.1.1.weight"].shape == (27, 1, 80, 80)
 
 
-def test_voxel_pooling_averages_each_voxels_first_k_points() -> None:
+def test_voxel_pooling_averages_each_voxels_first_k_points_padded_with_its_first() -> None:
     g = torch.Generator().manual_seed(1)
     groups = torch.randint(0, 6, (40,), generator=g)
     values = torch.randn(40, 3, generator=g, dtype=torch.float64)
     got = first_k_mean(values, groups, 7, 3)
     for v in range(7):
         rows = [i for i in range(40) if groups[i] == v][:3]
-        want = values[rows].mean(0) if rows else torch.zeros(3, dtype=torch.float64)
+        want = values[rows + [rows[0]] * (3 - len(rows))].mean(0) if rows else torch.zeros(3, dtype=torch.float64)
         assert torch.allclose(got[v], want, atol=1e-12)
 
 
@@ -80,9 +81,10 @@ def test_the_interaction_matches_a_naive_one_in_float64_with_gradients() -> None
             w = (w - bn.running_mean) / torch.sqrt(bn.running_var + bn.eps) * bn.weight + bn.bias
             acc = acc + torch.nn.functional.leaky_relu(w, 0.2) * feats[j]
         want.append(acc / 3)
-    assert torch.allclose(pvi.aggregate(q, s, feats), torch.stack(want), atol=1e-10)
+    idx = torch.tensor([sorted(range(9), key=lambda j: float((s[j] - q[i]).norm()))[:3] for i in range(6)])
+    assert torch.allclose(pvi.aggregate(q, s, feats, idx), torch.stack(want), atol=1e-10)
     feats.requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda f: pvi.aggregate(q, s, f), (feats,))
+    assert torch.autograd.gradcheck(lambda f: pvi.aggregate(q, s, f, idx), (feats,))
 
 
 def test_the_paper_network_trains_and_its_taps_fit_the_grid() -> None:
@@ -97,5 +99,8 @@ def test_the_paper_network_trains_and_its_taps_fit_the_grid() -> None:
     missing = [n for n, p in model.named_parameters() if p.grad is None]
     assert not missing, missing[:5]
     assert model.describe(model.params).endswith("paper size")
-    every = js3c(pvi_queries="all").train()(batch())["completion"]
-    assert len(every.coords) == 2 * 16 * 16 * 2 > len(completion.coords)
+    labelled = out["point_logits"][:, 1:]  # class 0 (never a target) 10^4 below: softmax over the 19
+    assert torch.equal(torch.softmax(out["point_logits"], 1)[:, 1:], torch.softmax(labelled, 1))
+    assert len(completion.coords) == int((out["ssc_dense"].abs().sum(1) > 0).sum())  # every non-zero coarse voxel
+    near = js3c(pvi_queries="near").train()(batch())["completion"]
+    assert len(near.coords) < len(completion.coords)

@@ -71,12 +71,13 @@ def read_state_dict(path: str | Path) -> dict[str, Any]:
 class ImportedWeights(dict):
     """A released file's weights under the model's names (an adapter's ``read_weights`` converted them): errors name
     a key as the model calls it and as the file spells it. ``spelled``: the file's key of each key it has;
-    ``file_name(key, shape)``: how the file would spell a key of the model's (of that shape) that it lacks."""
+    ``file_name(key, shape)``: how the file would spell a key of the model's (of that shape) that it lacks;
+    ``ignored``: what the file held that is not the model's by design, said in the log (as :class:`PartialWeights`)."""
 
     def __init__(self, weights: dict[str, Any], spelled: dict[str, str],
-                 file_name: Callable[[str, tuple[int, ...]], str]) -> None:
+                 file_name: Callable[[str, tuple[int, ...]], str], ignored: tuple[str, ...] = ()) -> None:
         super().__init__(weights)
-        self.spelled, self.file_name = spelled, file_name
+        self.spelled, self.file_name, self.ignored = spelled, file_name, ignored
 
 
 def spelling(weights: dict[str, Any]) -> Callable[[str, tuple[int, ...]], str] | None:

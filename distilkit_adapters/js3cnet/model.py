@@ -42,9 +42,16 @@ def pixel_shuffle_3d(x: Tensor, r: int) -> Tensor:
     return x.reshape(b, c_out, x_ * r, y_ * r, z_ * r)
 
 
+def relation(q_xyz: Tensor, s_xyz: Tensor, idx: Tensor) -> Tensor:
+    """The PVI's relation of each query to its supports ``idx`` (Q, k): (Q, k, 10) [offset, centre, support xyz,
+    distance] (the release's ``VoxelPooling.relation_position``)."""
+    nb = s_xyz[idx]  # (Q, k, 3)
+    offset = nb - q_xyz[:, None]
+    return torch.cat([offset, q_xyz[:, None].expand_as(nb), nb, offset.norm(dim=-1, keepdim=True)], dim=-1)
+
+
 def relation_features(q_xyz: Tensor, s_xyz: Tensor, k: int) -> tuple[Tensor, Tensor]:
-    """The PVI's relation of each query to its k nearest supports: (Q, k, 10) [offset, centre, support xyz,
-    distance] and the supports' indices (Q, k)."""
+    """:func:`relation` to each query's k nearest supports and their indices (Q, k)."""
     dist, idx = knn(q_xyz, s_xyz, k)
     nb = s_xyz[idx]  # (Q, k, 3)
     return torch.cat([nb - q_xyz[:, None], q_xyz[:, None].expand_as(nb), nb, dist[..., None]], dim=-1), idx

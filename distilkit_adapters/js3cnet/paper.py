@@ -1,94 +1,53 @@
-"""JS3C-Net at the paper's size (Yan et al., AAAI 2021; yanx27/JS3C-Net), with the release's module names
-(``seg_head.*``, ``complet_head.*``) so that its state dicts line up key by key:
+"""JS3C-Net at the paper's size as released (Yan et al., AAAI 2021; yanx27/JS3C-Net, the model of the release's
+``log/JS3C-Net-kitti/args.txt``: ``SubSparseConv`` + ``SSCNet``), with its module names, so that its checkpoint
+(a bare ``state_dict()`` of ``J3SC_Net``) loads key by key (``weights.from_release``):
 
-* ``seg_head`` — the segmentation branch on a grid half the completion voxel (0.1 m at 0.2 m, the release's
-  ``scale: 10``), every point of the scan, the mean intensity per voxel as the one input feature
-  (``use_coords: False``): ``input_conv`` (3^3 submanifold, 1 -> m), ``backbone_net`` — the U-Net of the release's
-  spconv port (``UBlock``: ``blocks`` of BN-ReLU-SubM 3^3, ``conv`` BN-ReLU-2^3 stride-2 ``SparseConv3d``, ``u``
-  the next level, ``deconv`` BN-ReLU-``SparseInverseConv3d``, ``blocks_tail`` on the concatenated skip) over
-  ``[m, 2m, ..., 7m]`` (the reported ``JS3C_default_kitti.yaml``: m = 16, seven levels, one VGG block each), then
-  ``output_layer`` (BN-ReLU); per point: its voxel's features F, the shape embedding F_SE = Conv1d-BN-LeakyReLU(0.2)
-  (F) and the point logits ``linear(F + F_SE)`` (§3.1);
-* voxel pooling (§3.2): each completion voxel's mean of [point logits of the K-1 labelled classes, F_SE] over its
-  first ``fuse_k`` points (the release's 19 + 16 = 35 channels);
+* ``seg_head`` — ``sparseModel``: SparseConvNet (:mod:`.scn`) on voxels of ``seg_voxel`` (the release's
+  ``scale: 20``: 0.05 m, the paper's resolution), every point of the scan, each voxel's mean intensity its one
+  input feature (``InputLayer`` mode 4, ``use_coords: False``): ``1`` a 3^3 submanifold convolution 1 -> m,
+  ``2`` ``scn.UNet`` over [m, 2m, ..., 7m] (m = 16, residual blocks, ``block_reps`` 1), ``3`` BN-ReLU; every point
+  gets its voxel's features F (``OutputLayer``), the shape embedding F_SE = Conv1d-BN-LeakyReLU(0.2)(F)
+  (``shape_embedding``) and the point logits ``linear(F + F_SE)`` over the K - 1 labelled classes (§3.1);
+* voxel pooling (§3.2, ``VoxelPooling`` with ``pooling_type: mean``): each completion voxel's mean of [point logits,
+  F_SE] (19 + 16 = 35 channels) over its first ``fuse_k`` = 5 points in scan order, a voxel with fewer padded with
+  its first point (``index_feat``); the voxel is the one spconv's ``VoxelGenerator`` gives at the grid's 0.2 m, its
+  z index raised by ``z_offset`` = 1 as ``train.py`` / ``test_kitti_ssc.py`` do ("SemanticKITTI will generate
+  [256,256,31]"; a voxel raised past the grid is dropped);
 * ``complet_head.Decoder`` — ``SSCNet_Decoder`` as released (dense): ``b1_conv1`` 7^3 stride 2 -> 16, residual
   blocks 1-2, blocks 3-5 (4-5 dilated by 2) summed pairwise, their concatenation -> ``pre_conv1`` (2/3 of it) ->
   ``pre_conv2`` (K classes) at half resolution;
-* ``complet_head.interaction_module`` — the point-voxel interaction (§3.3): supports are the completion voxels with
-  points (their detached F_SE at the voxel centres), queries the coarse voxels; for each query its ``k`` nearest
-  supports give [offset, centre, support xyz, distance] -> ``relation_w`` (Conv1d-BN-LeakyReLU(0.2), 10 -> m),
-  which multiplies the support features, mean over k; ``fuse_mlps`` (FC-BN-LeakyReLU(0.2)) on [that, coarse logits]
-  replaces the coarse logits;
-* ``complet_head.upsample`` — 1^3 convolution to 8K channels, BN, 3-D pixel shuffle -> logits on the full grid.
+* ``complet_head.interaction_module`` — the point-voxel interaction (§3.3): supports are the pooled voxels (their
+  detached F_SE at the voxel centres), queries the non-zero coarse voxels (``pvi_queries: all``); for each query
+  its ``k`` nearest supports give [offset, centre, support xyz, distance] -> ``relation_w`` (Conv1d-BN-LeakyReLU(0.2),
+  10 -> m), which multiplies the support features, mean over k; ``fuse_mlps`` (FC-BN-LeakyReLU(0.2)) on [that, coarse
+  logits] replaces the coarse logits at the queries (0 elsewhere, as ``feat.dense()`` leaves them);
+* ``complet_head.upsample`` — 1^3 convolution to 8K channels, BN, ReLU (the logits are >= 0, as released), 3-D
+  pixel shuffle -> logits on the full grid.
 
-Choices against the release (also in the adapter's ``CHOICES``): every coarse voxel is fused, but only the ones
-occupied or next to an occupied one query neighbours (``pvi_queries: near``; the release's ``all`` queries every
-non-zero coarse voxel, 262,144 of them at 256 x 256 x 32, whose nearest supports are mostly far away); the first
-``fuse_k`` points are averaged without the release's padding by the first point; the final ReLU on the logits is
-left out; the point classifier has K outputs (class 0, unlabelled, is never a target) where the release has K - 1.
+Where this differs from the release, by choice (also in the adapter's ``CHOICES``): the segmentation voxels are the
+scan's own (the release rotates, scales and shifts the scan at random at every call, test time included:
+``kitti_dataset.process_seg_data``), aligned so that the six 2^3 poolings floor as on the metric grid; the k
+nearest supports are exact with ties (equidistant voxel centres) broken by the lower voxel index (the release's
+nanoflann breaks them by its tree's order); with a batch of several scans each voxel is padded with its own first
+point (the release pads with the batch's first point, ``Merge`` offsets its zero padding; it trains with batch 1).
+``pvi_queries: near`` queries only the coarse voxels occupied or next to one and fuses every coarse voxel (faster,
+not the release).
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
+from typing import Literal
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
-from distilkit.sparse import SparseConv3d, SparseConvTensor, SparseInverseConv3d, SubMConv3d
+from distilkit.sparse import SparseConvTensor, name_modules
 from distilkit.sparse.points import voxelize_flat
 from distilkit.structures import VoxelGrid
-from distilkit_adapters.js3cnet.model import near_queries, pixel_shuffle_3d, relation_features
-
-
-def _bn(c: int) -> nn.BatchNorm1d:
-    return nn.BatchNorm1d(c, eps=1e-4, momentum=0.1)  # the release's norm_fn
-
-
-def _run(x: SparseConvTensor, layers: nn.Sequential) -> SparseConvTensor:
-    """spconv's SparseSequential: sparse convolutions take the tensor, everything else its features."""
-    for layer in layers:
-        x = layer(x) if isinstance(layer, (SubMConv3d, SparseConv3d, SparseInverseConv3d)) \
-            else x.replace_feature(layer(x.features))
-    return x
-
-
-class VGGBlock(nn.Module):
-    def __init__(self, cin: int, cout: int, key: str) -> None:
-        super().__init__()
-        self.conv_layers = nn.Sequential(_bn(cin), nn.ReLU(),
-                                         SubMConv3d(cin, cout, 3, padding=1, bias=False, indice_key=key))
-
-    def forward(self, x: SparseConvTensor) -> SparseConvTensor:
-        return _run(x, self.conv_layers)
-
-
-class UBlock(nn.Module):
-    """One level of the release's spconv U-Net and, recursively, the levels below it."""
-
-    def __init__(self, planes: list[int], reps: int = 1, level: int = 1) -> None:
-        super().__init__()
-        self.planes = planes
-        key = f"subm{level}"
-        self.blocks = nn.Sequential(OrderedDict((f"block{i}", VGGBlock(planes[0], planes[0], key))
-                                                for i in range(reps)))
-        if len(planes) > 1:
-            self.conv = nn.Sequential(_bn(planes[0]), nn.ReLU(),
-                                      SparseConv3d(planes[0], planes[1], 2, stride=2, bias=False,
-                                                   indice_key=f"spconv{level}"))
-            self.u = UBlock(planes[1:], reps, level + 1)
-            self.deconv = nn.Sequential(_bn(planes[1]), nn.ReLU(),
-                                        SparseInverseConv3d(planes[1], planes[0], 2, bias=False,
-                                                            indice_key=f"spconv{level}"))
-            self.blocks_tail = nn.Sequential(OrderedDict(
-                (f"block{i}", VGGBlock(planes[0] * (2 if i == 0 else 1), planes[0], key)) for i in range(reps)))
-
-    def forward(self, x: SparseConvTensor) -> SparseConvTensor:
-        out = self.blocks(x)
-        if len(self.planes) == 1:
-            return out
-        up = _run(self.u(_run(out, self.conv)), self.deconv)
-        return self.blocks_tail(out.replace_feature(torch.cat([out.features, up.features], 1)))
+from distilkit_adapters.js3cnet import scn
+from distilkit_adapters.js3cnet.model import near_queries, pixel_shuffle_3d, relation
 
 
 class ConvBNAct(nn.Sequential):
@@ -104,17 +63,19 @@ class ConvBNAct(nn.Sequential):
 
 
 class SegHead(nn.Module):
-    def __init__(self, m: int, levels: int, num_classes: int) -> None:
+    """``SubSparseConv.Unet``: ``sparseModel`` (SparseConvNet), ``linear``, ``shape_embedding``."""
+
+    def __init__(self, m: int, levels: int, seg_classes: int) -> None:
         super().__init__()
-        self.input_conv = nn.Sequential(SubMConv3d(1, m, 3, padding=1, bias=False, indice_key="subm1"))
-        self.backbone_net = UBlock([m * (i + 1) for i in range(levels)])
-        self.output_layer = nn.Sequential(_bn(m), nn.ReLU())
-        self.linear = nn.Linear(m, num_classes)
+        self.sparseModel = (scn.Sequential().add(scn.InputLayer()).add(scn.SubmanifoldConvolution(1, m, 0))
+                            .add(scn.unet(1, [m * (i + 1) for i in range(levels)], residual=True))
+                            .add(scn.BatchNormReLU(m)).add(scn.OutputLayer()))
+        self.linear = nn.Linear(m, seg_classes)
         self.shape_embedding = ConvBNAct(m, m, linear=False)
 
     def forward(self, x: SparseConvTensor, point_rows: Tensor) -> tuple[Tensor, Tensor]:
         """Point logits and F_SE (P, m) of the points whose voxel rows are ``point_rows``."""
-        feats = _run(self.backbone_net(_run(x, self.input_conv)), self.output_layer).features[point_rows]
+        feats = self.sparseModel(x).features[point_rows]
         embed = self.shape_embedding(feats.t()[None])[0].t()
         return self.linear(feats + embed), embed
 
@@ -163,12 +124,11 @@ class Interaction(nn.Module):
         self.relation_w = ConvBNAct(10, m, linear=False)
         self.fuse_mlps = ConvBNAct(m + num_classes, num_classes, linear=True)
 
-    def aggregate(self, q_xyz: Tensor, s_xyz: Tensor, s_feat: Tensor) -> Tensor:
-        """(Q, m): the relation-weighted mean of each query's k nearest supports' features."""
+    def aggregate(self, q_xyz: Tensor, s_xyz: Tensor, s_feat: Tensor, idx: Tensor) -> Tensor:
+        """(Q, m): the relation-weighted mean of the features of each query's supports ``idx`` (Q, k)."""
         if q_xyz.shape[0] == 0 or s_xyz.shape[0] == 0:
             return s_feat.new_zeros(q_xyz.shape[0], s_feat.shape[1])
-        rel, idx = relation_features(q_xyz, s_xyz, self.k)
-        w = self.relation_w(rel.permute(0, 2, 1))  # (Q, m, k)
+        w = self.relation_w(relation(q_xyz, s_xyz, idx).permute(0, 2, 1))  # (Q, m, k)
         return (w * s_feat[idx].permute(0, 2, 1)).mean(2)
 
 
@@ -177,11 +137,14 @@ class CompletHead(nn.Module):
         super().__init__()
         self.Decoder = SSCNetDecoder(cin, m, num_classes)
         self.interaction_module = Interaction(m_seg, num_classes, k)
-        self.upsample = nn.Sequential(nn.Conv3d(num_classes, num_classes * 8, 1), nn.BatchNorm3d(num_classes * 8))
+        self.upsample = nn.Sequential(nn.Conv3d(num_classes, num_classes * 8, 1), nn.BatchNorm3d(num_classes * 8),
+                                      nn.ReLU())  # then the pixel shuffle
 
 
 def first_k_mean(values: Tensor, groups: Tensor, n_groups: int, k: int) -> Tensor:
-    """(G, C): per group, the mean of ``values`` over its first ``k`` rows in input order (groups (P,) in [0, G))."""
+    """(G, C): per group, the mean over k slots of ``values`` of its first ``k`` rows in input order, a group with
+    fewer rows filling the rest with its first row (the release's ``VoxelPooling.index_feat``); 0 for an empty
+    group (groups (P,) in [0, G))."""
     order = torch.sort(groups, stable=True).indices
     sorted_groups = groups[order]
     starts = torch.searchsorted(sorted_groups, sorted_groups, right=False)
@@ -189,50 +152,101 @@ def first_k_mean(values: Tensor, groups: Tensor, n_groups: int, k: int) -> Tenso
     chosen = order[rank < k]
     g = groups[chosen]
     total = values.new_zeros(n_groups, values.shape[1]).index_add_(0, g, values[chosen])
-    count = torch.bincount(g, minlength=n_groups).clamp_min(1).to(values.dtype)
-    return total / count[:, None]
+    count = torch.bincount(g, minlength=n_groups)
+    first = values.new_zeros(n_groups, values.shape[1]).index_copy_(0, groups[order[rank == 0]],
+                                                                     values[order[rank == 0]])
+    return (total + (k - count).clamp_min(0).to(values.dtype)[:, None] * first) / k * (count > 0)[:, None]
+
+
+def grid_knn(query: Tensor, support: Tensor, k: int) -> Tensor:
+    """(Q, min(k, S)) indices of each query's k nearest supports, both given as (Q, 3) / (S, 3) int64 coordinates
+    in one unit (distances exact), ties broken by the lower support index; a KD-tree (scipy) finds candidates, a
+    query whose tie at the k-th distance runs past them is searched by brute force."""
+    from scipy.spatial import cKDTree
+
+    k = min(k, len(support))
+    if len(query) == 0 or k == 0:
+        return torch.zeros((len(query), k), dtype=torch.long, device=query.device)
+    q, s = query.cpu().numpy(), support.cpu().numpy()
+    extra = min(k + 8, len(s))
+    _, cand = cKDTree(s.astype(np.float64)).query(q.astype(np.float64), extra)
+    cand = cand.reshape(len(q), extra)
+    d2 = ((s[cand] - q[:, None]) ** 2).sum(-1)
+    order = np.lexsort((cand, d2), axis=1)  # by distance, then index
+    cand, d2 = np.take_along_axis(cand, order, 1), np.take_along_axis(d2, order, 1)
+    open_tie = (d2[:, k - 1] == d2[:, -1]) & (extra < len(s))
+    for i in np.nonzero(open_tie)[0]:  # the tie group may hold supports the tree did not return
+        full = ((s - q[i]) ** 2).sum(-1)
+        cand[i, :k] = np.lexsort((np.arange(len(s)), full))[:k]
+    return torch.from_numpy(np.ascontiguousarray(cand[:, :k])).to(query.device)
+
+
+def _centres(coords: Tensor, grid: VoxelGrid, stride: int, dtype: torch.dtype) -> Tensor:
+    """(N, 3) centres of (N, 4) voxel indices at ``stride`` times the grid's voxel, in ``dtype`` (the release's
+    ``align_pnt``: (index + 0.5) voxel + the range's minimum)."""
+    origin = torch.tensor(grid.origin, dtype=dtype, device=coords.device)
+    return (coords[:, 1:].to(dtype) + 0.5) * (grid.voxel_size * stride) + origin
 
 
 class JS3CNetPaper(nn.Module):
     def __init__(self, num_classes: int, m: int = 16, levels: int = 7, ssc_m: int = 32, k: int = 8,
-                 fuse_k: int = 5, pvi_queries: str = "near") -> None:
+                 fuse_k: int = 5, pvi_queries: Literal["all", "near"] = "all", seg_voxel: float = 0.05,
+                 z_offset: int = 1) -> None:
         super().__init__()
         self.k_classes, self.levels, self.fuse_k, self.pvi_queries = num_classes, levels, fuse_k, pvi_queries
-        self.seg_head = SegHead(m, levels, num_classes)
+        self.seg_voxel, self.z_offset = seg_voxel, z_offset
+        self.seg_head = SegHead(m, levels, num_classes - 1)
         self.complet_head = CompletHead(num_classes - 1 + m, m, ssc_m, num_classes, k)
+        name_modules(self)
+
+    def pool(self, points: Tensor, point_batch: Tensor, batch_size: int, grid: VoxelGrid,
+             features: Tensor) -> tuple[Tensor, Tensor]:
+        """(the flat (B, X, Y, Z) indices of the completion voxels with points, raised by ``z_offset``; their pooled
+        ``features``)."""
+        idx, inside = grid.index(points[:, :3])
+        z = idx[:, 2] + self.z_offset
+        inside = inside & (z < grid.shape[2])
+        x, y, zs = grid.shape
+        flat = ((point_batch[inside].long() * x + idx[inside, 0]) * y + idx[inside, 1]) * zs + z[inside]
+        uniq, rows = torch.unique(flat, return_inverse=True)
+        return uniq, first_k_mean(features[inside], rows, len(uniq), self.fuse_k)
 
     def forward(self, points: Tensor, point_batch: Tensor, batch_size: int, grid: VoxelGrid) -> dict[str, Tensor]:
-        # segmentation on the half-voxel grid, every point of the scan
-        seg = voxelize_flat(points[:, :3], point_batch, batch_size, grid.voxel_size / 2, 2 ** (self.levels - 1),
+        # segmentation on its own fine grid, every point of the scan
+        seg = voxelize_flat(points[:, :3], point_batch, batch_size, self.seg_voxel, 2 ** (self.levels - 1),
                             points[:, 3:4], rounding="floor")
         point_logits, f_se = self.seg_head(seg.tensor, seg.point_rows)
-        # voxel pooling into the completion grid: [labelled-class logits, F_SE] of each voxel's first fuse_k points
-        idx, inside = grid.index(points[:, :3])
+        uniq, pooled = self.pool(points, point_batch, batch_size, grid, torch.cat([point_logits, f_se], 1))
         x, y, z = grid.shape
-        flat = ((point_batch[inside] * x + idx[inside, 0]) * y + idx[inside, 1]) * z + idx[inside, 2]
-        uniq, rows = torch.unique(flat, return_inverse=True)
-        both = torch.cat([point_logits[inside][:, 1:], f_se[inside]], 1)
-        pooled = first_k_mean(both, rows, len(uniq), self.fuse_k)
         dense = pooled.new_zeros(batch_size * x * y * z, pooled.shape[1])
         dense[uniq] = pooled
         feat, coarse = self.complet_head.Decoder(dense.view(batch_size, x, y, z, -1).permute(0, 4, 1, 2, 3))
-        # point-voxel interaction: supports = completion voxels with points, queries = coarse voxels
-        query = near_queries(uniq, batch_size, grid.shape)
-        if self.pvi_queries == "all":
-            query = torch.ones_like(query)
-        qc = query.nonzero()
-        q_xyz = grid.coarsen(2).centers(qc[:, 1:])
-        s_coords = torch.stack(torch.unravel_index(uniq, (batch_size, x, y, z)), 1)
-        s_xyz = grid.centers(s_coords[:, 1:])
+        # the point-voxel interaction: supports at the pooled voxels' centres, queries at the coarse voxels'
         s_feat = pooled[:, self.k_classes - 1:].detach()
-        pvi = self.complet_head.interaction_module
-        agg_q = torch.cat([pvi.aggregate(q_xyz[qc[:, 0] == b], s_xyz[s_coords[:, 0] == b],
-                                         s_feat[s_coords[:, 0] == b]) for b in range(batch_size)])
+        s_coords = torch.stack(torch.unravel_index(uniq, (batch_size, x, y, z)), 1)
+        keep = s_feat.abs().sum(1) > 0  # the non-zero voxels of the support tensor
+        s_coords, s_feat = s_coords[keep], s_feat[keep]
         logits_cl = coarse.permute(0, 2, 3, 4, 1)  # (B, X/2, Y/2, Z/2, K)
-        agg = logits_cl.new_zeros(*logits_cl.shape[:-1], agg_q.shape[1])
-        agg[query] = agg_q  # batch-major, as qc
-        fused = pvi.fuse_mlps(torch.cat([agg, logits_cl], -1).reshape(-1, agg.shape[-1] + self.k_classes))
-        fused = fused.view(logits_cl.shape).permute(0, 4, 1, 2, 3)
-        logits = pixel_shuffle_3d(self.complet_head.upsample(fused), 2)
+        query = logits_cl.detach().abs().sum(-1) > 0
+        if self.pvi_queries == "near":
+            query = near_queries(uniq, batch_size, grid.shape)
+        qc = query.nonzero()
+        s_xyz, q_xyz = _centres(s_coords, grid, 1, pooled.dtype), _centres(qc, grid, 2, pooled.dtype)
+        pvi = self.complet_head.interaction_module
+        parts = []
+        for b in range(batch_size):
+            qb, sb = qc[:, 0] == b, s_coords[:, 0] == b
+            idx = grid_knn(4 * qc[qb, 1:] + 2, 2 * s_coords[sb, 1:] + 1, pvi.k)  # in units of half a voxel
+            parts.append(pvi.aggregate(q_xyz[qb], s_xyz[sb], s_feat[sb], idx))
+        agg_q = torch.cat(parts)
+        if self.pvi_queries == "all":  # fused at the queries, 0 elsewhere (the release's feat.dense())
+            fused = logits_cl.new_zeros(logits_cl.shape)
+            fused[query] = pvi.fuse_mlps(torch.cat([agg_q, logits_cl[query]], -1))
+        else:  # every coarse voxel fused, the ones without a query with nothing aggregated
+            agg = logits_cl.new_zeros(*logits_cl.shape[:-1], agg_q.shape[1])
+            agg[query] = agg_q
+            fused = pvi.fuse_mlps(torch.cat([agg, logits_cl], -1).reshape(-1, agg.shape[-1] + self.k_classes))
+            fused = fused.view(logits_cl.shape)
+        logits = pixel_shuffle_3d(self.complet_head.upsample(fused.permute(0, 4, 1, 2, 3)), 2)
         return {"logits": logits, "point_logits": point_logits, "ssc_coords": qc,
                 "ssc_feats": feat.permute(0, 2, 3, 4, 1)[query], "ssc_dense": feat}
