@@ -1,11 +1,9 @@
-"""VoxFormer at ``size: paper``: deformable self-attention (3-D and plane) against naive trilinear / bilinear sampling
-written out by hand (float64) and a gradient check; ResNet-50 with torchvision's names, loaded from a file in
-torchvision's layout (torchvision's original ImageNet release: no ``num_batches_tracked``; ``fc.*``, ``layer4.*``
-beside); frozen batch norms and first stage; query proposals read from a folder of VoxFormer's files."""
+"""VoxFormer at ``size: paper``: ResNet-50 with torchvision's names, loaded from a file in torchvision's layout
+(torchvision's original ImageNet release: no ``num_batches_tracked``; ``fc.*``, ``layer4.*`` beside); frozen batch
+norms and first stage; query proposals read from a folder of VoxFormer's files; the network builds and trains. (Its
+attention against naive references and a released checkpoint's parity: tests/test_voxformer_release.py.)"""
 
 from __future__ import annotations
-
-import itertools
 
 import numpy as np
 import pytest
@@ -15,76 +13,23 @@ from torch import nn
 from conftest import export_kitti
 from distilkit.engine.checkpoints import PartialWeights, load_weights
 from distilkit.errors import DataError
-from distilkit_adapters.voxformer.resnet import Bottleneck, ResNetEncoder, frozen_fraction
-from distilkit_adapters.voxformer.self_attention import DeformableSelfAttention, plane_shape
+from distilkit_adapters.voxformer.deformable import plane_shape
+from distilkit_adapters.voxformer.resnet import FPN, Bottleneck, ResNet50, frozen_fraction
 from distilkit_adapters.voxformer.weights import SCOPE, from_torchvision
 
 TORCHVISION_RESNET50_PARAMETERS = 25_557_032  # torchvision.models.resnet50(): its published parameter count
 
 
-def naive_sample(values: torch.Tensor, where: list[float]) -> torch.Tensor:
-    """Values (C, *cells) at a point given in cell units (cell i spans [i, i+1)), multilinear, zero outside."""
-    pos = [w - 0.5 for w in where]  # cell centres at integers
-    out = torch.zeros(values.shape[0], dtype=values.dtype)
-    base = [int(np.floor(p)) for p in pos]
-    for corner in itertools.product((0, 1), repeat=len(pos)):
-        idx = [b + c for b, c in zip(base, corner)]
-        weight = 1.0
-        for p, i in zip(pos, idx):
-            weight *= 1 - abs(p - i)
-        if all(0 <= i < s for i, s in zip(idx, values.shape[1:])):
-            out = out + weight * values[(slice(None), *idx)]
-    return out
+class Encoder(nn.Module):
+    """The released network's image encoder under its names: ``img_backbone``, ``img_neck``."""
 
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.img_backbone = ResNet50()
+        self.img_neck = FPN(1024, channels)
 
-def naive_self_attention(layer: DeformableSelfAttention, volume: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
-    """The layer's forward, query by query and point by point (eq. 4 of VoxFormer with Zhu et al.'s sampling)."""
-    b, c, *shape = volume.shape
-    cells = layer.cells(tuple(shape))
-    hd, p, d = layer.heads, layer.points, layer.dims
-    x = volume.flatten(2).transpose(1, 2)
-    out = torch.zeros_like(x)
-    centres = list(itertools.product(*(range(s) for s in cells)))
-    for i in range(b):
-        v = layer.value(x[i])  # (N, C)
-        vol = v.T.reshape(c, *cells)
-        for n in range(x.shape[1]):
-            q = x[i, n] + pos[n]
-            off = layer.offsets(q).view(hd, p, d)
-            w = layer.weights(q).view(hd, p).softmax(-1)
-            read = []
-            for h in range(hd):
-                heads = vol[h * (c // hd):(h + 1) * (c // hd)]
-                acc = torch.zeros(c // hd, dtype=x.dtype)
-                for k in range(p):
-                    # offsets are given last axis first (grid_sample's order)
-                    where = [centres[n][a] + 0.5 + off[h, k, d - 1 - a] for a in range(d)]
-                    acc = acc + w[h, k] * naive_sample(heads, [float(t) for t in where])
-                read.append(acc)
-            y = layer.norm1(x[i, n] + layer.out(torch.cat(read)))
-            out[i, n] = layer.norm2(y + layer.ffn(y))
-    return out.transpose(1, 2).reshape(b, c, *shape)
-
-
-@pytest.mark.parametrize("space,shape", [("3d", (3, 4, 2)), ("plane", (2, 3, 2))])
-def test_deformable_self_attention_equals_naive_sampling(space: str, shape: tuple[int, int, int]) -> None:
-    torch.manual_seed(0)
-    layer = DeformableSelfAttention(8, 2, 3, space).double()
-    with torch.no_grad():  # offsets of several cells, so that points fall between and outside cells
-        layer.offsets.weight.normal_(0, 0.8)
-        layer.offsets.bias.normal_(0, 1.5)
-    volume = torch.randn(2, 8, *shape, dtype=torch.float64)
-    pos = torch.randn(int(np.prod(shape)), 8, dtype=torch.float64)
-    with torch.no_grad():
-        assert torch.allclose(layer(volume, pos), naive_self_attention(layer, volume, pos), atol=1e-10)
-
-
-def test_deformable_self_attention_gradients() -> None:
-    torch.manual_seed(1)
-    layer = DeformableSelfAttention(4, 2, 2, "3d").double()
-    volume = torch.randn(1, 4, 2, 3, 2, dtype=torch.float64, requires_grad=True)
-    pos = torch.randn(12, 4, dtype=torch.float64)
-    assert torch.autograd.gradcheck(lambda v: layer(v, pos), (volume,))
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.img_neck(self.img_backbone(x))
 
 
 def test_the_plane_is_voxformers_512_by_512_and_the_most_square_otherwise() -> None:
@@ -93,12 +38,12 @@ def test_the_plane_is_voxformers_512_by_512_and_the_most_square_otherwise() -> N
     assert plane_shape(2 * 3 * 2) == (3, 4) and plane_shape(7) == (1, 7)
 
 
-def torchvision_file(encoder: ResNetEncoder, counters: bool = False) -> dict[str, torch.Tensor]:
+def torchvision_file(encoder: Encoder, counters: bool = False) -> dict[str, torch.Tensor]:
     """A ResNet-50 state dict in torchvision's layout built from the encoder's backbone (names and shapes are
     torchvision's: the test checks the count of weights against torchvision's published one), with the fourth stage
     and the ImageNet classifier beside, and without the batch norms' counters unless ``counters``."""
     g = torch.Generator().manual_seed(5)
-    state = {k: v.clone() for k, v in encoder.backbone.state_dict().items()}
+    state = {k: v.clone() for k, v in encoder.img_backbone.state_dict().items()}
     layer4 = nn.Sequential(Bottleneck(1024, 512, 2), Bottleneck(2048, 512, 1), Bottleneck(2048, 512, 1))
     state.update({f"layer4.{k}": v for k, v in layer4.state_dict().items()})
     fc = nn.Linear(2048, 1000)
@@ -119,14 +64,14 @@ def torchvision_file(encoder: ResNetEncoder, counters: bool = False) -> dict[str
 
 
 def test_the_resnet50_has_torchvisions_names_and_size() -> None:
-    encoder = ResNetEncoder(128)
+    encoder = Encoder(128)
     state = torchvision_file(encoder)
     weights = sum(v.numel() for k, v in state.items() if not k.endswith(("running_mean", "running_var")))
     assert weights == TORCHVISION_RESNET50_PARAMETERS
     assert {"conv1.weight", "bn1.running_var", "layer1.0.downsample.0.weight", "layer3.5.bn3.weight",
             "layer2.3.conv2.weight"} <= set(state)
     assert tuple(state["layer3.0.conv2.weight"].shape) == (256, 256, 3, 3)  # v1.5: the stride in the 3x3
-    assert {"neck.lateral_convs.0.conv.weight", "neck.fpn_convs.0.conv.weight"} <= set(encoder.state_dict())
+    assert {"img_neck.lateral_convs.0.conv.weight", "img_neck.fpn_convs.0.conv.weight"} <= set(encoder.state_dict())
     image = torch.rand(1, 3, 370, 1220)
     assert tuple(encoder.eval()(image).shape) == (1, 128, 24, 77)  # VoxFormer's 370 x 1220 at stride 16
 
@@ -137,19 +82,19 @@ def test_a_torchvision_file_loads_into_the_encoder_and_computes_the_same(tmp_pat
     torch.manual_seed(0)
     model = nn.Module()
     model.net = nn.Module()
-    model.net.encoder = ResNetEncoder(16)
-    file = torchvision_file(model.net.encoder)
+    model.net = Encoder(16)
+    file = torchvision_file(model.net)
     torch.save(file, tmp_path / "resnet50-19c8e357.pth")
     weights = VoxFormerAdapter.read_weights(str(tmp_path / "resnet50-19c8e357.pth"))
     assert isinstance(weights, PartialWeights) and weights.scope == SCOPE
     left = load_weights(model, weights, True, "init")
     assert left == ["ignored: fc.*", "ignored: layer4.*"]
-    direct = ResNetEncoder(16)
-    direct.backbone.load_state_dict({k: v for k, v in file.items() if not k.startswith(("fc.", "layer4."))},
-                                    strict=False)
-    direct.neck.load_state_dict(model.net.encoder.neck.state_dict())
+    direct = Encoder(16)
+    direct.img_backbone.load_state_dict({k: v for k, v in file.items() if not k.startswith(("fc.", "layer4."))},
+                                        strict=False)
+    direct.img_neck.load_state_dict(model.net.img_neck.state_dict())
     image = torch.rand(2, 3, 64, 96)
-    assert torch.equal(model.net.encoder.eval()(image), direct.eval()(image))
+    assert torch.equal(model.net.eval()(image), direct.eval()(image))
     # a file with a misfit: each key named
     bad = dict(file)
     bad["layer2.1.conv2.weight"] = bad["layer2.1.conv2.weight"][:, :64]
@@ -158,23 +103,24 @@ def test_a_torchvision_file_loads_into_the_encoder_and_computes_the_same(tmp_pat
     with pytest.raises(DataError) as err:
         load_weights(model, from_torchvision(bad), True, "init x.pth")
     text = str(err.value)
-    assert "net.encoder.backbone.layer2.1.conv2.weight (128, 64, 3, 3) (model: (128, 128, 3, 3))" in text
-    assert "1 missing: net.encoder.backbone.layer3.4.bn1.bias" in text
-    assert "1 unexpected: net.encoder.backbone.layer3.9.conv1.weight" in text
+    assert "net.img_backbone.layer2.1.conv2.weight (128, 64, 3, 3) (model: (128, 128, 3, 3))" in text
+    assert "1 missing: net.img_backbone.layer3.4.bn1.bias" in text
+    assert "1 unexpected: net.img_backbone.layer3.9.conv1.weight" in text
 
 
 def test_batch_norms_and_the_first_stage_stay_frozen_in_training() -> None:
     torch.manual_seed(0)
-    encoder = ResNetEncoder(16).train()
-    before = {k: v.clone() for k, v in encoder.backbone.state_dict().items()}
+    encoder = Encoder(16).train()
+    backbone = encoder.img_backbone
+    before = {k: v.clone() for k, v in backbone.state_dict().items()}
     out = encoder(torch.rand(2, 3, 64, 64))
     out.sum().backward()
-    after = encoder.backbone.state_dict()
+    after = backbone.state_dict()
     assert all(torch.equal(before[k], after[k]) for k in before)  # running statistics unchanged in train mode
-    assert encoder.backbone.conv1.weight.grad is None and encoder.backbone.layer1[0].conv2.weight.grad is None
-    assert encoder.backbone.bn1.weight.grad is None and encoder.backbone.layer3[0].bn1.weight.grad is None
-    assert encoder.backbone.layer2[0].conv1.weight.grad is not None
-    assert 0.02 < frozen_fraction(encoder.backbone) < 0.1
+    assert backbone.conv1.weight.grad is None and backbone.layer1[0].conv2.weight.grad is None
+    assert backbone.bn1.weight.grad is None and backbone.layer3[0].bn1.weight.grad is None
+    assert backbone.layer2[0].conv1.weight.grad is not None
+    assert 0.02 < frozen_fraction(backbone) < 0.1
 
 
 @pytest.fixture(scope="module")
@@ -241,7 +187,9 @@ def test_the_paper_size_model_builds_and_trains_a_step_at_a_reduced_grid() -> No
                                                                    "voxel_target"}))
     params = VoxFormerParams(size="paper", geometry="ground-truth")
     model = VoxFormerAdapter(params, info)
-    assert model.net.mixing == "deformable-3d" and len(model.net.mix) == 2 and len(model.net.cross) == 3
+    head = model.net.pts_bbox_head
+    assert len(head.self_transformer.encoder.layers) == 2 and len(head.cross_transformer.encoder.layers) == 3
+    assert head.self_transformer.encoder.layers[0].attentions[0].space == "plane"  # the released checkpoints'
     target = torch.randint(0, 20, (1, 32, 32, 4))
     batch = Batch({"image": torch.rand(1, 1, 3, 64, 192),
                    "intrinsics": torch.tensor(intrinsics(cam), dtype=torch.float32).view(1, 1, 3, 3),
@@ -250,6 +198,11 @@ def test_the_paper_size_model_builds_and_trains_a_step_at_a_reduced_grid() -> No
     out = model.train()(batch)
     assert tuple(out["logits"].shape) == (1, 20, 32, 32, 4) and tuple(out["image_features"].shape) == (1, 128, 4, 12)
     torch.nn.functional.cross_entropy(out["logits"], target).backward()
-    assert model.net.mix[1].offsets.weight.grad is not None and model.net.encoder.backbone.conv1.weight.grad is None
+    assert head.self_transformer.encoder.layers[1].attentions[0].sampling_offsets.weight.grad is not None
+    assert model.net.img_backbone.conv1.weight.grad is None
+    missing = [n for n, p in model.named_parameters() if p.requires_grad and p.grad is None]
+    assert not missing, missing[:5]
     with pytest.raises(ValueError, match="`widths` sizes the small encoder"):
         VoxFormerParams(size="paper", widths=[8, 16])
+    with pytest.raises(ValueError, match="mixing: conv is the small stand-in's"):
+        VoxFormerParams(size="paper", mixing="conv")

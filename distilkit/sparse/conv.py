@@ -172,7 +172,7 @@ class SubMConv3d(_SparseConvolution):
         kept = self._kept(x)
         if kept is None:
             book = submanifold(x.indices, x.spatial_shape, self.kernel_size, self.dilation,
-                               x.sorted_keys if x.sorted_keys is not None else None)
+                               x.sorted_keys)
             return book, self._store(x, book)
         if self.semantics == "spconv1":
             if not kept.subm:

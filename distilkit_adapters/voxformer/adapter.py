@@ -5,9 +5,9 @@ Stage 2 reads its proposals from a frozen stage-1 model through an auxiliary edg
 puts the proposal model's occupancy scores in the batch as ``proposal``), not as a teacher, or from a folder of
 VoxFormer's proposal files (``data.params.proposals``). Its size is a parameter: ``size: tiny`` (the CPU stand-in: a
 small ResNet of basic blocks, 3-D convolutions mixing the queries) for tests and CPUs, ``size: paper`` for
-VoxFormer's network (ResNet-50 with torchvision's names to its stride-16 stage + FPN, 128 channels, 3 deformable
-cross-attention and 2 deformable self-attention layers, 8 heads and points); any single field given overrides the
-preset.
+VoxFormer's network as released (:mod:`.release`: ResNet-50 to its stride-16 stage + FPN, 128 channels, 3 deformable
+cross-attention and 2 deformable self-attention layers, 8 heads and points, which loads a released checkpoint); any
+single field given overrides the preset.
 """
 
 from __future__ import annotations
@@ -27,13 +27,14 @@ from distilkit.registry import ADAPTERS
 from distilkit.structures import VoxelGrid
 from distilkit_adapters.voxformer.model import VoxFormerNet
 from distilkit_adapters.voxformer.proposal import QueryProposal
-from distilkit_adapters.voxformer.weights import from_torchvision
+from distilkit_adapters.voxformer.release import VoxFormerRelease
+from distilkit_adapters.voxformer.weights import from_mmdet, from_torchvision
 
 SIZES: dict[str, dict[str, Any]] = {
     "tiny": {"widths": [8, 16, 32], "channels": 16, "heads": 2, "points": 4, "cross_layers": 2, "mix_layers": 1,
              "bev_width": 16, "encoder": "small", "mixing": "conv"},
     "paper": {"widths": [64, 128, 256, 512, 1024], "channels": 128, "heads": 8, "points": 8, "cross_layers": 3,
-              "mix_layers": 2, "bev_width": 64, "encoder": "resnet50", "mixing": "deformable-3d"},
+              "mix_layers": 2, "bev_width": 64, "encoder": "resnet50", "mixing": "deformable-plane"},
 }
 Width = Annotated[int, Field(ge=1)]
 
@@ -64,14 +65,15 @@ class VoxFormerParams(_SizedParams):
     mix_layers: int | None = Field(None, ge=0, description="layers that mix the query volume (paper: 2 deformable "
                                                            "self-attention layers)")
     encoder: Literal["small", "resnet50"] | None = Field(
-        None, description="image encoder: small (a ResNet of basic blocks, `widths`) or resnet50 (ResNet-50 to its "
-                          "third stage with torchvision's names, stride 16, frozen batch norms and first stage, as "
-                          "VoxFormer; `init: {checkpoint: resnet50-19c8e357.pth}` loads ImageNet weights into it)")
+        None, description="small: the CPU stand-in (a ResNet of basic blocks, `widths`, and the fields below); "
+                          "resnet50: VoxFormer's network as released (ResNet-50 to its third stage with torchvision's "
+                          "names, frozen batch norms and first stage, FPN, its transformers; loads a released "
+                          "checkpoint, and `init: {checkpoint: resnet50-19c8e357.pth}` ImageNet weights)")
     mixing: Literal["conv", "deformable-3d", "deformable-plane"] | None = Field(
-        None, description="how the query volume is mixed: conv (residual 3-D convolutions, the CPU stand-in), "
-                          "deformable-3d (deformable self-attention in the volume: the paper, the release's deform3D "
-                          "configs) or deformable-plane (the release's VoxFormer-S/T: 2-D deformable attention over "
-                          "the flat queries folded to a plane)")
+        None, description="how the query volume is mixed: conv (residual 3-D convolutions, the small stand-in only), "
+                          "deformable-plane (the released VoxFormer-S/T checkpoints: 2-D deformable self-attention "
+                          "over the flat queries folded to a 512 x 512 plane) or deformable-3d (the paper's text and "
+                          "the release's deform3D configs: trilinear in the volume)")
     frames: int = Field(1, ge=1, description="images read: the current one and the frames before it the data gives "
                                              "(VoxFormer-S: 1, VoxFormer-T: 5)")
     geometry: Literal["proposals", "ground-truth"] = Field(
@@ -84,6 +86,9 @@ class VoxFormerParams(_SizedParams):
     def _encoder_widths(self) -> "VoxFormerParams":
         if self.value("encoder") == "resnet50" and self.widths is not None:
             raise ValueError("`widths` sizes the small encoder; encoder: resnet50 has ResNet-50's")
+        if self.value("encoder") == "resnet50" and self.value("mixing") == "conv":
+            raise ValueError("mixing: conv is the small stand-in's; encoder: resnet50 (VoxFormer as released) mixes "
+                             "by deformable-plane or deformable-3d self-attention")
         return self
 
 
@@ -146,29 +151,38 @@ class VoxFormerAdapter(Adapter):
     sampling offsets per image, ``align_corners`` of the samplings."""
 
     CHOICES = (
-        Choice("deformable sampling offsets", "predicted per image (head x image x point), each image of VoxFormer-T "
-                                              "its own offsets", "not stated",
+        Choice("deformable sampling offsets", "size paper: one set per head and point, shared by every image, as "
+               "released; size tiny: predicted per image (head x image x point)", "not stated",
                "one set per head, level and point, shared by every image (BEVFormer's spatial cross-attention)"),
-        Choice("align_corners", "False everywhere: grid_sample of image features (pixel coordinates normalised by the "
-                                "feature map's size) and the header's trilinear x2 upsampling",
-               "not stated", "grid_sample with align_corners=False (mmcv's deformable attention, the same convention); "
-                             "the Header's nn.Upsample(scale_factor=2, trilinear) with align_corners=True"),
+        Choice("align_corners", "size paper: as released (grid_sample False, the header's trilinear x2 True); size "
+               "tiny: False everywhere", "not stated", "grid_sample with align_corners=False (mmcv's deformable "
+               "attention); the Header's nn.Upsample(scale_factor=2, trilinear) with align_corners=True"),
+        Choice("self-attention (size: paper)", "2-D over the queries folded to a 512 x 512 plane, 2 queues (value = "
+               "the query twice, offsets from [query, query + position], the reads averaged), the released "
+               "checkpoints' (`mixing: deformable-plane`)", "§3.3: deformable self-attention over the voxel queries "
+               "(3-D)", "voxformer-S.py / -T.py: DeformSelfAttention (2-D); *_deform3D.py: the 3-D one, whose layer "
+               "passes a 2-D spatial shape (taken here as the volume's)", "`mixing: deformable-3d`"),
+        Choice("positional encoding (size: paper)", "learned row and column embeddings (512 x 64 each) of the 512 x 512 "
+               "plane, in the self-attention only", "not stated", "LearnedPositionalEncoding; VoxFormerLayer passes "
+               "no position to the cross-attention", ""),
+        Choice("several samples in a batch (size: paper)", "each sample with its own proposals and queries",
+               "not stated", "batch 1: the first sample's proposals; the self-attention's offsets take the first "
+               "sample's queries (value[:bs])", ""),
     )
 
     Params = VoxFormerParams
     NETWORKS = {"tiny": "CPU stand-in: a small ResNet of basic blocks, 3-D convolutions mixing the queries",
-                "paper": "the paper's network: ResNet-50 with torchvision's names (loads its ImageNet file) + FPN, "
-                         "deformable cross- and self-attention"}
+                "paper": "the paper's network as released: ResNet-50 + FPN, deformable cross- and self-attention "
+                         "(loads a released VoxFormer checkpoint, or torchvision's ResNet-50 file)"}
 
     @classmethod
     def network(cls, params: BaseModel) -> str:
         encoder, mixing = params.value("encoder"), params.value("mixing")  # type: ignore[attr-defined]
-        if encoder == "resnet50" and mixing.startswith("deformable"):
+        if encoder == "resnet50":
             return cls.NETWORKS["paper"] + f" ({mixing[len('deformable-'):]})"
-        if (encoder, mixing) == ("small", "conv"):
+        if mixing == "conv":
             return cls.NETWORKS["tiny"]
-        return (f"CPU stand-in: a {'ResNet-50' if encoder == 'resnet50' else 'small ResNet of basic blocks'}, "
-                f"{'3-D convolutions mixing' if mixing == 'conv' else mixing + ' self-attention over'} the queries")
+        return f"CPU stand-in: a small ResNet of basic blocks, {mixing} self-attention over the queries"
 
     TAPS = {"image_features": "image_features", "query_features": "sparse_features", "logits": "voxel_logits"}
     PREDICTION_TAP = "logits"
@@ -178,15 +192,21 @@ class VoxFormerAdapter(Adapter):
     def __init__(self, params: VoxFormerParams, info: DataInfo) -> None:
         super().__init__(params, info)
         v = params.value
-        self.net = VoxFormerNet(v("widths"), v("channels"), v("heads"), v("points"), params.frames, v("cross_layers"),
-                                v("mix_layers"), info.num_classes, info.grid, v("encoder"), v("mixing"))
+        if v("encoder") == "resnet50":
+            self.net: Any = VoxFormerRelease(info.grid, info.num_classes, v("channels"), v("heads"), v("points"),
+                                             v("cross_layers"), v("mix_layers"), params.frames,
+                                             v("mixing")[len("deformable-"):])
+        else:
+            self.net = VoxFormerNet(v("widths"), v("channels"), v("heads"), v("points"), params.frames,
+                                    v("cross_layers"), v("mix_layers"), info.num_classes, info.grid, v("mixing"))
 
     @classmethod
     def read_weights(cls, path: str) -> dict[str, Any]:
-        """A distilkit checkpoint or state dict, or torchvision's ResNet-50 ImageNet file (``resnet50-19c8e357.pth``)
-        for the ``encoder: resnet50`` backbone alone (:mod:`.weights`: the rest of the model keeps its initial
-        weights; use it as a stage's ``init``)."""
-        return from_torchvision(super().read_weights(path))
+        """A distilkit checkpoint or state dict, a released VoxFormer checkpoint (mmdet's ``state_dict`` of
+        ``img_backbone``, ``img_neck``, ``pts_bbox_head``), or torchvision's ResNet-50 ImageNet file
+        (``resnet50-19c8e357.pth``) for the ``encoder: resnet50`` backbone alone (the rest of the model keeps its
+        initial weights; use it as a stage's ``init``); :mod:`.weights`."""
+        return from_mmdet(from_torchvision(super().read_weights(path)))
 
     @classmethod
     def inputs(cls, params: BaseModel) -> frozenset[str]:

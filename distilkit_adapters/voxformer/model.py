@@ -3,10 +3,9 @@
 Images of one or more frames -> image encoder + FPN -> voxel queries on the half-resolution grid: the proposed
 (occupied) ones read the image features by deformable cross-attention around their centres' projections, the others
 take a shared mask embedding -> 3-D mixing -> completion head: trilinear x2 to the full grid, LayerNorm + Linear to
-class scores. The image encoder is a small ResNet (``encoder: small``) or ResNet-50 with torchvision's names
-(``encoder: resnet50``, :mod:`.resnet`); the queries are mixed by residual 3-D convolutions (``mixing: conv``, the
-CPU stand-in) or by VoxFormer's deformable self-attention (``mixing: deformable-3d | deformable-plane``,
-:mod:`.self_attention`).
+class scores. This is the CPU stand-in (``size: tiny``): a small ResNet image encoder, the queries mixed by residual
+3-D convolutions (``mixing: conv``) or by VoxFormer's deformable self-attention layers (``mixing: deformable-plane |
+deformable-3d``, :mod:`.deformable`); the released network is :mod:`.release`.
 """
 
 from __future__ import annotations
@@ -18,8 +17,7 @@ from torch import Tensor, nn
 from distilkit.structures import SparseVoxels, VoxelGrid
 from distilkit_adapters.voxformer.attention import DeformableCrossAttention, project
 from distilkit_adapters.voxformer.backbone import ImageEncoder
-from distilkit_adapters.voxformer.resnet import ResNetEncoder
-from distilkit_adapters.voxformer.self_attention import DeformableSelfAttention
+from distilkit_adapters.voxformer.transformer import self_layer
 
 MIXINGS = ("conv", "deformable-3d", "deformable-plane")
 
@@ -41,20 +39,19 @@ class VoxFormerNet(nn.Module):
     """The stage-2 network on ``grid`` (the full SSC grid); queries live on ``grid.coarsen(2)``."""
 
     def __init__(self, widths: list[int], channels: int, heads: int, points: int, frames: int, cross_layers: int,
-                 mix_layers: int, num_classes: int, grid: VoxelGrid, encoder: str = "small",
-                 mixing: str = "conv") -> None:
+                 mix_layers: int, num_classes: int, grid: VoxelGrid, mixing: str = "conv") -> None:
         super().__init__()
         if mixing not in MIXINGS:
             raise ValueError(f"mixing must be one of {', '.join(MIXINGS)}, got {mixing!r}")
         self.grid, self.query_grid = grid, grid.coarsen(2)
-        self.encoder = ResNetEncoder(channels) if encoder == "resnet50" else ImageEncoder(widths, channels)
+        self.encoder = ImageEncoder(widths, channels)
         self.queries = nn.Embedding(int(torch.tensor(self.query_grid.shape).prod()), channels)
         self.pos = nn.Sequential(nn.Linear(3, channels), nn.ReLU(), nn.Linear(channels, channels))
         self.mask_embed = nn.Parameter(torch.zeros(channels))
         self.cross = nn.ModuleList(DeformableCrossAttention(channels, heads, points, frames) for _ in range(cross_layers))
         self.mixing = mixing
         self.mix = (nn.Sequential(*(MixBlock(channels) for _ in range(mix_layers))) if mixing == "conv" else
-                    nn.ModuleList(DeformableSelfAttention(channels, heads, points, mixing.split("-")[1])
+                    nn.ModuleList(self_layer(channels, heads, points, 2 * channels, mixing.split("-")[1])
                                   for _ in range(mix_layers)))
         self.norm = nn.LayerNorm(channels)
         self.classifier = nn.Linear(channels, num_classes)
@@ -92,8 +89,10 @@ class VoxFormerNet(nn.Module):
         if conv:
             mixed = self.mix(mixed)
         else:  # VoxFormer: the query volume attends to itself
+            flat = mixed.flatten(2).transpose(1, 2)
             for layer in self.mix:
-                mixed = layer(mixed, grid_pos)
+                flat = layer.finish(layer.attentions[0](flat, grid_pos, (x, y, z)))
+            mixed = flat.transpose(1, 2).reshape(b, -1, x, y, z)
         up = F.interpolate(mixed, scale_factor=2, mode="trilinear", align_corners=False)
         logits = self.classifier(self.norm(up.permute(0, 2, 3, 4, 1))).permute(0, 4, 1, 2, 3)
         return feats, SparseVoxels(coords, q, self.query_grid.shape, self.query_grid), logits

@@ -4,7 +4,7 @@ FPN (Lin et al. CVPR 2017) to ``channels`` (VoxFormer: 128).
 
 Module names are torchvision's (``conv1``, ``bn1``, ``layer1.0.conv1``, ``layer1.0.downsample.0``, ...) under
 ``backbone.``, so an ImageNet file (``resnet50-19c8e357.pth``) loads as it is (:mod:`.weights`); the FPN's are
-``neck.lateral_convs.0.conv`` / ``neck.fpn_convs.0.conv``. As VoxFormer trains it (its configs, read as facts): the
+``lateral_convs.0.conv`` / ``fpn_convs.0.conv`` (mmdet's). As VoxFormer trains it (its configs, read as facts): the
 batch norms are frozen (running statistics kept, no gradient), and so are the stem and the first stage; the fourth
 stage is not built (VoxFormer reads the third only). Images are normalised with ImageNet's mean and spread, as
 VoxFormer's loader does.
@@ -102,25 +102,10 @@ class FPN(nn.Module):
         return self.fpn_convs[0](self.lateral_convs[0](x))
 
 
-class ResNetEncoder(nn.Module):
-    """(N, 3, H, W) images in 0..1 -> (N, channels, ceil(H/16), ceil(W/16)) features (``stride`` 16)."""
-
-    def __init__(self, channels: int) -> None:
-        super().__init__()
-        self.backbone = ResNet50()
-        self.neck = FPN(self.backbone.out_channels, channels)
-        self.stride = STRIDE
-        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
-
-    def forward(self, images: Tensor) -> Tensor:
-        return self.neck(self.backbone((images - self.mean) / self.std))
-
-
 def frozen_fraction(module: nn.Module) -> float:
     """The share of ``module``'s weights that take no gradient (a check for tests and the bench)."""
     total = sum(p.numel() for p in module.parameters())
     return sum(p.numel() for p in module.parameters() if not p.requires_grad) / max(total, 1)
 
 
-__all__ = ["BLOCKS", "Bottleneck", "FPN", "ResNet50", "ResNetEncoder", "STRIDE", "frozen_fraction"]
+__all__ = ["BLOCKS", "Bottleneck", "FPN", "IMAGENET_MEAN", "IMAGENET_STD", "ResNet50", "STRIDE", "frozen_fraction"]

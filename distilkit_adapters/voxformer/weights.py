@@ -1,8 +1,16 @@
-"""torchvision's ResNet-50 ImageNet weights (``resnet50-19c8e357.pth``, the file VoxFormer's configs load) for the
-``encoder: resnet50`` image encoder.
+"""The files VoxFormer's ``size: paper`` network (:mod:`.release`) reads.
 
-The file is a bare state dict in torchvision's names (``conv1.weight``, ``bn1.*``, ``layer1.0.conv1.weight``, ...,
-``fc.*``). It is read into ``net.encoder.backbone.*`` as :class:`~distilkit.engine.checkpoints.PartialWeights`: every
+**A released VoxFormer checkpoint** (mmdet's ``{"state_dict": ...}``, e.g. VoxFormer-S's): ``img_backbone.*`` (mmdet's
+ResNet-50, torchvision's names), ``img_neck.*`` (the FPN) and ``pts_bbox_head.*`` are the network's under ``net.``.
+Reported as left out by design: ``img_backbone.layer4.*`` (mmdet builds the fourth stage, ``out_indices=(2,)``
+reads the third) and ``pts_bbox_head.self_transformer.level_embeds`` / ``cams_embeds`` (the self-attention reads no
+image). Every other key that does not fit is named by ``load_weights``, as the model calls it and as the file
+spells it.
+
+**torchvision's ResNet-50 ImageNet weights** (``resnet50-19c8e357.pth``, the file VoxFormer's configs load) for the
+image encoder alone. The file is a bare state dict in torchvision's names (``conv1.weight``, ``bn1.*``,
+``layer1.0.conv1.weight``, ..., ``fc.*``). It is read into ``net.img_backbone.*`` as
+:class:`~distilkit.engine.checkpoints.PartialWeights`: every
 weight of the backbone must be there and fit (each misfit named), the rest of the model keeps its initial weights.
 Two things are accepted by design and said in the log: the file predates the batch norms' ``num_batches_tracked``
 (torchvision's original release), so a missing counter is set to 0; and ``fc.*`` (the ImageNet classifier) and
@@ -16,10 +24,14 @@ from typing import Any
 
 import torch
 
-from distilkit.engine.checkpoints import PartialWeights
+from distilkit.engine.checkpoints import ImportedWeights, PartialWeights
 
-SCOPE = "net.encoder.backbone."
+SCOPE = "net.img_backbone."
 UNUSED = ("fc.", "layer4.")
+RELEASE = ("img_backbone.", "img_neck.", "pts_bbox_head.")
+NOT_THE_NETWORK = {"img_backbone.layer4.": "the fourth stage: out_indices=(2,) reads the third",
+                   "pts_bbox_head.self_transformer.level_embeds": "the self-attention reads no image",
+                   "pts_bbox_head.self_transformer.cams_embeds": "the self-attention reads no image"}
 
 
 def is_torchvision_resnet(weights: dict[str, Any]) -> bool:
@@ -44,4 +56,26 @@ def from_torchvision(weights: dict[str, Any]) -> dict[str, Any]:
     return PartialWeights(out, SCOPE, tuple(ignored))
 
 
-__all__ = ["SCOPE", "from_torchvision", "is_torchvision_resnet"]
+def _file_name(key: str, shape: tuple[int, ...]) -> str:
+    return key[len("net."):] if key.startswith("net.") else key
+
+
+def from_mmdet(weights: dict[str, Any]) -> dict[str, Any]:
+    """``weights`` as they are when they are not a VoxFormer release's, else under the network's names."""
+    if not any(k.startswith(RELEASE) for k in weights):
+        return weights
+    out: dict[str, Any] = {}
+    spelled: dict[str, str] = {}
+    ignored: dict[str, None] = {}  # in order, once each
+    for key, value in weights.items():
+        prefix = next((p for p in NOT_THE_NETWORK if key.startswith(p)), None)
+        if prefix is not None:
+            ignored[f"{prefix + '*' if prefix.endswith('.') else key} ({NOT_THE_NETWORK[prefix]})"] = None
+            continue
+        name = "net." + key if key.startswith(RELEASE) else key
+        out[name] = value
+        spelled[name] = key
+    return ImportedWeights(out, spelled, _file_name, tuple(ignored))
+
+
+__all__ = ["SCOPE", "from_mmdet", "from_torchvision", "is_torchvision_resnet"]
