@@ -202,7 +202,7 @@ class MinkUNetDiff(nn.Module):
     def forward(self, x_t: Tensor, t: Tensor, enc: EncodedScan) -> Tensor:
         """(B, M, 3) noisy points, (B,) timesteps, the encoded scan -> (B, M, 3) predicted noise."""
         vox = voxelize(x_t, RESOLUTION, align=STRIDE)
-        temb = timestep_embedding(t, self.embed_dim)
+        temb = timestep_embedding(t, self.embed_dim).to(x_t.dtype)  # float32 products, as released
         scale = lambda x, level, stride: x.replace_feature(  # noqa: E731
             x.features * self._weights(level, x, stride, vox, enc, temb))
         x0 = self.stem(vox.tensor)
