@@ -6,6 +6,7 @@ validation score), written atomically by the main process; and every checkpoint 
 from __future__ import annotations
 
 import os
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
@@ -80,11 +81,43 @@ class ImportedWeights(dict):
         self.spelled, self.file_name, self.ignored = spelled, file_name, ignored
 
 
+def _bare(prefix: str, key: str, shape: tuple[int, ...]) -> str:
+    return key[len(prefix):] if key.startswith(prefix) else key
+
+
+def under_prefix(weights: dict[str, Any], prefixes: tuple[str, ...], left_out: dict[str, str],
+                 prefix: str = "net.") -> dict[str, Any]:
+    """A release's state dict under the model's names: the keys that start with one of ``prefixes`` gain ``prefix``
+    (the adapter's ``net.``); those that start with a key of ``left_out`` are what the release holds and the network
+    does not, by design, dropped and said with the reason (``KEY.* (why)`` for a whole module). ``weights`` as they
+    are when no key starts with ``prefixes`` (a distilkit checkpoint)."""
+    if not any(k.startswith(prefixes) for k in weights):
+        return weights
+    out: dict[str, Any] = {}
+    spelled: dict[str, str] = {}
+    said: dict[str, None] = {}  # in order, once each
+    for key, value in weights.items():
+        drop = next((d for d in left_out if key.startswith(d)), None)
+        if drop is not None:
+            said[f"{drop + '*' if drop.endswith('.') else key} ({left_out[drop]})"] = None
+            continue
+        name = prefix + key if key.startswith(prefixes) else key
+        out[name] = value
+        spelled[name] = key
+    return ImportedWeights(out, spelled, partial(_bare, prefix), tuple(said))
+
+
 def spelling(weights: dict[str, Any]) -> Callable[[str, tuple[int, ...]], str] | None:
     """How the file behind ``weights`` spells a key of the model's (None: as the model does)."""
     if not isinstance(weights, ImportedWeights):
         return None
     return lambda key, shape: weights.spelled.get(key) or weights.file_name(key, shape)
+
+
+def in_the_file(key: str, shape: tuple[int, ...], spell: Callable[[str, tuple[int, ...]], str] | None) -> str:
+    """`` (in the file: NAME)`` where the file spells ``key`` otherwise, else ""."""
+    spelled = spell(key, shape) if spell else key
+    return "" if spelled == key else f" (in the file: {spelled})"
 
 
 class PartialWeights(dict):
@@ -113,18 +146,11 @@ def mismatch(own: dict[str, tuple[int, ...]], given: dict[str, tuple[int, ...]],
     missing and unexpected ones being left out by design). ``scope``: only the model's keys under it are expected
     (:class:`PartialWeights`). ``spell`` (:func:`spelling`): a key is also named as the file spells it."""
     scope = getattr(given, "scope", scope)
-
-    def file(k: str, shape: tuple[int, ...]) -> str:
-        spelled = spell(k, shape) if spell else k
-        return "" if spelled == k else f" (in the file: {spelled})"
-
-    def name(k: str, shape: tuple[int, ...]) -> str:
-        return k + file(k, shape)
-
-    misfit = [f"{k} {tuple(given[k])} (model: {tuple(own[k])}){file(k, given[k])}" for k in given
+    misfit = [f"{k} {tuple(given[k])} (model: {tuple(own[k])}){in_the_file(k, given[k], spell)}" for k in given
               if k in own and given[k] != own[k]]
-    missing = [name(k, own[k]) for k in own if k.startswith(scope) and k not in given] if strict else []
-    unexpected = [name(k, given[k]) for k in given if k not in own] if strict else []
+    missing = [k + in_the_file(k, own[k], spell) for k in own if k.startswith(scope) and k not in given] \
+        if strict else []
+    unexpected = [k + in_the_file(k, given[k], spell) for k in given if k not in own] if strict else []
     parts = [f"{len(keys)} {what}: {', '.join(keys)}" for keys, what in
              ((missing, "missing"), (unexpected, "unexpected"), (misfit, "of another shape")) if keys]
     return "; ".join(parts) or None
@@ -162,10 +188,8 @@ def not_finite(weights: dict[str, Any], only: Any = None) -> str | None:
         if isinstance(value, torch.Tensor) and value.is_floating_point():
             finite = torch.isfinite(value)
             if not bool(finite.all()):
-                spelled = spell(key, tuple(value.shape)) if spell else key
-                named = key if spelled == key else f"{key} (in the file: {spelled})"
-                return (f"{named} holds {int((~finite).sum()):,} NaN or infinite values of "
-                        f"{value.numel():,}")
+                return (f"{key}{in_the_file(key, tuple(value.shape), spell)} holds {int((~finite).sum()):,} NaN or "
+                        f"infinite values of {value.numel():,}")
     return None
 
 
@@ -211,4 +235,4 @@ class Checkpoints:
 
 
 __all__ = ["Checkpoints", "ImportedWeights", "PartialWeights", "load_checkpoint", "load_weights", "mismatch",
-           "not_finite", "read_state_dict", "spelling", "whole_problem"]
+           "not_finite", "read_state_dict", "spelling", "under_prefix", "whole_problem"]

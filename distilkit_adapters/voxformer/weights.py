@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from distilkit.engine.checkpoints import ImportedWeights, PartialWeights
+from distilkit.engine.checkpoints import PartialWeights, under_prefix
 
 SCOPE = "net.img_backbone."
 UNUSED = ("fc.", "layer4.")
@@ -56,26 +56,9 @@ def from_torchvision(weights: dict[str, Any]) -> dict[str, Any]:
     return PartialWeights(out, SCOPE, tuple(ignored))
 
 
-def _file_name(key: str, shape: tuple[int, ...]) -> str:
-    return key[len("net."):] if key.startswith("net.") else key
-
-
 def from_mmdet(weights: dict[str, Any]) -> dict[str, Any]:
     """``weights`` as they are when they are not a VoxFormer release's, else under the network's names."""
-    if not any(k.startswith(RELEASE) for k in weights):
-        return weights
-    out: dict[str, Any] = {}
-    spelled: dict[str, str] = {}
-    ignored: dict[str, None] = {}  # in order, once each
-    for key, value in weights.items():
-        prefix = next((p for p in NOT_THE_NETWORK if key.startswith(p)), None)
-        if prefix is not None:
-            ignored[f"{prefix + '*' if prefix.endswith('.') else key} ({NOT_THE_NETWORK[prefix]})"] = None
-            continue
-        name = "net." + key if key.startswith(RELEASE) else key
-        out[name] = value
-        spelled[name] = key
-    return ImportedWeights(out, spelled, _file_name, tuple(ignored))
+    return under_prefix(weights, RELEASE, NOT_THE_NETWORK)
 
 
 __all__ = ["SCOPE", "from_mmdet", "from_torchvision", "is_torchvision_resnet"]
