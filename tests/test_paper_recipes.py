@@ -96,7 +96,7 @@ def test_the_memory_estimate_brackets_the_measured_peak_of_a_paper_network(name,
     """validate's estimate at the full 256 x 256 x 32 grid — extrapolated from probes at 64 x 64 x 8 and
     128 x 128 x 16, as validate does — against a training step measured there (batch 1, the optimizer's state
     live). Minutes: SCPNet's dense completion sub-network at the full grid is an 11 GiB step; VoxFormer runs at 32
-    channels instead of the paper's 128 (5 GiB instead of 16.5: it must fit beside another test in 24 GiB; the
+    channels instead of the paper's 128 (5.3 GiB instead of 15.5: it must fit beside another test in 24 GiB; the
     paper's width is measured in the README)."""
     from distilkit.data.probe import _one_scene
     from distilkit.engine.memory import estimate_stage, measure_step
