@@ -113,7 +113,7 @@ def test_the_memory_estimate_brackets_the_measured_peak_of_a_paper_network(name,
 
 def test_the_networks_bench_covers_every_paper_network_and_measures_a_step() -> None:
     from conftest import TINY_DATA
-    from distilkit.netbench import NetworkCase, _loss, build, measure, network_cases
+    from distilkit.bench.networks import NetworkCase, _loss, build, measure, network_cases
     from distilkit.registry import ADAPTERS
 
     import torch

@@ -22,6 +22,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from distilkit.bench.base import Case, register
+
 
 @dataclass
 class NetworkCase:
@@ -94,10 +96,10 @@ def build(case: NetworkCase, device: torch.device) -> tuple[Any, Any]:
     return model, batch
 
 
-def networks_cases(device: torch.device, quick: bool) -> list[Any]:
+@register("networks")
+def networks_cases(device: torch.device, quick: bool) -> list[Case]:
     """``distilkit bench`` cases: one training step of each network (no naive form: the table's figure is the
     network's own cost)."""
-    from distilkit.bench import Case
 
     out = []
     for case in network_cases(quick):

@@ -18,6 +18,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from distilkit.bench.base import Case, register
+
 
 def scan_occupancy(quick: bool) -> Tensor:
     """(N, 4) int32 active voxels (batch 0) of five fused synthetic HDL-64E scans on the 256 x 256 x 32 grid (quick:
@@ -53,8 +55,8 @@ def sgemm_gflops(device: torch.device, n: int = 4096, repeat: int = 5) -> float:
     return 2 * n ** 3 / sorted(times)[len(times) // 2] / 1e9
 
 
-def sparse_cases(device: torch.device, quick: bool) -> list[Any]:
-    from distilkit.bench import Case
+@register("sparse")
+def sparse_cases(device: torch.device, quick: bool) -> list[Case]:
     from distilkit.sparse import SparseConvTensor, SubMConv3d
 
     channels = 16 if quick else 64
