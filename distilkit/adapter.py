@@ -84,7 +84,7 @@ class Adapter(nn.Module, ABC):
         """The model's weights (a state dict) from a file, loaded safely. Default: a distilkit checkpoint
         (its ``student``), or a file holding a state dict (also under ``state_dict`` or ``model``, as many
         releases do). Override it to convert a model's published checkpoint format to this adapter's names."""
-        from distilkit.engine.checkpoints import read_state_dict
+        from distilkit.weights import read_state_dict
 
         return read_state_dict(path)
 

@@ -33,7 +33,7 @@ def _launch(args: argparse.Namespace) -> int:
     where = (["--standalone"] if nodes == 1 else
              [f"--nnodes={nodes}", f"--node-rank={args.node_rank}", f"--master-addr={args.master_addr}",
               f"--master-port={args.master_port}"])
-    from distilkit.engine.cpus import usable_cpus
+    from distilkit.engine.train.cpus import usable_cpus
 
     env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", str(max(1, usable_cpus() // n)))}
     cmd = [sys.executable, "-m", "torch.distributed.run", f"--nproc-per-node={n}", *where, "-m", "distilkit", "run",
@@ -44,13 +44,13 @@ def _launch(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     import os
 
-    from distilkit.engine import stop
+    from distilkit.engine.train import stop
 
     stop.install()  # SIGTERM (or the death of the sweep that started it) stops after a step, its checkpoint written
     if args.nproc_per_node is not None and "LOCAL_RANK" not in os.environ:
         return _launch(args)
     if args.seed is not None and len(args.seed) > 1:
-        from distilkit.engine.seeds import run_seeds
+        from distilkit.engine.train.seeds import run_seeds
 
         run_seeds(args.recipe, args.output, args.seed, baseline=args.baseline, quiet=args.quiet, rerun=args.rerun,
                   only=args.stage, wait=not args.no_wait, overrides=_overrides(args))
@@ -59,7 +59,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         from distilkit.errors import DistilkitError
 
         raise DistilkitError("--baseline compares stages over several seeds: give them, e.g. --seed 0 1 2")
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
 
     pipe = Pipeline(args.recipe, args.output, quiet=args.quiet, seed=args.seed[0] if args.seed else None,
                     overrides=_overrides(args))
@@ -69,8 +69,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _finished() -> int:
     """0 for a finished run; a process of a multi-process run leaves here, once all are done
-    (:func:`~distilkit.engine.distributed.leave`)."""
-    from distilkit.engine.distributed import leave, world_from_env
+    (:func:`~distilkit.engine.train.distributed.leave`)."""
+    from distilkit.engine.train.distributed import leave, world_from_env
 
     leave(world_from_env())
     return 0
@@ -110,8 +110,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from distilkit.engine.checks import data_problems, weights_problems
-    from distilkit.engine.resolve import resolve
+    from distilkit.engine.assemble.checks import data_problems, weights_problems
+    from distilkit.engine.assemble.resolve import resolve
     from distilkit.errors import RecipeError
     from distilkit.recipe import load_recipe
     from distilkit.registry import DATASETS
@@ -155,7 +155,7 @@ def _validate_memory(res: Any) -> None:
     """Each training stage's memory per step (two steps at small sizes, scaled), with a warning where it does not
     fit in what the machine has free."""
     from distilkit.console import make_console
-    from distilkit.engine.memory import estimate_stage
+    from distilkit.engine.memory.estimate import estimate_stage
 
     console = make_console()
     for name in res.order:
@@ -541,7 +541,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 def _cmd_predict(args: argparse.Namespace) -> int:
     from distilkit.console import make_console, progress_bar
-    from distilkit.engine.predict import predict_folder
+    from distilkit.engine.infer.predict import predict_folder
 
     console = make_console()
     with progress_bar(console, "predict") as advance:
@@ -553,7 +553,7 @@ def _cmd_predict(args: argparse.Namespace) -> int:
 
 def _cmd_export(args: argparse.Namespace) -> int:
     from distilkit.console import make_console
-    from distilkit.engine.export import export_student
+    from distilkit.engine.infer.export import export_student
 
     done = export_student(args.run, args.out, args.which)
     make_console().print(f"{done.weights}: the {done.adapter} student's {done.tensors} tensors (step {done.step}), a "
@@ -608,7 +608,7 @@ def _cmd_data_export(args: argparse.Namespace) -> int:
 
 def _cmd_complete(args: argparse.Namespace) -> int:
     from distilkit.console import make_console
-    from distilkit.engine.complete import complete
+    from distilkit.engine.infer.complete import complete
 
     console = make_console()
     with console.status("loading the model") as spinner:

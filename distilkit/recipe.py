@@ -1,7 +1,7 @@
 """The recipe schema (pydantic v2): the single source of truth for configuration.
 
 Recipes are read with ``yaml.safe_load`` only and may name registered components only.
-:func:`load_recipe` parses and validates the structure (with ``--set`` overrides applied first); :func:`distilkit.engine.resolve.resolve` then builds
+:func:`load_recipe` parses and validates the structure (with ``--set`` overrides applied first); :func:`distilkit.engine.assemble.resolve.resolve` then builds
 every parameter model from the registries and checks taps, so that mistakes are found before training.
 """
 

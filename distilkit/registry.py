@@ -158,9 +158,9 @@ _BUILTIN_MODULES = (
     "distilkit.losses.task",
     "distilkit.data.datasets",
     "distilkit.metrics.registered",
-    "distilkit.engine.optim",
-    "distilkit.engine.tensorboard",
-    "distilkit.engine.recorders",
+    "distilkit.engine.train.optim",
+    "distilkit.engine.train.tensorboard",
+    "distilkit.engine.assemble.recorders",
 )
 _loaded = False
 _loading = False

@@ -88,12 +88,12 @@ def folder_recipe(root, name: str = "kitti", dataset: str = "semantickitti", fra
 
 
 def make_trainer(pipe, stage_name: str, teacher=None, world=None):
-    """The :class:`~distilkit.engine.trainer.Trainer` of a pipeline's stage at its seed, on the CPU, without a run."""
+    """The :class:`~distilkit.engine.train.trainer.Trainer` of a pipeline's stage at its seed, on the CPU, without a run."""
     import torch
 
-    from distilkit.engine.distributed import SINGLE
-    from distilkit.engine.loader import BatchPlan
-    from distilkit.engine.trainer import Trainer
+    from distilkit.engine.train.distributed import SINGLE
+    from distilkit.engine.train.loader import BatchPlan
+    from distilkit.engine.train.trainer import Trainer
 
     world = world or SINGLE
     stage = pipe.resolved.stages[stage_name]

@@ -149,7 +149,7 @@ def test_js3cnet_class_weights_follow_the_paper(batch) -> None:
 
 def test_sigma_trains_at_ten_times_the_learning_rate_unless_the_recipe_says_otherwise(tmp_path) -> None:
     from conftest import tiny_recipe
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from conftest import make_trainer
     from distilkit.recipe import recipe_from_dict
 

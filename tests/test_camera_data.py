@@ -110,8 +110,8 @@ def test_surface_normals_face_the_ray() -> None:
 def test_adding_a_camera_retrains_only_the_stages_that_read_it(monkeypatch) -> None:
     """A stage's identity holds the camera's parameters and version only when the stage reads a camera field."""
     from distilkit.data.info import FieldGroup
-    from distilkit.engine import identity
-    from distilkit.engine.resolve import resolve
+    from distilkit.engine.store import identity
+    from distilkit.engine.assemble.resolve import resolve
     from distilkit.recipe import recipe_from_dict
     from distilkit.registry import DATASETS
 

@@ -8,11 +8,11 @@ import torch
 
 from conftest import tiny_recipe
 from distilkit.data.classes import IGNORE_INDEX, SCRIBBLE_UNLABELLED
-from distilkit.engine.distributed import SINGLE
-from distilkit.engine.loader import BatchPlan
-from distilkit.engine.pipeline import Pipeline
-from distilkit.engine.stage import StageRun
-from distilkit.engine.trainer import Trainer
+from distilkit.engine.train.distributed import SINGLE
+from distilkit.engine.train.loader import BatchPlan
+from distilkit.engine.train.pipeline import Pipeline
+from distilkit.engine.train.stage import StageRun
+from distilkit.engine.train.trainer import Trainer
 from distilkit.losses.ssc import log_frequency_weights
 from distilkit.recipe import recipe_from_dict
 

@@ -8,7 +8,7 @@ import pytest
 from conftest import FIXTURES
 from distilkit.cli import main
 from distilkit.data.pointfiles import read_points, write_points
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import DataError
 from distilkit.recipe import recipe_from_dict
 

@@ -22,7 +22,7 @@ from distilkit.cli import main
 from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX
 from distilkit.data.info import Camera, ClassTable, DataInfo
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import TapError
 from distilkit.geometry.voxel import VoxelGrid
 from distilkit.losses.task import TaskLoss
@@ -137,7 +137,7 @@ def test_camera_style_adapter_trains_distils_and_is_scored(tmp_path) -> None:
 
 def test_image_features_serve_feature_objectives_and_must_come_from_one_camera(tmp_path, capsys,
                                                                               monkeypatch) -> None:
-    from distilkit.engine.resolve import resolve
+    from distilkit.engine.assemble.resolve import resolve
     from distilkit.taps import kind_fits
 
     assert kind_fits("image_features", "feature_map") and kind_fits("volume_features", "feature_map")

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from conftest import tiny_recipe
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import GridMismatchError, RecipeError
 from distilkit.geometry.voxel import align_across_grids, grid_factors
 from distilkit.objectives.common import aligned_pairs

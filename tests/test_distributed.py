@@ -16,9 +16,9 @@ import torch.multiprocessing as mp
 import yaml
 
 from conftest import make_trainer, tiny_recipe
-from distilkit.engine.distributed import World, leave
-from distilkit.engine.runs import build_model, freeze
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.distributed import World, leave
+from distilkit.engine.assemble.runs import build_model, freeze
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import DistilkitError
 from distilkit.recipe import recipe_from_dict
 
@@ -115,8 +115,8 @@ def test_distilkit_run_with_two_processes_trains_with_one_writer(tmp_path: Path)
 def scored(world: World, folder: Path) -> dict[str, Any]:
     """An SCPNet's SSC confusion over 5 validation scenes, this process's share merged with the others', and the
     number of scenes each process scored."""
-    from distilkit.engine.evaluate import _merged
-    from distilkit.engine.loader import eval_batches
+    from distilkit.engine.train.evaluate import _merged
+    from distilkit.engine.train.loader import eval_batches
     from distilkit.metrics.registered import SSCScore
 
     recipe = tiny_recipe(steps=1, distill=False)

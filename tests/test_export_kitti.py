@@ -72,7 +72,7 @@ def test_bad_export_arguments_are_named(tmp_path, capsys) -> None:
 
 
 def test_a_recipe_trains_scpnet_on_the_exported_folder(exported, tmp_path) -> None:
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     recipe = folder_recipe(exported, frames=2, steps=2, train=["00"], val=["08"], scale=4, input_frames=2,
@@ -88,8 +88,8 @@ def test_predict_writes_the_submission_format_and_eval_reads_it(exported, tmp_pa
     import shutil
 
     from distilkit.data.classes import LEARNING_MAP_INV
-    from distilkit.engine.pipeline import Pipeline
-    from distilkit.engine.predict import upsample
+    from distilkit.engine.train.pipeline import Pipeline
+    from distilkit.engine.infer.predict import upsample
     from distilkit.recipe import recipe_from_dict
 
     root = tmp_path / "kitti"
@@ -136,7 +136,7 @@ def test_roles_take_an_official_split_or_sequences_and_older_names_still_read() 
 def test_a_stage_trains_without_a_validation_split(exported, tmp_path) -> None:
     """val: none -> no evaluation during training, the last checkpoint is the model; with no test split either,
     nothing is scored (a stage trained on everything for a submission) and predictions are still published."""
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     def recipe(test):
@@ -186,7 +186,7 @@ def test_the_scan_dataset_gives_every_scan_with_its_point_labels(exported, tmp_p
 
 
 def test_a_multi_frame_teacher_trains_on_every_scan_and_predicts_the_benchmark_frames(exported, tmp_path) -> None:
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     recipe = folder_recipe(exported, "scans", "semantickitti-scan", frames=2, steps=2, batch_size=2, stage="teacher",
@@ -219,7 +219,7 @@ def test_a_hidden_test_split_is_predicted_never_scored(exported, tmp_path) -> No
     (and the summary says so); the stage still publishes its predictions of the hidden frames."""
     import shutil
 
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     root = tmp_path / "kitti"
@@ -236,7 +236,7 @@ def test_a_hidden_test_split_is_predicted_never_scored(exported, tmp_path) -> No
 def test_class_weighted_losses_follow_semanticposs_twelve_classes(exported, tmp_path) -> None:
     """JS3C-Net's weighted uncertainty loss and VoxFormer's weighted CE size their class weights by the data's class
     table (they were SemanticKITTI's 20 whatever the data): both train on a semanticposs-ssc folder (12 classes)."""
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     small = {"seg_channels": 4, "embed": 4, "ssc_channels": 4, "pvi_hidden": 4}

@@ -14,9 +14,9 @@ import yaml
 
 from conftest import tiny_recipe
 from distilkit.cli import main
-from distilkit.engine.checkpoints import load_checkpoint
-from distilkit.engine.lock import lock_path, stage_lock
-from distilkit.engine.pipeline import Pipeline
+from distilkit.weights import load_checkpoint
+from distilkit.engine.store.lock import lock_path, stage_lock
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import RunLockedError
 from distilkit.recipe import recipe_from_dict
 

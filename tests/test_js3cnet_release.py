@@ -201,7 +201,7 @@ def reference(r: dict[str, torch.Tensor], pts: torch.Tensor) -> tuple[torch.Tens
 
 
 def test_a_release_checkpoint_loads_with_every_key_accounted_for_and_gives_the_releases_logits(tmp_path) -> None:
-    from distilkit.engine.checkpoints import load_weights
+    from distilkit.weights import load_weights
     from distilkit.errors import DataError
     from distilkit_adapters.js3cnet.adapter import JS3CNetAdapter
     from distilkit_adapters.js3cnet.paper import JS3CNetPaper

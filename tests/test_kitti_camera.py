@@ -124,7 +124,7 @@ def test_missing_and_corrupt_images_are_named(exported, tmp_path) -> None:
 
 
 def test_a_camera_model_trains_on_the_folder(exported, tmp_path) -> None:
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     recipe = {"schema_version": 1, "name": "cam", "seed": 0,

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from distilkit.data.batch import Batch
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.recipe import recipe_from_dict
 from distilkit.registry import ADAPTERS, TASK_LOSSES
 from distilkit.taps import PointCloud
@@ -265,7 +265,7 @@ def test_a_lidiff_teacher_trains_and_is_scored_by_the_completion_metric(tmp_path
 def test_a_lidiff_stage_without_a_metric_is_selected_by_chamfer_and_a_named_miou_is_refused() -> None:
     """Left out, ``train.metric`` is the prediction kind's own (cd for point clouds; miou for voxels, as before);
     named, it must exist (issue 33: the default miou failed validate for LiDiff)."""
-    from distilkit.engine.resolve import resolve
+    from distilkit.engine.assemble.resolve import resolve
     from distilkit.errors import RecipeError
 
     recipe = {"schema_version": 1, "name": "lidiff", "seed": 0,
@@ -280,7 +280,7 @@ def test_a_lidiff_stage_without_a_metric_is_selected_by_chamfer_and_a_named_miou
 
 def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -> None:
     """Teacher pre-training, then a 1-step student initialised from it: VSD (LoRA aux, own SGD) + structural."""
-    from distilkit.engine.checkpoints import load_checkpoint
+    from distilkit.weights import load_checkpoint
 
     train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd"}
     recipe = {"schema_version": 1, "name": "scorelidar", "seed": 0,

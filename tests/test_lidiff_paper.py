@@ -115,7 +115,7 @@ def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_na
     assert ckpt["state_dict"]["model.up1.1.0.downsample.0.kernel"].shape == (384, 256)  # 1x1x1: (in, out)
     torch.save(ckpt, tmp_path / "diff_net.ckpt")
     loaded = lidiff(duplicate=4).eval()
-    from distilkit.engine.checkpoints import load_weights
+    from distilkit.weights import load_weights
 
     assert load_weights(loaded, type(loaded).read_weights(str(tmp_path / "diff_net.ckpt")), True, "test") == []
     scan, noisy = scenes()
@@ -142,8 +142,8 @@ def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_na
 
 @pytest.mark.parametrize("shape,why", [((27 * 4 * 32,), r"\(3456,\)"), ((9, 3, 32), "9 offsets is not a cube")])
 def test_a_malformed_minkowski_kernel_is_named_and_a_nan_refused(tmp_path, shape, why) -> None:
-    from distilkit.engine.checkpoints import load_weights
-    from distilkit.engine.checks import fit_problem
+    from distilkit.weights import load_weights
+    from distilkit.engine.assemble.checks import fit_problem
 
     model = lidiff(duplicate=4)
     state = release_layout(model.state_dict(), {"partial_enc.": 0, "model.": 0})
@@ -169,7 +169,7 @@ def test_lidiffs_refine_net_ckpt_loads_with_the_same_forward(tmp_path) -> None:
     model = lidiff(adapter="lidiff-refine").eval()
     torch.save({"state_dict": release_layout(model.state_dict(), {"model_refine.": 0})}, tmp_path / "refine_net.ckpt")
     loaded = lidiff(adapter="lidiff-refine").eval()
-    from distilkit.engine.checkpoints import load_weights
+    from distilkit.weights import load_weights
 
     assert load_weights(loaded, type(loaded).read_weights(str(tmp_path / "refine_net.ckpt")), True, "test") == []
     scan, _ = scenes(1)

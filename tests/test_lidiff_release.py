@@ -154,7 +154,7 @@ def clouds() -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def test_a_released_checkpoint_gives_the_releases_noise(tmp_path) -> None:
-    from distilkit.engine.checkpoints import load_weights
+    from distilkit.weights import load_weights
 
     model = lidiff(duplicate=4)
     g = torch.Generator().manual_seed(3)

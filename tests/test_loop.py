@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from conftest import tiny_recipe
-from distilkit.engine.distributed import World
-from distilkit.engine.checkpoints import load_checkpoint
-from distilkit.engine.loader import BatchPlan, eval_indices, train_batches
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.distributed import World
+from distilkit.weights import load_checkpoint
+from distilkit.engine.train.loader import BatchPlan, eval_indices, train_batches
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import RecipeError
 from distilkit.recipe import recipe_from_dict
 

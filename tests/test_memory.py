@@ -10,10 +10,11 @@ import yaml
 
 from conftest import tiny_recipe
 from distilkit.cli import main
-from distilkit.engine import memory
-from distilkit.engine.checkpoints import load_checkpoint
-from distilkit.engine.pipeline import Pipeline
-from distilkit.engine.resolve import resolve
+from distilkit.engine.memory import estimate as memory
+from distilkit.engine.train import oom
+from distilkit.weights import load_checkpoint
+from distilkit.engine.train.pipeline import Pipeline
+from distilkit.engine.assemble.resolve import resolve
 from distilkit.recipe import recipe_from_dict
 
 GIB = 1024**3
@@ -124,7 +125,7 @@ def test_running_out_of_memory_is_one_line_and_keeps_the_checkpoint(tmp_path: Pa
     recipe = tiny_recipe(steps=3, distill=False)
     path = tmp_path / "r.yaml"
     path.write_text(yaml.safe_dump(recipe))
-    from distilkit.engine.trainer import Trainer
+    from distilkit.engine.train.trainer import Trainer
 
     real = Trainer.loss_terms
     calls = {"n": 0}
@@ -138,7 +139,7 @@ def test_running_out_of_memory_is_one_line_and_keeps_the_checkpoint(tmp_path: Pa
 
     monkeypatch.setattr(Trainer, "loss_terms", allocation_fails)
     pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
-    with pytest.raises(memory.OutOfMemoryError) as err:
+    with pytest.raises(oom.OutOfMemoryError) as err:
         pipe.run()
     text = str(err.value)
     assert "\n" not in text and text.startswith("stage 'teacher' ran out of memory (an allocation of 32,768 MiB failed")
@@ -152,10 +153,10 @@ def test_running_out_of_memory_is_one_line_and_keeps_the_checkpoint(tmp_path: Pa
 
 
 def test_other_runtime_errors_are_not_taken_for_memory() -> None:
-    assert memory.is_out_of_memory(MemoryError())
-    assert memory.is_out_of_memory(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB"))
-    assert not memory.is_out_of_memory(RuntimeError("shape '[2, 3]' is invalid for input of size 5"))
-    assert memory._cause(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB (GPU 0)")) == \
+    assert oom.is_out_of_memory(MemoryError())
+    assert oom.is_out_of_memory(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB"))
+    assert not oom.is_out_of_memory(RuntimeError("shape '[2, 3]' is invalid for input of size 5"))
+    assert oom._cause(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB (GPU 0)")) == \
         "an allocation of 2.00 GiB on the GPU failed"
 
 

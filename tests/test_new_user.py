@@ -16,7 +16,7 @@ import yaml
 
 from conftest import ROOT, folder_recipe, tiny_recipe
 from distilkit.cli import BENCH_NAMES, EXAMPLES, build_parser, main
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.recipe import recipe_from_dict
 
 
@@ -129,8 +129,8 @@ def test_an_unknown_key_gets_the_nearest_valid_one(tmp_path, capsys, where: str,
 # -- 5. distilkit export ------------------------------------------------------------------------------------------
 
 def test_export_writes_the_student_alone_loadable_by_torch_and_by_init(tmp_path, capsys) -> None:
-    from distilkit.engine.export import build_exported
-    from distilkit.engine.runs import load_run
+    from distilkit.engine.infer.export import build_exported
+    from distilkit.engine.assemble.runs import load_run
 
     teacher, student = Pipeline(recipe_from_dict(tiny_recipe(steps=1)), tmp_path / "runs", quiet=True).run()
     out = tmp_path / "exp" / "student.pt"

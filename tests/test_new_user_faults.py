@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import stat
 import subprocess
 import sys
 import time
@@ -16,9 +15,8 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import FIXTURES, ROOT, export_kitti, folder_recipe, tiny_recipe
+from conftest import FIXTURES, export_kitti, folder_recipe, tiny_recipe
 from distilkit.cli import main
-from distilkit.data import semantickitti as sk
 from distilkit.data.pointfiles import read_points
 from distilkit.errors import DataError
 

@@ -14,8 +14,8 @@ from torch import Tensor, nn
 
 from conftest import tiny_recipe
 from distilkit.data.batch import Batch
-from distilkit.engine.checkpoints import load_checkpoint
-from distilkit.engine.pipeline import Pipeline
+from distilkit.weights import load_checkpoint
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import RecipeError
 from distilkit.objectives.base import MultiTapObjective, register_objective
 from distilkit.recipe import recipe_from_dict
@@ -117,7 +117,7 @@ def test_an_objective_trains_its_own_network_and_calls_a_teacher_capability(tmp_
 
 def test_the_student_optimizer_leaves_an_objectives_own_parameters_alone(tmp_path) -> None:
     from conftest import make_trainer
-    from distilkit.engine.runs import load_run
+    from distilkit.engine.assemble.runs import load_run
 
     pipe = Pipeline(recipe_from_dict(recipe()), tmp_path / "runs", quiet=True)
     pipe.run()

@@ -9,8 +9,8 @@ import distilkit.losses as L
 
 from conftest import ROOT, tiny_recipe
 from distilkit.data.batch import Batch
-from distilkit.engine.checkpoints import load_checkpoint
-from distilkit.engine.pipeline import Pipeline
+from distilkit.weights import load_checkpoint
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import RecipeError
 from distilkit.recipe import recipe_from_dict
 from distilkit.registry import OBJECTIVES

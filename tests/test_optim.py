@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from conftest import tiny_recipe
-from distilkit.engine.optim import CosineParams, StepParams, cosine, lr_factor, step_decay, weight_factor
-from distilkit.engine.pipeline import Pipeline
-from distilkit.engine.probe import probe_trainer
-from distilkit.engine.resolve import resolve
+from distilkit.engine.train.optim import CosineParams, StepParams, cosine, lr_factor, step_decay, weight_factor
+from distilkit.engine.train.pipeline import Pipeline
+from distilkit.engine.memory.probe import probe_trainer
+from distilkit.engine.assemble.resolve import resolve
 from distilkit.errors import DistilkitError, RecipeError
 from distilkit.recipe import ScheduleSpec, recipe_from_dict
 from distilkit.registry import SCHEDULES
@@ -44,7 +44,7 @@ def test_a_run_steps_its_learning_rate_by_the_schedule_and_a_plugin_schedule_wor
     (res,) = Pipeline(recipe_from_dict(r), tmp_path / "a", quiet=True).run()
     assert _logged(res.run_dir, "lr") == pytest.approx([0.05, 0.1, 0.05, 0.05])  # warm-up 1/2, 2/2; then halved
 
-    from distilkit.engine.optim import NoParams
+    from distilkit.engine.train.optim import NoParams
 
     SCHEDULES.add("halving", lambda step, total, params: 0.5 ** step, description="test", paper="tests",
                   params=NoParams)  # a plugin's schedule, registered as a plugin does

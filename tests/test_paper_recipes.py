@@ -99,8 +99,8 @@ def test_the_memory_estimate_brackets_the_measured_peak_of_a_paper_network(name,
     channels instead of the paper's 128 (5.3 GiB instead of 15.5: it must fit beside another test in 24 GiB; the
     paper's width is measured in the README)."""
     from distilkit.data.probe import _one_scene
-    from distilkit.engine.memory import estimate_stage, measure_step
-    from distilkit.engine.resolve import resolve
+    from distilkit.engine.memory.estimate import estimate_stage, measure_step
+    from distilkit.engine.assemble.resolve import resolve
 
     path = ROOT / "recipes" / "paper" / f"{name}.yaml"
     sets = overrides(name, folder) + ["stages.*.train.batch_size=1", *sets]

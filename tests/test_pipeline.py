@@ -8,12 +8,12 @@ import pytest
 import torch
 
 from conftest import make_trainer, tiny_recipe
-from distilkit.engine.checkpoints import load_checkpoint
-from distilkit.engine.pipeline import Pipeline
-from distilkit.engine.runs import load_run
-from distilkit.engine.trainer import Trainer
+from distilkit.weights import load_checkpoint
+from distilkit.engine.train.pipeline import Pipeline
+from distilkit.engine.assemble.runs import load_run
+from distilkit.engine.train.trainer import Trainer
 from distilkit.errors import DataError, NonFiniteLossError, RecipeError, TapError
-from distilkit.engine.resolve import resolve
+from distilkit.engine.assemble.resolve import resolve
 from distilkit.recipe import recipe_from_dict
 
 
@@ -162,7 +162,7 @@ def test_a_changed_component_version_retrains_exactly_its_stages(tmp_path, monke
 
 
 def test_generator_and_distilkit_versions_are_part_of_the_identity(tmp_path, monkeypatch) -> None:
-    import distilkit.engine.identity as pl
+    import distilkit.engine.store.identity as pl
     from distilkit.registry import DATASETS
 
     base = pipeline(tmp_path, tiny_recipe()).hashes
@@ -228,7 +228,7 @@ def test_scores_are_reported_on_the_test_split_at_best_and_last(tmp_path) -> Non
 
 def test_cuda_rng_state_round_trips_through_a_checkpoint(tmp_path, monkeypatch) -> None:
     """No GPU here: the CUDA generator functions are replaced by fakes holding two devices' states."""
-    from distilkit.engine.randomness import rng_state, set_rng_state
+    from distilkit.engine.train.randomness import rng_state, set_rng_state
     from distilkit.files import atomic_torch_save
 
     states = [torch.arange(8, dtype=torch.uint8), torch.arange(8, 16, dtype=torch.uint8)]
@@ -296,7 +296,7 @@ def test_recipe_taps_record_submodules_and_feed_objectives(tmp_path) -> None:
     _, student = pipe.run()
     assert "kd_fitnets" in (student.run_dir / "metrics.jsonl").read_text()
     # the recorded value is the submodule's output, every forward pass
-    from distilkit.engine.runs import build_model
+    from distilkit.engine.assemble.runs import build_model
     from distilkit.data.lidar import collate_lidar
 
     model = build_model(pipe.resolved.stages["student"].student, pipe.resolved.data_info).eval()
@@ -310,8 +310,8 @@ def test_recipe_taps_record_submodules_and_feed_objectives(tmp_path) -> None:
 def test_recorders_of_every_registered_kind_and_a_plugins(tmp_path) -> None:
     """output, input and method (MMRazor's kinds) record what they say; a plugin's recorder plugs in by name."""
     from distilkit.data.lidar import collate_lidar
-    from distilkit.engine.recorders import attach_recorders
-    from distilkit.engine.runs import build_model
+    from distilkit.engine.assemble.recorders import attach_recorders
+    from distilkit.engine.assemble.runs import build_model
     from distilkit.recipe import HookTapSpec
     from distilkit.registry import RECORDERS
 
@@ -358,7 +358,7 @@ def test_recipe_taps_name_a_wrong_module_or_kind(tmp_path) -> None:
 
 
 def test_a_stage_lists_its_upstream_edges_in_one_place_and_order_needs_and_downstream_read_them() -> None:
-    from distilkit.engine.pipeline import downstream
+    from distilkit.engine.train.pipeline import downstream
     from distilkit.recipe import needed_stages, stage_order
 
     r = tiny_recipe(steps=1)

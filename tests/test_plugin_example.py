@@ -8,7 +8,7 @@ import yaml
 
 from conftest import ROOT
 from distilkit import registry
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.recipe import recipe_from_dict
 
 EXAMPLE = ROOT / "docs" / "examples" / "tiny_adapter"
@@ -103,14 +103,14 @@ def test_a_plugin_registers_a_connector_and_a_schedule_and_a_recipe_uses_both(tm
     import torch
 
     from conftest import tiny_recipe
-    from distilkit.engine.checkpoints import load_checkpoint
+    from distilkit.weights import load_checkpoint
 
     site = tmp_path / "site"
     site.mkdir()
     (site / "my_kd_extras.py").write_text(
         "import torch\n"
         "from torch import nn\n"
-        "from distilkit.engine.optim import NoParams\n"
+        "from distilkit.engine.train.optim import NoParams\n"
         "from distilkit.registry import CONNECTORS, SCHEDULES\n\n"
         "class Gated(nn.Module):\n"
         "    def __init__(self, cs, ct):\n"

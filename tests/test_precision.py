@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from conftest import tiny_recipe
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.objectives.dskd import DSKD
 from distilkit.recipe import recipe_from_dict
 
@@ -40,7 +40,7 @@ def test_reduced_precision_runs_the_models_in_it_and_the_terms_in_float32(tmp_pa
     for stage in r["stages"].values():
         stage["train"]["precision"] = precision
     pipe = Pipeline(recipe_from_dict(r), tmp_path / "runs", quiet=True)
-    from distilkit.engine import trainer as trainer_module
+    from distilkit.engine.train import trainer as trainer_module
 
     dtypes = set()
     orig_loss_terms = trainer_module.Trainer.loss_terms

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from conftest import tiny_recipe
 from distilkit.cli import main
-from distilkit.engine.resolve import resolve
+from distilkit.engine.assemble.resolve import resolve
 from distilkit.errors import RecipeError
 from distilkit.recipe import recipe_from_dict
 from distilkit.sweep.spec import SweepSpec, load_sweep

@@ -87,7 +87,7 @@ def test_the_refiner_trains_on_jittered_ground_truth_by_default() -> None:
 def test_an_auxiliary_model_marked_training_false_runs_only_in_evaluation() -> None:
     from types import SimpleNamespace
 
-    from distilkit.engine.stage import with_aux_inputs
+    from distilkit.engine.train.auxiliary import with_aux_inputs
 
     calls = []
 

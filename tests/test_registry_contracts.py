@@ -114,7 +114,7 @@ def test_an_alias_names_the_same_component_and_a_deprecated_one_warns_without_ch
     import pytest
 
     from conftest import tiny_recipe
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
     from distilkit.registry import OBJECTIVES
 

@@ -10,7 +10,7 @@ import torch
 
 from conftest import tiny_recipe
 from distilkit.cli import main
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.metrics.bev import top_class
 from distilkit.recipe import recipe_from_dict
 

@@ -15,7 +15,7 @@ import pytest
 import torch
 import yaml
 
-from distilkit.engine.checkpoints import load_checkpoint
+from distilkit.weights import load_checkpoint
 
 RECIPE = {
     "schema_version": 1, "name": "repro", "seed": 0,

@@ -70,7 +70,7 @@ def test_the_releases_state_dict_loads_with_the_same_forward_and_a_wrong_one_is_
     assert release["cylinder_3d_generator.PPmodel.1.weight"].shape == (64, 7)
     torch.save(release, tmp_path / "scpnet.pt")
     loaded = scpnet().eval()
-    from distilkit.engine.checkpoints import load_weights
+    from distilkit.weights import load_weights
 
     assert load_weights(loaded, type(loaded).read_weights(str(tmp_path / "scpnet.pt")), True, "test") == []
     b = batch()

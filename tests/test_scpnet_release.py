@@ -173,7 +173,7 @@ def reference(r: dict, pts: torch.Tensor, shared: bool) -> torch.Tensor:
 
 @pytest.mark.parametrize("semantics", ["spconv1", "spconv2"])
 def test_a_release_checkpoint_gives_the_releases_logits(semantics, tmp_path) -> None:
-    from distilkit.engine.checkpoints import load_weights
+    from distilkit.weights import load_weights
     from distilkit_adapters.scpnet.adapter import SCPNetAdapter
     from distilkit_adapters.scpnet.cylinder import SCPNetPaper
 

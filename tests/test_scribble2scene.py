@@ -12,7 +12,7 @@ import yaml
 
 from conftest import ROOT
 from distilkit.cli import main
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import RecipeError
 from distilkit.recipe import recipe_from_dict
 

@@ -11,7 +11,7 @@ import yaml
 
 from conftest import tiny_recipe
 from distilkit.cli import main
-from distilkit.engine.resolve import resolve
+from distilkit.engine.assemble.resolve import resolve
 from distilkit.report.seeds import default_baseline, seed_rows
 from distilkit.recipe import recipe_from_dict
 

@@ -12,7 +12,7 @@ from distilkit.cli import main
 
 @pytest.mark.slow
 def test_eval_of_predict_equals_the_in_training_evaluation(tmp_path) -> None:
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     root = tmp_path / "kitti"

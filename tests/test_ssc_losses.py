@@ -157,7 +157,7 @@ def test_log_frequency_weights_are_voxformers_table() -> None:
 def test_the_registered_task_losses_train_a_stage_by_name_with_weights_from_the_split(tmp_path) -> None:
     from conftest import tiny_recipe
     from distilkit.data.stats import label_counts
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     r = tiny_recipe(steps=2, distill=False)

@@ -15,10 +15,10 @@ from torch import nn
 import test_contracts as tc
 from distilkit.cli import main
 from distilkit.data.batch import Batch
-from distilkit.engine.pipeline import Pipeline
-from distilkit.engine.predictions import LabelOverlay, PredictionStore
-from distilkit.engine.runs import load_run
-from distilkit.engine.trainer import Trainer
+from distilkit.engine.train.pipeline import Pipeline
+from distilkit.engine.store.predictions import LabelOverlay, PredictionStore
+from distilkit.engine.assemble.runs import load_run
+from distilkit.engine.train.trainer import Trainer
 from distilkit.errors import RecipeError
 from distilkit.recipe import recipe_from_dict
 from distilkit.registry import ADAPTERS, DATASETS
@@ -133,7 +133,7 @@ def test_a_finished_stage_publishes_what_a_later_recipe_asks_and_validate_names_
 
 
 def test_the_overlay_keeps_the_datas_labelled_values(tmp_path) -> None:
-    from distilkit.engine.predictions import publish
+    from distilkit.engine.store.predictions import publish
 
     class Const(nn.Module):
         PREDICTION_TAP = "logits"

@@ -11,7 +11,7 @@ import yaml
 
 from conftest import tiny_recipe
 from distilkit.cli import main
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import RecipeError
 from distilkit.recipe import load_recipe
 from distilkit.sweep.runner import SweepRun

@@ -7,9 +7,9 @@ import torch
 import torch.nn.functional as F
 
 from conftest import tiny_recipe
-from distilkit.engine.pipeline import Pipeline
+from distilkit.engine.train.pipeline import Pipeline
 from conftest import make_trainer
-from distilkit.engine.trainer import Trainer
+from distilkit.engine.train.trainer import Trainer
 from distilkit.errors import RecipeError
 from distilkit.recipe import recipe_from_dict
 

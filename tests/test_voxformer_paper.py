@@ -11,7 +11,7 @@ import torch
 from torch import nn
 
 from conftest import export_kitti
-from distilkit.engine.checkpoints import PartialWeights, load_weights
+from distilkit.weights import PartialWeights, load_weights
 from distilkit.errors import DataError
 from distilkit_adapters.voxformer.deformable import plane_shape
 from distilkit_adapters.voxformer.resnet import FPN, Bottleneck, ResNet50, frozen_fraction
@@ -141,7 +141,7 @@ def test_proposals_are_read_from_a_folder_and_a_voxformer_stage_uses_them(folder
     from distilkit.data.datasets import SemanticKittiDataset
     from distilkit.data.lidar import collate_lidar
     from distilkit.data.params import SemanticKittiParams
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     params = SemanticKittiParams(root=str(folder), train=["00"], val=["08"], scale=4, proposals="proposals")

@@ -260,7 +260,7 @@ def test_a_released_checkpoint_loads_with_every_key_accounted_for_and_gives_the_
     from distilkit.data.camera import intrinsics, lidar_to_camera
     from distilkit.data.info import DataInfo
     from distilkit.data.params import CameraParams
-    from distilkit.engine.checkpoints import load_weights
+    from distilkit.weights import load_weights
     from distilkit_adapters.voxformer.adapter import VoxFormerAdapter, VoxFormerParams
 
     torch.manual_seed(0)

@@ -25,7 +25,7 @@ def kitti_cases(device: torch.device, quick: bool) -> list[Case]:
     from distilkit.data.export import export_kitti
     from distilkit.data.params import SemanticKittiParams, SyntheticParams
     from distilkit.data.info import ClassTable
-    from distilkit.engine.predict import raw_ids
+    from distilkit.engine.infer.predict import raw_ids
     from distilkit.metrics.official import evaluate_folder
     from distilkit.structures import VoxelGrid
 

@@ -117,9 +117,9 @@ def networks_cases(device: torch.device, quick: bool) -> list[Case]:
 
 def measure(step: Any, model: Any, device: torch.device) -> tuple[float, int, float]:
     """(milliseconds of the second step, peak bytes of the first — parameters and gradients included —, loss)."""
-    from distilkit.engine.memory import _tensor_bytes, peak_of_step
+    from distilkit.engine.memory.estimate import tensor_bytes, peak_of_step
 
-    weights = _tensor_bytes([*model.parameters(), *model.buffers()])
+    weights = tensor_bytes([*model.parameters(), *model.buffers()])
     peak = peak_of_step(lambda: step().backward(), device)
     if device.type == "cuda":
         torch.cuda.synchronize(device)

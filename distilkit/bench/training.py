@@ -21,8 +21,8 @@ def determinism_cases(device: torch.device, quick: bool) -> list[Case]:
     import tempfile
 
     from distilkit.data.probe import _one_scene
-    from distilkit.engine.probe import probe_trainer
-    from distilkit.engine.resolve import resolve
+    from distilkit.engine.memory.probe import probe_trainer
+    from distilkit.engine.assemble.resolve import resolve
     from distilkit.recipe import recipe_from_dict
 
     data = {"dataset": "synthetic-lidar", "params": {"scale": 8 if quick else 4, "input_frames": 4, "gt_frames": 10,
@@ -62,9 +62,9 @@ def loader_cases(device: torch.device, quick: bool) -> list[Case]:
     mode: 2 steps on an 8-times smaller grid)."""
     import tempfile
 
-    from distilkit.engine.loader import BatchPlan, train_batches
-    from distilkit.engine.pipeline import Pipeline
-    from distilkit.engine.trainer import Trainer
+    from distilkit.engine.train.loader import BatchPlan, train_batches
+    from distilkit.engine.train.pipeline import Pipeline
+    from distilkit.engine.train.trainer import Trainer
     from distilkit.recipe import recipe_from_dict
 
     data = {"scale": 8 if quick else 4, "num_train": 4 if quick else 12, "num_val": 1, "num_test": 1,
@@ -97,8 +97,8 @@ def camera_cases(device: torch.device, quick: bool) -> list[Case]:
     import tempfile
 
     from distilkit.data.probe import _one_scene
-    from distilkit.engine.probe import probe_trainer
-    from distilkit.engine.resolve import resolve
+    from distilkit.engine.memory.probe import probe_trainer
+    from distilkit.engine.assemble.resolve import resolve
     from distilkit.recipe import recipe_from_dict
 
     data = {"dataset": "synthetic-lidar", "params": {"scale": 8 if quick else 4, "input_frames": 1, "gt_frames": 10,

@@ -146,4 +146,26 @@ def export_kitti(out: str | Path, p: SyntheticParams, sequences: Sequence[str] =
     return root
 
 
-__all__ = ["SCRIBBLE_FOLDER", "export_kitti", "export_sequence", "lidar_to_camera", "write_calib"]
+def synthetic_params(items: Sequence[str], camera: bool = False) -> SyntheticParams:
+    """The synthetic streets' parameters from ``KEY=VALUE`` items (values read as YAML), with the camera's defaults
+    where ``camera`` asks for images and the items set none."""
+    import yaml
+    from pydantic import ValidationError
+
+    from distilkit.errors import DistilkitError
+
+    values = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise DistilkitError(f"--set {item!r}: expected KEY=VALUE")
+        values[key] = yaml.safe_load(value)
+    if camera and values.get("camera") is None:
+        values["camera"] = {}
+    try:
+        return SyntheticParams(**values)
+    except ValidationError as err:
+        raise DistilkitError(f"--set: {err.errors()[0]['loc'][0]}: {err.errors()[0]['msg']}") from None
+
+
+__all__ = ["SCRIBBLE_FOLDER", "export_kitti", "export_sequence", "lidar_to_camera", "synthetic_params", "write_calib"]

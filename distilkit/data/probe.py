@@ -2,7 +2,7 @@
 
 A dataset registers ``probe=`` (a function of its parameters returning a :class:`ProbePlan`): the same data at
 one or two small sizes, one training sample each, the size of each on one scale (voxels of the grid, points of a
-cloud) and the recipe's own size on it. :mod:`distilkit.engine.memory` runs one training step at each probe size
+cloud) and the recipe's own size on it. :mod:`distilkit.engine.memory.estimate` runs one training step at each probe size
 and extrapolates to the recipe's size.
 """
 

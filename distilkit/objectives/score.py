@@ -13,7 +13,6 @@ from distilkit.data.batch import Batch
 from distilkit.losses.vsd import vsd
 from distilkit.objectives.base import MultiTapObjective, register_objective
 from distilkit.objectives.lora import full_copy, lora_copy
-from distilkit.structures import PointCloud
 
 
 class VSDParams(BaseModel):

@@ -21,10 +21,10 @@ from typing import Any, Iterator
 
 import yaml
 
-from distilkit.engine.cpus import usable_cpus
+from distilkit.engine.train.cpus import usable_cpus
 from distilkit.files import atomic_write_text
-from distilkit.engine.pipeline import Pipeline
-from distilkit.engine.stage import read_summary
+from distilkit.engine.train.pipeline import Pipeline
+from distilkit.engine.train.stage import read_summary
 from distilkit.errors import DistilkitError, RecipeError
 from distilkit.sweep.results import RunRecord, write_results
 from distilkit.sweep.spec import Sweep, load_sweep
@@ -150,7 +150,7 @@ class SweepRun:
         threads = max(1, cpus // jobs)
         if jobs > cpus:
             self.console.print(f"[yellow]--jobs {jobs} on {cpus} CPUs: jobs share cores (1 thread each)[/]")
-        from distilkit.engine.stop import PARENT_ENV
+        from distilkit.engine.train.stop import PARENT_ENV
 
         env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
                PARENT_ENV: str(os.getpid())}  # a run stops (checkpoint written) if this process dies

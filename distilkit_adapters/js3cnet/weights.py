@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from distilkit.engine.checkpoints import under_prefix
+from distilkit.weights import under_prefix
 
 PREFIXES = ("seg_head.", "complet_head.")
 NOT_THE_NETWORK = {"voxelpool.": "unused with pooling_type: mean", "seg_sigmas_sq": "the uncertainty loss's weight",

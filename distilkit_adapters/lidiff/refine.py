@@ -31,7 +31,7 @@ from distilkit.data.info import DataInfo
 from distilkit.geometry.nearest import knn_indices
 from distilkit.registry import ADAPTERS
 from distilkit.structures import PointCloud
-from distilkit_adapters.lidiff.model import _gather, _mlp
+from distilkit_adapters.lidiff.model import _mlp
 
 
 class RefineParams(BaseModel):

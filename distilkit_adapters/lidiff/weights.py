@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from distilkit.engine.checkpoints import ImportedWeights
+from distilkit.weights import ImportedWeights
 from distilkit.errors import DataError
 from distilkit.sparse.convert import minkowski_to_spconv2
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 from functools import partial
 from typing import Any
 
-from distilkit.engine.checkpoints import ImportedWeights
+from distilkit.weights import ImportedWeights
 from distilkit.errors import DataError
 from distilkit.sparse.convert import spconv1_to_spconv2
 

@@ -12,7 +12,6 @@ VoxFormer's loader does.
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor, nn
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

@@ -10,7 +10,7 @@ spells it.
 **torchvision's ResNet-50 ImageNet weights** (``resnet50-19c8e357.pth``, the file VoxFormer's configs load) for the
 image encoder alone. The file is a bare state dict in torchvision's names (``conv1.weight``, ``bn1.*``,
 ``layer1.0.conv1.weight``, ..., ``fc.*``). It is read into ``net.img_backbone.*`` as
-:class:`~distilkit.engine.checkpoints.PartialWeights`: every
+:class:`~distilkit.weights.PartialWeights`: every
 weight of the backbone must be there and fit (each misfit named), the rest of the model keeps its initial weights.
 Two things are accepted by design and said in the log: the file predates the batch norms' ``num_batches_tracked``
 (torchvision's original release), so a missing counter is set to 0; and ``fc.*`` (the ImageNet classifier) and
@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from distilkit.engine.checkpoints import PartialWeights, under_prefix
+from distilkit.weights import PartialWeights, under_prefix
 
 SCOPE = "net.img_backbone."
 UNUSED = ("fc.", "layer4.")

@@ -48,7 +48,7 @@ def model_shapes(model: Any, info: Any) -> dict[str, tuple[int, ...]]:
     """The state dict's shapes of a resolved model, built on the meta device (nothing allocated) where it can be."""
     import torch
 
-    from distilkit.engine.runs import build_model
+    from distilkit.engine.assemble.runs import build_model
 
     try:
         with torch.device("meta"), torch.random.fork_rng(devices=[]):
@@ -62,7 +62,7 @@ def model_shapes(model: Any, info: Any) -> dict[str, tuple[int, ...]]:
 def fit_problem(path: Path, model: Any, info: Any, strict: bool, whole: bool = False) -> str | None:
     """None where the weights file at ``path`` loads (read by the adapter's ``read_weights``) and fits ``model``;
     else what is wrong with it. ``whole``: the file must hold the whole model (a teacher's), not a part of it."""
-    from distilkit.engine.checkpoints import mismatch, not_finite, spelling, whole_problem
+    from distilkit.weights import mismatch, not_finite, spelling, whole_problem
 
     if not path.is_file():
         return f"{path}: no such file"
@@ -80,4 +80,32 @@ def fit_problem(path: Path, model: Any, info: Any, strict: bool, whole: bool = F
     return f"{path}: {bad}" if bad else None
 
 
-__all__ = ["data_problems", "fit_problem", "model_shapes", "weights_problems"]
+
+
+def run_problems(res: Any) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+    """What a run of ``res`` would meet: (the data's problems, every problem — the data's and the weights files')."""
+    from distilkit.registry import DATASETS
+
+    entry = DATASETS.entry(res.recipe.data.dataset)
+    has_split = entry.meta.get("has_split", lambda p, s: s != "test")
+    unreadable = data_problems(res, lambda split: bool(has_split(res.data_params, split)))
+    return unreadable, unreadable + weights_problems(res)
+
+
+def describe(res: Any) -> tuple[str, list[str]]:
+    """A resolved recipe in words: its stages (adapter, edges, objectives) on one line, and one line per distinct model
+    saying whether it is the paper's network or a stand-in."""
+    stages = ", ".join(
+        f"{n} ({s.student.adapter}" + "".join(f"; {edge} <- {up}" for edge, up in s.spec.edges().items())
+        + (f"; {', '.join(t.name for t in s.distill)}" if s.distill else "") + ")"
+        for n, s in res.stages.items())
+    seen: dict[str, list[str]] = {}
+    for name, stage in res.stages.items():
+        spec = stage.student
+        what = spec.cls.network(spec.params)
+        if what:
+            seen.setdefault(f"{spec.adapter}: {what}", []).append(name)
+    return stages, [f"model of {', '.join(names)} — {line}" for line, names in seen.items()]
+
+
+__all__ = ["data_problems", "describe", "fit_problem", "model_shapes", "run_problems", "weights_problems"]

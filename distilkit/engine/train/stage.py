@@ -1,16 +1,17 @@
 """One stage run, with one owner: build → loop → evaluate → publish.
 
 * **build**: the run folder and its resolved configuration, the stage's seed (once), the device, the frozen
-  teacher and the initial weights (both rebuilt from upstream runs by :func:`~distilkit.engine.runs.load_run`),
-  the data loaders, and the :class:`~distilkit.engine.trainer.Trainer` (student, terms, optimizer);
-* **loop**: batches from the loader (:mod:`~distilkit.engine.loader`), one optimizer step each, the lifecycle hooks
+  teacher and the initial weights (both rebuilt from upstream runs by :func:`~distilkit.engine.assemble.runs.load_run`),
+  the data loaders, and the :class:`~distilkit.engine.train.trainer.Trainer` (student, terms, optimizer);
+* **loop**: batches from the loader (:mod:`~distilkit.engine.train.loader`), one optimizer step each, the lifecycle hooks
   (:mod:`~distilkit.engine.hooks`) around it; a run started again resumes from ``last.pt`` (models, optimizers, RNG
   and the batch order);
 * **evaluate**: the best-validation and the last checkpoint on the test split (the validation split where the data
   has no test split) with the stage's metrics, each process scoring its share;
 * **publish**: ``summary.json`` (which marks the stage finished), ``preview.npz`` and the run report.
 
-The pipeline (:mod:`~distilkit.engine.pipeline`) only orders, hashes and locks stages.
+It reads what the recipe's stages share (:class:`~distilkit.engine.train.context.RecipeRun`: the resolved recipe, the
+data, upstream weights); the pipeline (:mod:`~distilkit.engine.train.pipeline`) only orders, hashes and locks stages.
 """
 
 from __future__ import annotations
@@ -26,16 +27,18 @@ import torch
 import yaml
 
 from distilkit import __version__
-from distilkit.engine.checkpoints import Checkpoints
+from distilkit.engine.store.checkpoints import Checkpoints
 from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop, ProgressHook
-from distilkit.engine.randomness import seed_everything
+from distilkit.engine.train.randomness import seed_everything
 from distilkit.files import atomic_write_json, atomic_write_text
-from distilkit.engine.loader import BatchPlan, eval_batches, resolve_workers, train_batches
-from distilkit.engine.runs import load_run
+from distilkit.engine.train.loader import BatchPlan, eval_batches, resolve_workers, train_batches
+from distilkit.engine.assemble.runs import load_run
+from distilkit.engine.train.auxiliary import with_aux_inputs
+from distilkit.engine.train.devices import pick_device
 
 if TYPE_CHECKING:
-    from distilkit.engine.pipeline import Pipeline
-    from distilkit.engine.trainer import Trainer
+    from distilkit.engine.train.context import RecipeRun
+    from distilkit.engine.train.trainer import Trainer
 
 
 @dataclass
@@ -58,31 +61,11 @@ def read_summary(run_dir: Path) -> dict[str, Any] | None:
     return summary if summary.get("status") == "finished" else None
 
 
-def with_aux_inputs(batch: Any, aux: list[tuple[Any, Any]], training: bool = False) -> Any:
-    """``batch`` with the inputs the frozen auxiliary models give: each (resolved aux, model)'s taps under no_grad
-    (for a ``training`` batch, only those of the auxiliary models that run in training)."""
-    aux = [(spec, model) for spec, model in aux if spec.training or not training]
-    if not aux:
-        return batch
-    added: dict[str, Any] = {}
-    with torch.no_grad():
-        for spec, model in aux:
-            out = model(batch)
-            added.update({field: out[tap] for tap, field in spec.inputs.items()})
-    return batch.with_inputs(**added)
-
-
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
 class StageRun:
     """The run of stage ``name`` of a pipeline's recipe in ``run_dir`` (the caller holds the stage's lock)."""
 
-    def __init__(self, pipeline: "Pipeline", name: str, run_dir: Path, stop_after: int | None = None) -> None:
-        from distilkit.engine.identity import stage_seed
+    def __init__(self, pipeline: "RecipeRun", name: str, run_dir: Path, stop_after: int | None = None) -> None:
+        from distilkit.engine.store.identity import stage_seed
 
         self.pipeline, self.name, self.run_dir, self.stop_after = pipeline, name, run_dir, stop_after
         self.stage = pipeline.resolved.stages[name]
@@ -101,7 +84,7 @@ class StageRun:
     def run(self) -> StageResult | None:
         """Reuse the finished stage, or build, train, evaluate and publish it (None: stopped early on request)."""
         from distilkit.console import progress_bar, stage_progress
-        from distilkit.engine.memory import is_out_of_memory, out_of_memory
+        from distilkit.engine.train.oom import is_out_of_memory, out_of_memory
 
         done = read_summary(self.run_dir)
         if done is not None:
@@ -170,7 +153,7 @@ class StageRun:
     def split(self, name: str) -> Any:
         """The stage's samples of split ``name``: the data's, with labels from a stage's predictions where the
         recipe asks (``labels``)."""
-        from distilkit.engine.predictions import LabelOverlay, PredictionStore
+        from distilkit.engine.store.predictions import LabelOverlay, PredictionStore
 
         data = self.pipeline.dataset(name)
         labels = self.stage.spec.labels
@@ -198,7 +181,7 @@ class StageRun:
     def build(self) -> "Trainer":
         """The stage's seed, then the frozen teacher and auxiliary models (drawing nothing from the seeded stream),
         the initial weights and the trainer on this process's batches."""
-        from distilkit.engine.trainer import Trainer
+        from distilkit.engine.train.trainer import Trainer
 
         seed_everything(self.seed)
         self.load_aux()
@@ -231,8 +214,8 @@ class StageRun:
     # -- loop --------------------------------------------------------------------------------
     def loop(self, on_step: Any) -> Loop:
         """Train from the start or from ``last.pt`` to the last step (or ``stop_after``)."""
-        from distilkit.engine import stop as stopping
-        from distilkit.engine.randomness import set_rng_state
+        from distilkit.engine.train import stop as stopping
+        from distilkit.engine.train.randomness import set_rng_state
 
         trainer = self.trainer
         assert trainer is not None
@@ -302,7 +285,7 @@ class StageRun:
 
     def save(self, which: str, loop: Loop) -> None:
         """``last.pt`` (everything to resume from) or ``best.pt`` (the student and the scores that chose it)."""
-        from distilkit.engine.randomness import rng_state
+        from distilkit.engine.train.randomness import rng_state
 
         assert self.trainer is not None
         if which == "last":
@@ -317,7 +300,7 @@ class StageRun:
         """Scores of the student (or ``model``) on ``dataset`` with the stage's metrics, each process scoring its
         share; a stochastic model draws the same noise at every evaluation (the stage's seed, in a stream of its
         own that training does not see)."""
-        from distilkit.engine.evaluate import evaluate
+        from distilkit.engine.train.evaluate import evaluate
 
         assert self.trainer is not None
         return evaluate(model if model is not None else self.trainer.student, dataset, self.spec.batch_size,
@@ -331,7 +314,7 @@ class StageRun:
         self.world.barrier()
         if not (self.run_dir / "checkpoints" / "best.pt").is_file():
             return None
-        from distilkit.engine.runs import checkpoint_step
+        from distilkit.engine.assemble.runs import checkpoint_step
 
         model = load_run(self.run_dir, "best", model=self.stage.student, info=self.info, device=self.device,
                          role="student", frozen=False)
@@ -354,7 +337,7 @@ class StageRun:
         first validation scene, with the class names and colours to draw it (arrays only: loaded without pickle)."""
         import numpy as np
 
-        from distilkit.engine.evaluate import preview
+        from distilkit.engine.train.evaluate import preview
 
         assert self.trainer is not None and self.stage.metric is not None
         if not self.world.main:
@@ -378,7 +361,7 @@ class StageRun:
     def publish_predictions(self, model: Any = None) -> list[str]:
         """Publish the best model's predictions of the splits later stages (or the recipe's ``publish``) ask for
         and that are not published yet; the splits written."""
-        from distilkit.engine.predictions import is_published, publish
+        from distilkit.engine.store.predictions import is_published, publish
 
         wanted = [s for s in self.pipeline.prediction_splits(self.name)
                   if not is_published(self.run_dir / "predictions" / s)]
@@ -427,4 +410,4 @@ class StageRun:
         return StageResult(self.name, self.run_dir, summary, reused=False)
 
 
-__all__ = ["StageResult", "StageRun", "pick_device", "read_summary"]
+__all__ = ["StageResult", "StageRun", "read_summary"]

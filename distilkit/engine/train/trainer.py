@@ -4,7 +4,7 @@ connectors and the optimizer, and one training step.
 Per step (:meth:`Trainer.train_step`): ``s_out = student(batch)``; the teacher's outputs under ``no_grad`` when a
 term reads a teacher tap; ``loss = sum_j w_j task_j + sum_i w_i objective_i(taps)``; backward, a finite-gradient
 check, clipping, the optimizer step, then each objective's own ``update``. The stage's run (the loop, its hooks,
-evaluation, checkpoints) is :mod:`distilkit.engine.stage`; this class is what it optimises.
+evaluation, checkpoints) is :mod:`distilkit.engine.train.stage`; this class is what it optimises.
 """
 
 from __future__ import annotations
@@ -19,11 +19,11 @@ from torch import Tensor, nn
 from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
-from distilkit.engine.distributed import SINGLE, World, sync_batchnorm
-from distilkit.engine.checkpoints import load_weights
-from distilkit.engine.loader import BatchPlan, Collate
-from distilkit.engine.resolve import ResolvedStage, ResolvedTerm
-from distilkit.engine.runs import build_model
+from distilkit.engine.train.distributed import SINGLE, World, sync_batchnorm
+from distilkit.weights import load_weights
+from distilkit.engine.train.loader import BatchPlan, Collate
+from distilkit.engine.assemble.resolved import ResolvedStage, ResolvedTerm
+from distilkit.engine.assemble.runs import build_model
 from distilkit.errors import DistilkitError, NonFiniteLossError
 from distilkit.objectives.connectors import Connector
 from distilkit.taps import check_tap, to_float32
@@ -212,7 +212,7 @@ class Trainer:
 
     def _set_lr(self, step: int) -> float:
         """Every group's learning rate at 0-based ``step``: its base rate times the schedule's factor."""
-        from distilkit.engine.optim import lr_factor
+        from distilkit.engine.train.optim import lr_factor
 
         schedule = self.stage.spec.optimizer.schedule
         factor = lr_factor(schedule, self.stage.schedule or _no_params(), step, self.total_steps)
@@ -341,7 +341,7 @@ class Trainer:
         self._check_outputs(self.student, s_out, "student")
         t_out = self._teacher_outputs(batch) if len(self.objectives) else {}
         terms: dict[str, Tensor] = {}
-        from distilkit.engine.optim import weight_factor
+        from distilkit.engine.train.optim import weight_factor
 
         for i, term in enumerate(self.terms):
             taps = self._roles(term, s_out, t_out, batch)
@@ -391,6 +391,6 @@ class Trainer:
         return {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}, "lr": lr, **extra}
 
 def _no_params() -> Any:
-    from distilkit.engine.optim import NoParams
+    from distilkit.engine.train.optim import NoParams
 
     return NoParams()

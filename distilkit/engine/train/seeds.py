@@ -14,7 +14,7 @@ def run_seeds(recipe: str | Path, output: str | Path, seeds: list[int], baseline
               quiet: bool = False, rerun: list[str] | None = None, only: list[str] | None = None,
               wait: bool = True, overrides: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Run the recipe once per seed (finished stages are reused), then report mean ± std over the seeds."""
-    from distilkit.engine.pipeline import Pipeline
+    from distilkit.engine.train.pipeline import Pipeline
 
     if len(set(seeds)) != len(seeds):
         raise DistilkitError(f"--seed: give each seed once, got {' '.join(map(str, seeds))}")

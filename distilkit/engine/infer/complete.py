@@ -1,6 +1,6 @@
 """``distilkit complete``: a trained scene-completion model completes a user's scan into a dense scene.
 
-The model is rebuilt from its run (:func:`~distilkit.engine.runs.load_run`); its adapter offers the
+The model is rebuilt from its run (:func:`~distilkit.engine.assemble.runs.load_run`); its adapter offers the
 :class:`ScanCompleter` capability, which prepares the scan and post-processes the result by its own conventions
 (LiDiff's: :mod:`distilkit_adapters.lidiff.complete`). The number of scan points defaults to what the run was
 trained with (its ``recipe.resolved.yaml``); ``--scan-points`` overrides it. ``--refine RUN`` passes the completion
@@ -48,7 +48,7 @@ class Completion:
 
 def _model(source: Path, capability: type, what: str) -> tuple[Any, dict[str, Any]]:
     """The run's model (best checkpoint, else last) and the data parameters it was trained with."""
-    from distilkit.engine.runs import checkpoint_path, load_run, run_config
+    from distilkit.engine.assemble.runs import checkpoint_path, load_run, run_config
 
     path = checkpoint_path(source, "any")
     model = load_run(path)

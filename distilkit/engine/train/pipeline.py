@@ -1,25 +1,23 @@
-"""The pipeline: stages in dependency order, each cached by its identity (:mod:`distilkit.engine.identity`: the
+"""The pipeline: stages in dependency order, each cached by its identity (:mod:`distilkit.engine.store.identity`: the
 non-default values of its resolved configuration, the data's fingerprint, the seed, the code versions and the
 identities of the stages it reads). ``runs/<recipe>/<stage>-<hash>/summary.json`` marks a finished stage, which is
 reused; an unfinished one resumes from ``last.pt``. ``rerun`` retrains named stages (and the
-stages downstream of them) on purpose; the replaced folder is kept beside the new one.
+stages downstream of them) on purpose; the replaced folder is kept beside the new one. What the stages share (the
+resolved recipe, the data, the upstream weights) is its base, :class:`~distilkit.engine.train.context.RecipeRun`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import time
 from pathlib import Path
-from typing import Any
 
-from distilkit.engine.identity import stage_hashes
-from distilkit.engine.resolve import ResolvedRecipe, resolve
-from distilkit.engine.stage import StageResult, StageRun
+from distilkit.engine.assemble.resolved import ResolvedRecipe
+from distilkit.engine.train.context import RecipeRun
+from distilkit.engine.train.stage import StageResult, StageRun, read_summary
 from distilkit.errors import RecipeError
-from distilkit.recipe import Recipe, load_recipe, needed_stages
-from distilkit.registry import DATASETS
+from distilkit.recipe import needed_stages
 
 
 def writable(root: Path) -> None:
@@ -44,91 +42,8 @@ def downstream(res: ResolvedRecipe, names: set[str]) -> set[str]:
     return out
 
 
-class Pipeline:
+class Pipeline(RecipeRun):
     """Runs a recipe: resolves it, builds data lazily, trains or reuses each stage, writes a report."""
-
-    def __init__(self, recipe: Recipe | str | Path, output: str | Path = "runs", console: Any = None,
-                 quiet: bool = False, seed: int | None = None, overrides: dict[str, Any] | None = None) -> None:
-        self.source = str(recipe) if not isinstance(recipe, Recipe) else "recipe"
-        if overrides and isinstance(recipe, Recipe):
-            raise ValueError("overrides apply to a recipe file; change a Recipe object with model_copy")
-        self.recipe = recipe if isinstance(recipe, Recipe) else load_recipe(recipe, overrides)
-        self.overrides = dict(overrides or {})  # recorded beside each stage's resolved configuration
-        if seed is not None:  # a seed from the command line: a different identity for every stage
-            self.recipe = self.recipe.model_copy(update={"seed": seed})
-        self.resolved = resolve(self.recipe, self.source)
-        self.root = Path(output) / self.recipe.name
-        self.hashes, self.configs = stage_hashes(self.resolved)
-        self.quiet = quiet
-        if console is None:
-            from distilkit.console import make_console
-
-            console = make_console(quiet=quiet)
-        self.console = console
-        self._data: dict[str, Any] = {}  # split -> dataset
-        from distilkit.engine.distributed import SINGLE
-
-        self.world = SINGLE  # the processes of this run: set in run() from torchrun's environment
-
-    def share_data(self, store: dict[str, dict[str, Any]]) -> None:
-        """Share datasets with the other pipelines in ``store`` that have the same data configuration (a sweep's
-        runs read their scenes once)."""
-        key = json.dumps({"dataset": self.recipe.data.dataset,
-                          "params": self.resolved.data_params.model_dump(mode="json")}, sort_keys=True)
-        self._data = store.setdefault(key, self._data)
-
-    def run_dir(self, name: str) -> Path:
-        return self.root / f"{name}-{self.hashes[name]}"
-
-    def weights(self, name: str, which: str = "best") -> Path:
-        """The checkpoint holding stage ``name``'s weights: its own, or for an evaluate-only stage (``steps: 0``, which
-        writes none) the one it was initialised from, followed back to a trained stage or a weights file."""
-        from distilkit.engine.runs import checkpoint_path
-
-        spec = self.resolved.stages[name].spec
-        if spec.train.steps == 0 and spec.init is not None:
-            if spec.init.from_ is not None:
-                return self.weights(spec.init.from_, spec.init.which)
-            return Path(spec.init.checkpoint or "").expanduser()
-        return checkpoint_path(self.run_dir(name), which)
-
-    def dataset(self, split: str) -> Any:
-        """The split's samples, each with its ``sample_id`` (generated or read once, shared by the stages)."""
-        from distilkit.data.samples import Split
-
-        if split not in self._data:
-            entry = DATASETS.entry(self.recipe.data.dataset)
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-            with Progress(TextColumn(f"[cyan]data[/] {self.recipe.data.dataset}/{split}"), BarColumn(),
-                          MofNCompleteColumn(), TimeRemainingColumn(), console=self.console, transient=True) as prog:
-                task = prog.add_task("gen", total=None)
-                self._data[split] = Split(entry.obj(self.resolved.data_params, split,
-                                                    lambda i, n: prog.update(task, completed=i, total=n)), split)
-            for note in getattr(self._data[split].dataset, "notes", []):  # e.g. frames a folder leaves out
-                self.console.print(f"[yellow]data {split}:[/] {note}")
-        return self._data[split]
-
-    @property
-    def collate(self) -> Any:
-        """The dataset's registered collate (samples -> :class:`~distilkit.data.batch.Batch`, with the sample ids)."""
-        from distilkit.data.samples import IdCollate
-
-        return IdCollate(DATASETS.entry(self.recipe.data.dataset).meta["collate"])
-
-    def prediction_splits(self, name: str) -> list[str]:
-        """The splits whose predictions stage ``name`` publishes: its own ``publish`` and what the stages that read
-        labels from it need."""
-        wanted = set(self.resolved.stages[name].spec.publish)
-        for stage in self.resolved.stages.values():
-            labels = stage.spec.labels
-            if labels is not None and labels.from_ == name:
-                wanted |= set(labels.splits)
-        return [s for s in ("train", "val", "test") if s in wanted and self.has_split(s)]
-
-    def has_split(self, split: str) -> bool:
-        entry = DATASETS.entry(self.recipe.data.dataset)
-        return bool(entry.meta.get("has_split", lambda p, s: s != "test")(self.resolved.data_params, split))
 
     def check_stages(self, option: str, names: list[str]) -> None:
         """A one-line RecipeError for stage names (from ``option``) that the recipe does not have."""
@@ -155,7 +70,7 @@ class Pipeline:
         ``only``: just these stages and the stages they need (then no recipe report is written: it would
         describe part of the recipe). A stage another process is training is waited for and then reused
         (``wait=False``: :class:`~distilkit.errors.RunLockedError` instead)."""
-        from distilkit.engine.distributed import world_from_env
+        from distilkit.engine.train.distributed import world_from_env
 
         if only:
             self.check_stages("--stage", only)
@@ -185,10 +100,8 @@ class Pipeline:
 
     def _run(self, stop_after: int | None, rerun: list[str] | None, names: set[str],
              wait: bool) -> list[StageResult]:
-        from distilkit.engine.lock import lock_path, stage_lock
+        from distilkit.engine.store.lock import lock_path, stage_lock
         from distilkit.repro import deterministic_algorithms
-
-        from distilkit.engine.stage import read_summary
 
         results: list[StageResult] = []
         again = self.rerun_set(rerun)

@@ -20,7 +20,7 @@ from typing import Any, Callable, Iterator
 import torch
 
 from distilkit.data.batch import Batch
-from distilkit.engine.distributed import SINGLE, World
+from distilkit.engine.train.distributed import SINGLE, World
 
 Collate = Callable[[list[Any]], Batch]
 
@@ -28,7 +28,7 @@ Collate = Callable[[list[Any]], Batch]
 def default_workers() -> int:
     """Loader processes when ``train.workers`` is ``auto``: none on 2 CPUs or fewer (the stage's threads need
     them), else half of the usable CPUs beyond two, at most 4."""
-    from distilkit.engine.cpus import usable_cpus
+    from distilkit.engine.train.cpus import usable_cpus
 
     return min(4, max(0, (usable_cpus() - 2 + 1) // 2))
 

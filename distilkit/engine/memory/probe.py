@@ -9,15 +9,16 @@ from typing import Any
 
 
 def probe_trainer(res: Any, stage_name: str, params: Any, run_dir: Path, batch_size: int = 1) -> Any:
-    """A :class:`~distilkit.engine.trainer.Trainer` of ``stage_name`` on the data ``params`` (e.g. one of its
+    """A :class:`~distilkit.engine.train.trainer.Trainer` of ``stage_name`` on the data ``params`` (e.g. one of its
     dataset's probe plans), at ``batch_size``; it writes nothing (``run_dir`` is kept for callers' files)."""
     import torch
 
-    from distilkit.engine.distributed import SINGLE
-    from distilkit.engine.loader import BatchPlan
-    from distilkit.engine.runs import build_model, freeze
-    from distilkit.engine.stage import pick_device, with_aux_inputs
-    from distilkit.engine.trainer import Trainer
+    from distilkit.engine.train.distributed import SINGLE
+    from distilkit.engine.train.loader import BatchPlan
+    from distilkit.engine.assemble.runs import build_model, freeze
+    from distilkit.engine.train.devices import pick_device
+    from distilkit.engine.train.auxiliary import with_aux_inputs
+    from distilkit.engine.train.trainer import Trainer
     from distilkit.registry import DATASETS
 
     stage = res.stages[stage_name]

@@ -14,7 +14,7 @@ from typing import Any
 import torch
 
 from distilkit.adapter import Adapter
-from distilkit.engine.checkpoints import load_checkpoint, load_weights, whole_problem
+from distilkit.weights import load_checkpoint, load_weights, whole_problem
 from distilkit.errors import DataError
 
 
@@ -48,7 +48,7 @@ def run_config(checkpoint: Path) -> dict[str, Any]:
 
 def _model_of(checkpoint: Path, config: dict[str, Any]) -> tuple[Any, Any]:
     """(resolved model, data info) from a checkpoint's adapter name and parameters and its run's data."""
-    from distilkit.engine.resolve import ResolvedModel
+    from distilkit.engine.assemble.resolved import ResolvedModel
     from distilkit.registry import ADAPTERS, DATASETS, load_plugins
 
     load_plugins()
@@ -67,7 +67,7 @@ def _model_of(checkpoint: Path, config: dict[str, Any]) -> tuple[Any, Any]:
 
 def build_model(model: Any, info: Any, role: str = "student") -> Adapter:
     """The adapter of a resolved model, with the recipe's recorded taps attached (``model.taps`` in a recipe)."""
-    from distilkit.engine.recorders import attach_recorders
+    from distilkit.engine.assemble.recorders import attach_recorders
 
     built = model.cls(model.params, info)
     attach_recorders(built, model.hooks, role)

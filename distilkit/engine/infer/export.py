@@ -31,8 +31,8 @@ def export_student(run: str | Path, out: str | Path, which: str = "best") -> Exp
     to ``out`` as a plain state dict, and its description to ``out`` with the suffix ``.json``."""
     import torch
 
-    from distilkit.engine.checkpoints import load_checkpoint
-    from distilkit.engine.runs import _model_of, checkpoint_path, run_config
+    from distilkit.weights import load_checkpoint
+    from distilkit.engine.assemble.runs import _model_of, checkpoint_path, run_config
     from distilkit.files import atomic_torch_save, atomic_write_json
 
     source = checkpoint_path(run, which)
@@ -74,8 +74,8 @@ def build_exported(sidecar: str | Path) -> Any:
 
     import torch
 
-    from distilkit.engine.resolve import ResolvedModel
-    from distilkit.engine.runs import build_model
+    from distilkit.engine.assemble.resolved import ResolvedModel
+    from distilkit.engine.assemble.runs import build_model
     from distilkit.registry import ADAPTERS, DATASETS, load_plugins
 
     sidecar = Path(sidecar)

@@ -39,10 +39,10 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
     """Write the predictions of ``run`` for the frames of ``sequences`` (a list, or the name of an official split of
     the run's dataset: train, valid, test) under ``out``; returns the frame count and the sequences."""
     from distilkit.data.datasets import SemanticKittiDataset
-    from distilkit.engine.runs import checkpoint_path, load_run, run_config
+    from distilkit.engine.assemble.runs import checkpoint_path, load_run, run_config
     from distilkit.registry import DATASETS
 
-    from distilkit.engine.checkpoints import load_checkpoint
+    from distilkit.weights import load_checkpoint
 
     path = checkpoint_path(Path(run).expanduser(), "any")
     load_checkpoint(path)  # a distilkit checkpoint, or one line saying what it is not

@@ -1,18 +1,17 @@
-"""Checkpoints on disk: a stage's ``last.pt`` (everything to resume from; the one it replaces is kept as
-``last.prev.pt``, the fallback if ``last.pt`` is ever unreadable) and ``best.pt`` (the student at its best
-validation score), written atomically by the main process; and every checkpoint or weights file read, always with
-``torch.load(weights_only=True)`` (no code from a file is executed), and loaded into a model by name and shape."""
+"""Weights files read safely: every checkpoint or weights file is read with ``torch.load(weights_only=True)`` (no code
+from a file is executed; a file that would need it gets one line saying so), and loaded into a model by name and
+shape, with every key used or reported (a released checkpoint's names mapped by its adapter's importer:
+:class:`ImportedWeights`, :class:`PartialWeights`). The engine's own checkpoints (``last.pt``, ``best.pt``) are
+written by :mod:`distilkit.engine.store.checkpoints`."""
 
 from __future__ import annotations
 
-import os
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
 import torch
 
-from distilkit.files import atomic_torch_save
 from distilkit.errors import DataError
 
 
@@ -193,46 +192,5 @@ def not_finite(weights: dict[str, Any], only: Any = None) -> str | None:
     return None
 
 
-class Checkpoints:
-    def __init__(self, folder: Path, writer: bool = True) -> None:
-        self.folder, self.writer = folder, writer
-        self.saved_step: int | None = None  # the step of last.pt (None: none written or found yet)
-
-    def write_last(self, state: dict[str, Any], step: int) -> None:
-        if not self.writer:
-            return
-        last = self.folder / "last.pt"
-        if last.is_file():
-            os.replace(last, self.folder / "last.prev.pt")
-        atomic_torch_save(last, state)
-        self.saved_step = step
-
-    def write_best(self, state: dict[str, Any]) -> None:
-        if self.writer:
-            atomic_torch_save(self.folder / "best.pt", state)
-
-    def resume(self, on_unreadable: Callable[[Exception, Path], None]) -> dict[str, Any] | None:
-        """The newest readable of ``last.pt`` and ``last.prev.pt`` (an unreadable one is reported to
-        ``on_unreadable``), or None to start from the beginning."""
-        for name in ("last.pt", "last.prev.pt"):
-            path = self.folder / name
-            if not path.is_file():
-                continue
-            try:
-                ckpt = load_checkpoint(path)
-            except DataError as exc:
-                on_unreadable(exc, path)
-                continue
-            self.saved_step = int(ckpt["step"])
-            return ckpt
-        return None
-
-    def kept(self) -> str:
-        """What a stopped run leaves to resume from, as it is: the last checkpoint and its step, or none."""
-        if self.saved_step is None:
-            return "no checkpoint had been written yet (a new run starts from step 0)"
-        return f"the last checkpoint ({self.folder / 'last.pt'}, step {self.saved_step}) is kept"
-
-
-__all__ = ["Checkpoints", "ImportedWeights", "PartialWeights", "load_checkpoint", "load_weights", "mismatch",
+__all__ = ["ImportedWeights", "PartialWeights", "in_the_file", "load_checkpoint", "load_weights", "mismatch",
            "not_finite", "read_state_dict", "spelling", "under_prefix", "whole_problem"]

@@ -1,5 +1,5 @@
-"""Peak memory of one training step, estimated before training (``distilkit validate``), and the one-line error
-when a stage runs out of memory anyway.
+"""Peak memory of one training step, estimated before training (``distilkit validate``); the one-line error when a
+stage runs out of memory anyway is :mod:`distilkit.engine.train.oom`'s.
 
 The estimate runs the stage's real training step twice — student, teacher (random weights: the same tensors),
 every term, backward and the optimizer's step; the second as every later step is, with the optimizer's state — on
@@ -21,13 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
-from distilkit.errors import DistilkitError
 
 GIB = 1024**3
-
-
-class OutOfMemoryError(DistilkitError):
-    """A stage needed more memory than the machine (or the GPU) has."""
 
 
 @dataclass
@@ -99,15 +94,15 @@ def _quiet_stderr() -> Iterator[None]:
         os.close(saved)
 
 
-def _tensor_bytes(obj: Any) -> int:
+def tensor_bytes(obj: Any) -> int:
     import torch
 
     if isinstance(obj, torch.Tensor):
         return obj.numel() * obj.element_size()
     if isinstance(obj, dict):
-        return sum(_tensor_bytes(v) for v in obj.values())
+        return sum(tensor_bytes(v) for v in obj.values())
     if isinstance(obj, (list, tuple)):
-        return sum(_tensor_bytes(v) for v in obj)
+        return sum(tensor_bytes(v) for v in obj)
     return 0
 
 
@@ -213,7 +208,7 @@ def measure_step(res: Any, stage_name: str, params: Any) -> StepMemory:
     """Two training steps of ``stage_name`` at batch size 1 on the first training sample of the data ``params``,
     measured by phase: the model's phase is the larger of the two (a first step may do one-off work, e.g. fill a
     cache), the optimizer's is the second's (its state exists from then on)."""
-    from distilkit.engine.probe import probe_trainer
+    from distilkit.engine.memory.probe import probe_trainer
 
     with tempfile.TemporaryDirectory() as tmp:
         trainer = probe_trainer(res, stage_name, params, Path(tmp))
@@ -224,10 +219,10 @@ def measure_step(res: Any, stage_name: str, params: Any) -> StepMemory:
 
         def held() -> tuple[float, float]:
             """(bytes live between steps, of which kept whatever the data)"""
-            weights = sum(_tensor_bytes(list(m.parameters())) + _tensor_bytes(list(m.buffers())) for m in modules)
-            kept = weights + sum(_tensor_bytes(list(opt.state.values())) for opt in optimizers)
-            grads = _tensor_bytes([p.grad for p in trainer.trainable if p.grad is not None])
-            return kept + grads + _tensor_bytes(batch.inputs) + _tensor_bytes(batch.targets), kept
+            weights = sum(tensor_bytes(list(m.parameters())) + tensor_bytes(list(m.buffers())) for m in modules)
+            kept = weights + sum(tensor_bytes(list(opt.state.values())) for opt in optimizers)
+            grads = tensor_bytes([p.grad for p in trainer.trainable if p.grad is not None])
+            return kept + grads + tensor_bytes(batch.inputs) + tensor_bytes(batch.targets), kept
 
         trainer.student.train()
         model = 0.0
@@ -268,7 +263,7 @@ def estimate_stage(res: Any, stage_name: str) -> MemoryEstimate | None:
     peak, and scaling it with the grid would overstate a large grid). Each phase's per-sample part is bounded at
     the recipe's size by :func:`_bounds`, times ``train.batch_size``, plus what is kept whatever the batch (the
     parameters and the optimizer's state; bounded the same way, as a model's parameters may grow with the grid)."""
-    from distilkit.engine.stage import pick_device
+    from distilkit.engine.train.devices import pick_device
     from distilkit.registry import DATASETS
 
     stage = res.stages[stage_name]
@@ -301,42 +296,5 @@ def estimate_stage(res: Any, stage_name: str) -> MemoryEstimate | None:
     return MemoryEstimate(stage_name, low, high, b, plan.describe, how, device, available_memory(device))
 
 
-def is_out_of_memory(exc: BaseException) -> bool:
-    """Whether an exception is an allocation failure (CPU allocator, CUDA, or Python's MemoryError)."""
-    if isinstance(exc, MemoryError):
-        return True
-    import torch
-
-    if isinstance(exc, torch.OutOfMemoryError):
-        return True
-    text = str(exc)
-    return isinstance(exc, RuntimeError) and ("can't allocate memory" in text or "out of memory" in text.lower()
-                                              or "Cannot allocate memory" in text)
-
-
-def _cause(exc: BaseException) -> str:
-    """The failed allocation in a few words (the allocator's message is long)."""
-    import re
-
-    text = str(exc)
-    cpu = re.search(r"tried to allocate (\d+) bytes", text)
-    if cpu:
-        return f"an allocation of {int(cpu.group(1)) / 2**20:,.0f} MiB failed"
-    gpu = re.search(r"Tried to allocate ([\d.]+ [KMG]iB)", text)
-    if gpu:
-        return f"an allocation of {gpu.group(1)} on the GPU failed"
-    first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
-    return first if len(first) <= 120 else first[:117].rsplit(" ", 1)[0] + "..."
-
-
-def out_of_memory(stage: Any, info: Any, exc: BaseException, kept: str) -> OutOfMemoryError:
-    """The one-line error for a stage that ran out of memory: where, at what size, and what to lower."""
-    grid = f"a {'x'.join(map(str, info.grid.shape))} grid" if getattr(info, "grid", None) is not None else "its data"
-    return OutOfMemoryError(
-        f"stage {stage.name!r} ran out of memory ({_cause(exc)}; train.batch_size {stage.spec.train.batch_size}, "
-        f"{grid}, adapter {stage.student.adapter}); {kept}. Lower train.batch_size, the grid (data.params.scale) or "
-        "the model's size; `distilkit validate` estimates the memory a training step needs.")
-
-
-__all__ = ["MemoryEstimate", "OutOfMemoryError", "StepMemory", "StepPeaks", "available_memory", "estimate_stage",
-           "is_out_of_memory", "measure_step", "out_of_memory", "peak_of_step", "step_peaks"]
+__all__ = ["MemoryEstimate", "StepMemory", "StepPeaks", "available_memory", "estimate_stage", "measure_step",
+           "peak_of_step", "step_peaks", "tensor_bytes"]

@@ -8,7 +8,7 @@ are averaged over the processes in one flattened all-reduce, so every process ta
 averages a model's gradients. Terms that train their own network (VSD's score network) average theirs through
 :attr:`distilkit.term.TermContext.sync`. The frozen teacher is not synchronised (it does not train). Only rank 0
 writes (checkpoints, logs, summaries, reports); each process evaluates its share of a split and the metrics' states are
-merged (:mod:`distilkit.engine.evaluate`), so every scene is scored once.
+merged (:mod:`distilkit.engine.train.evaluate`), so every scene is scored once.
 
 Equal to one process on the same global batch when the loss of a batch is the mean of per-sample losses of
 equal weight and the model has no batch statistics. BatchNorm layers use each process's own share (as DDP

@@ -1,6 +1,6 @@
 """Scoring a model on a split: its prediction tap, accumulated by a list of registered metrics.
 
-Each process scores its contiguous share of the split (:func:`~distilkit.engine.loader.eval_batches`); the metrics'
+Each process scores its contiguous share of the split (:func:`~distilkit.engine.train.loader.eval_batches`); the metrics'
 states are merged across processes in rank order (:meth:`~distilkit.metrics.base.Metric.merge`), so every scene is
 scored once and the scores equal one process's. A stochastic model (a diffusion sampler) draws its noise from a
 stream seeded with ``seed`` that training does not see: every evaluation of a stage draws the same noise, and
@@ -17,8 +17,8 @@ import torch
 
 from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
-from distilkit.engine.distributed import SINGLE, World
-from distilkit.engine.loader import eval_batches
+from distilkit.engine.train.distributed import SINGLE, World
+from distilkit.engine.train.loader import eval_batches
 from distilkit.metrics.base import Metric
 
 Collate = Callable[[list[Any]], Batch]
