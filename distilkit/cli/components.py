@@ -1,0 +1,142 @@
+"""``distilkit list [KIND]`` and ``distilkit schema``: the registered components (adapters, objectives, task losses,
+datasets, metrics, optimizers, schedules, connectors, hooks, recorders) as tables, and the recipe's JSON schema or
+Markdown reference."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from distilkit.cli.base import command
+
+EXAMPLES = {
+    "list": ["distilkit list objectives", "distilkit list task_losses", "distilkit list objectives --markdown"],
+    "schema": ["distilkit schema > recipe.schema.json                       # editor completion",
+               "distilkit schema --markdown > docs/recipe-reference.md"],
+}
+
+
+def add(sub: Any) -> None:
+    ls = command(sub, "list", "registered adapters, objectives, task losses, datasets, metrics, optimizers, "
+                              "schedules, connectors, hooks and recorders", EXAMPLES["list"])
+    ls.add_argument("kind", nargs="?", metavar="KIND", type=lambda text: text.replace("_", " "),
+                    choices=["adapters", "objectives", "task losses", "datasets", "metrics", "optimizers", "schedules",
+                             "connectors", "hooks", "recorders"],
+                    help="one kind of component: adapters, objectives, task_losses (or 'task losses'), datasets, "
+                         "metrics, optimizers, schedules, connectors, hooks, recorders (default: all)")
+    ls.add_argument("--markdown", action="store_true",
+                    help="objectives or datasets as Markdown (docs/objectives.md, docs/datasets.md)")
+    ls.set_defaults(fn=list_components)
+    s = command(sub, "schema", "print the recipe JSON schema (for editor completion)", EXAMPLES["schema"])
+    s.add_argument("--markdown", action="store_true", help="print the recipe reference as Markdown instead")
+    s.set_defaults(fn=schema)
+
+
+def list_components(args: argparse.Namespace) -> int:
+    from rich.table import Table
+
+    from distilkit.console import make_console
+
+    from distilkit.registry import ALL_REGISTRIES, plugin_errors
+
+    if args.markdown:
+        if args.kind not in ("objectives", "datasets"):
+            from distilkit.errors import DistilkitError
+
+            raise DistilkitError("--markdown is available for `distilkit list objectives` and `list datasets`")
+        from distilkit.schema_doc import datasets_markdown, objectives_markdown
+
+        print(objectives_markdown() if args.kind == "objectives" else datasets_markdown())
+        return 0
+    console = make_console()
+    for kind, reg in ALL_REGISTRIES.items():
+        if args.kind and args.kind != kind.split()[0].rstrip("s") and args.kind != kind:
+            continue
+        if kind == "adapters" and console.width < 120:  # six columns do not read at 80: one block per adapter
+            _adapter_blocks(console, reg)
+            continue
+        table = Table(title=kind, title_justify="left")
+        table.add_column("name", style="bold")
+        table.add_column("description")
+        table.add_column("paper")
+        table.add_column(COLUMN[kind])
+        if kind == "adapters":
+            table.add_column("parameters (default)")
+            table.add_column("network (by size)")
+        for e in reg:
+            also = reg.aliases_of(e.name)
+            extra = [params_cell(e.obj.Params), networks_cell(e.obj)] if kind == "adapters" else []
+            table.add_row(e.name + (f" (also {', '.join(also)})" if also else ""), e.description, e.paper,
+                          list_cell(kind, e), *extra)
+        console.print(table)
+    for msg in plugin_errors:
+        console.print(f"[yellow]warning:[/] {msg}")
+    return 0
+
+
+def _adapter_blocks(console: Any, reg: Any) -> None:
+    """``distilkit list adapters`` on a narrow console: each adapter's fields as a two-column table."""
+    from rich.table import Table
+
+    console.print("adapters")
+    for e in reg:
+        also = reg.aliases_of(e.name)
+        block = Table(title=e.name + (f" (also {', '.join(also)})" if also else ""), title_justify="left",
+                      title_style="bold", show_header=False, expand=True)
+        block.add_column("field", style="dim", no_wrap=True)
+        block.add_column("value", ratio=1)
+        for field, value in (("description", e.description), ("paper", e.paper),
+                             (COLUMN["adapters"], list_cell("adapters", e)),
+                             ("parameters", params_cell(e.obj.Params).replace("\n", ", ")),
+                             ("network", networks_cell(e.obj))):
+            block.add_row(field, value)
+        console.print(block)
+
+
+COLUMN = {"adapters": "taps (name: kind)", "objectives": "reads (tap kinds)", "task losses": "reads (tap kinds)",
+                "datasets": "batch fields", "metrics": "scores (tap kind)", "optimizers": "—",
+                "schedules": "parameters", "connectors": "—", "hooks": "parameters",
+                "recorders": "—"}
+
+
+def params_cell(params: Any) -> str:
+    """An adapter's parameters with their defaults, one per line (docs/recipe-reference.md has their descriptions)."""
+    import json
+
+    out = []
+    for name, field in params.model_fields.items():
+        default = field.get_default(call_default_factory=True)
+        out.append(f"{name}={json.dumps(default, default=str)}")
+    return "\n".join(out) or "—"
+
+
+def networks_cell(adapter: Any) -> str:
+    """What each size of an adapter builds: the paper's network or a CPU stand-in."""
+    networks = getattr(adapter, "NETWORKS", {})
+    if "" in networks:
+        return networks[""]
+    return "\n".join(f"{size}: {what}" for size, what in networks.items()) or "—"
+
+
+def list_cell(kind: str, entry: object) -> str:
+    """What ``distilkit list`` shows of a component: an adapter's taps by name and kind, the tap kinds a term reads,
+    the batch fields a dataset provides (from its default parameters), what a metric scores."""
+    obj, meta = getattr(entry, "obj"), getattr(entry, "meta")
+    if kind == "adapters" and getattr(obj, "TAPS", None):
+        return ", ".join(f"{name}: {k}" for name, k in obj.TAPS.items())
+    if kind == "datasets" and "info" in meta and "params" in meta:
+        try:  # a dataset with required parameters (a root folder) still shows what its defaults give
+            fields = meta["info"](meta["params"].model_construct()).fields
+        except Exception:
+            return "—"
+        return ", ".join(sorted(fields))
+    if kind in ("schedules", "hooks") and "params" in meta:
+        return ", ".join(meta["params"].model_fields) or "—"
+    return ", ".join(getattr(entry, "consumes")) or "—"
+
+
+def schema(args: argparse.Namespace) -> int:
+    from distilkit.schema_doc import recipe_json_schema, recipe_reference_markdown
+
+    print(recipe_reference_markdown() if args.markdown else recipe_json_schema())
+    return 0
