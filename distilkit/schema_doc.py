@@ -200,7 +200,6 @@ def datasets_markdown() -> str:
     out.append("")
     for e in entries:
         params = e.meta["params"]
-        schema = params.model_json_schema()
         doc = " ".join((params.__doc__ or "").split())
         out += [f"## {e.name}", "", e.description + ".", "", f"- **Paper:** {e.paper}", "", doc, ""]
         out += params_table(params)

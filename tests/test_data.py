@@ -8,11 +8,13 @@ import pytest
 from conftest import FIXTURES, TINY_DATA
 from distilkit.data import semantickitti as sk
 from distilkit.data.classes import CLASS_NAMES, NUM_CLASSES, ssc_lut
-from distilkit.data.datasets import build_synthetic, pool_labels
+from distilkit.data.datasets import build_synthetic
+from distilkit.data.kitti_folder import pool_labels
 from distilkit.data.lidar import collate_lidar
 from distilkit.data.params import SyntheticParams
 from distilkit.data.raycast import Primitives, cast, ray_directions
-from distilkit.data.synthetic import generate_split, make_sample, make_scene, voxelize_majority
+from distilkit.data.synthetic import generate_split, make_sample, voxelize_majority
+from distilkit.data.street_layout import make_scene
 from distilkit.errors import DataError
 from distilkit.geometry.voxel import VoxelGrid
 
@@ -173,7 +175,7 @@ def _fake_kitti(tmp_path):
 
 
 def test_semantickitti_folder_dataset(tmp_path) -> None:
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.data.params import SemanticKittiParams
 
     root = _fake_kitti(tmp_path)
@@ -206,7 +208,7 @@ def _boxes_over_trajectory(scene, n_frames: int):
 
 
 def test_traffic_never_overlaps_the_ego_car() -> None:
-    from distilkit.data.synthetic import EGO_HALF_LENGTH, EGO_LANE_Y
+    from distilkit.data.street_layout import EGO_HALF_LENGTH, EGO_LANE_Y
 
     n_frames, speed = 11, 1.0
     for seed in range(60):
@@ -226,7 +228,7 @@ def test_traffic_never_overlaps_the_ego_car() -> None:
 
 def test_ego_lane_traffic_does_appear_ahead() -> None:
     """The fix keeps traffic in the ego's lane (it only moves it out of the ego's way)."""
-    from distilkit.data.synthetic import EGO_LANE_Y
+    from distilkit.data.street_layout import EGO_LANE_Y
 
     found = 0
     for seed in range(20):

@@ -36,7 +36,7 @@ def test_the_folder_has_semantickittis_layout_and_reads_back(exported) -> None:
 
 
 def test_the_dataset_fuses_exported_scans_through_the_poses(exported) -> None:
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.data.params import SemanticKittiParams
 
     params = SemanticKittiParams(root=str(exported), train=["00"], val=["08"], input_frames=2,
@@ -160,7 +160,7 @@ def test_the_scan_dataset_gives_every_scan_with_its_point_labels(exported, tmp_p
     import shutil
 
     from distilkit.data.classes import IGNORE_INDEX, remap, seg_lut
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.data.params import SemanticKittiScanParams
     from distilkit.errors import DataError
     from distilkit.registry import DATASETS

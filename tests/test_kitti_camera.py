@@ -77,7 +77,7 @@ def test_the_exported_camera_reads_back_as_the_synthetic_one(exported) -> None:
     """Images equal the synthetic renderer's; the intrinsics and each frame's LiDAR -> camera transform (through
     calib.txt and the poses) equal the synthetic camera's formulas; depth is the scan projected."""
     from distilkit.data.camera import intrinsics, lidar_to_camera
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.data.params import CameraParams, SemanticKittiParams
 
     params = SemanticKittiParams(root=str(exported), train=["00"], val=["08"], scale=4, occluded=True,
@@ -108,7 +108,7 @@ def test_occluded_masks_are_hidden_from_the_current_viewpoint(exported) -> None:
 def test_missing_and_corrupt_images_are_named(exported, tmp_path) -> None:
     import shutil
 
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.data.params import SemanticKittiParams
     from distilkit.errors import DataError
 

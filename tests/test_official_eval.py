@@ -128,7 +128,7 @@ def test_eval_of_a_semanticposs_folder_uses_its_class_table(tmp_path) -> None:
 
 
 def test_a_semanticposs_folder_reads_with_its_own_labels(tmp_path) -> None:
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.data.params import SemanticPossParams
     from distilkit.registry import DATASETS
 

@@ -146,7 +146,7 @@ def _kitti_folder(root):
 
 def test_data_rectify_writes_beside_the_originals_and_the_dataset_reads_either(tmp_path, capsys) -> None:
     from distilkit.cli import main
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.data.params import SemanticKittiParams
 
     seq, (iy, iz) = _kitti_folder(tmp_path)

@@ -138,7 +138,7 @@ def folder(tmp_path_factory):
 
 def test_proposals_are_read_from_a_folder_and_a_voxformer_stage_uses_them(folder, tmp_path) -> None:
     from distilkit.data import semantickitti as skio
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.data.lidar import collate_lidar
     from distilkit.data.params import SemanticKittiParams
     from distilkit.engine.train.pipeline import Pipeline

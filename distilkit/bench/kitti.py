@@ -21,7 +21,7 @@ def kitti_cases(device: torch.device, quick: bool) -> list[Case]:
     camera's current and third-previous image decoded, resized and the scan projected as depth. Times per frame: a split of 4,071 frames (sequence
     08) takes 4,071 x the eval time, streaming one frame at a time."""
     from distilkit.data import semantickitti as skio
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.data.export import export_kitti
     from distilkit.data.params import SemanticKittiParams, SyntheticParams
     from distilkit.data.info import ClassTable

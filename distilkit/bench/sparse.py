@@ -24,7 +24,7 @@ from distilkit.bench.base import Case, register
 def scan_occupancy(quick: bool) -> Tensor:
     """(N, 4) int32 active voxels (batch 0) of five fused synthetic HDL-64E scans on the 256 x 256 x 32 grid (quick:
     32 beams, one scan)."""
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.data.export import export_kitti
     from distilkit.data.params import SemanticKittiParams, SyntheticParams
     from distilkit.structures import VoxelGrid

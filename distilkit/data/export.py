@@ -35,8 +35,8 @@ from distilkit.data.params import SyntheticParams
 from distilkit.data.raycast import ray_directions
 from distilkit.errors import DistilkitError
 from distilkit.data.scribbles import write_scribbles
-from distilkit.data.synthetic import (EGO_LANE_Y, SENSOR_HEIGHT, cast_scan, make_scene, scribble_mask, traversed,
-                                      voxelize_majority)
+from distilkit.data.street_layout import EGO_LANE_Y, SENSOR_HEIGHT, make_scene
+from distilkit.data.synthetic import cast_scan, scribble_mask, traversed, voxelize_majority
 from distilkit.structures import VoxelGrid
 
 

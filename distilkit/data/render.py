@@ -20,7 +20,8 @@ from distilkit.data.camera import CAMERA_IN_LIDAR, LIDAR_TO_CAMERA_AXES, frame_o
 from distilkit.data.classes import CLASS_COLOURS, remap, seg_lut
 from distilkit.data.params import CameraParams, SyntheticParams
 from distilkit.data.raycast import Primitives, cast
-from distilkit.data.synthetic import SceneSpec, hit_labels, lidar_params, street
+from distilkit.data.street_layout import SceneSpec
+from distilkit.data.synthetic import hit_labels, lidar_params, street
 
 CAMERA_VERSION = 1
 SUN = np.array([0.35, 0.25, 0.9]) / np.linalg.norm([0.35, 0.25, 0.9])

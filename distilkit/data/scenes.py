@@ -33,7 +33,8 @@ from distilkit.data.info import ClassTable, DataInfo
 from distilkit.data.params import SceneParams
 from distilkit.data.raycast import ray_directions
 from distilkit.data.cache import cached_samples
-from distilkit.data.synthetic import EGO_LANE_Y, SENSOR_HEIGHT, cast_scan, make_scene
+from distilkit.data.street_layout import EGO_LANE_Y, SENSOR_HEIGHT, make_scene
+from distilkit.data.synthetic import cast_scan
 
 SCENES_VERSION = 3  # 2: the untiled evaluation ground truth ``scene_eval``; 3: LiDiff's crops (3-D range, viewpoint
 # grid at the scan's minimum bound, one original point per map voxel, 3.5 m around each sensor dropped)

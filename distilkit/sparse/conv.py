@@ -2,9 +2,9 @@
 semantics of ``indice_key``.
 
 ``weight`` is (out, k0, k1, k2, in) — spconv 2.2+'s layout (2.1 mostly, 2.0 had (k0, k1, k2, out, in) and 1.x
-(k0, k1, k2, in, out): :func:`distilkit.sparse.convert.to_spconv2` converts those) — and ``bias`` (out,), so a state
-dict moves between spconv and distilkit unchanged. ``indice_key`` names a neighbour map kept on the tensor; what a
-key that already exists means depends on ``semantics``:
+(k0, k1, k2, in, out): :func:`distilkit.sparse.convert.spconv20_to_spconv2` and ``spconv1_to_spconv2`` convert
+those) — and ``bias`` (out,), so a state dict moves between spconv and distilkit unchanged. ``indice_key`` names a
+neighbour map kept on the tensor; what a key that already exists means depends on ``semantics``:
 
 * ``"spconv2"`` (the default; spconv 2.x, ``spconv/pytorch/conv.py``): a submanifold convolution reuses the map of
   an earlier one with its key, which must have the same kernel, dilation, grid and number of voxels (else the same

@@ -38,7 +38,7 @@ def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequenc
                    device: str = "cpu", progress: Callable[[int, int], None] | None = None) -> tuple[int, list[str]]:
     """Write the predictions of ``run`` for the frames of ``sequences`` (a list, or the name of an official split of
     the run's dataset: train, valid, test) under ``out``; returns the frame count and the sequences."""
-    from distilkit.data.datasets import SemanticKittiDataset
+    from distilkit.data.kitti_folder import SemanticKittiDataset
     from distilkit.engine.assemble.runs import checkpoint_path, load_run, run_config
     from distilkit.registry import DATASETS
 

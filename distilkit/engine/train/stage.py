@@ -12,6 +12,9 @@
 
 It reads what the recipe's stages share (:class:`~distilkit.engine.train.context.RecipeRun`: the resolved recipe, the
 data, upstream weights); the pipeline (:mod:`~distilkit.engine.train.pipeline`) only orders, hashes and locks stages.
+
+Why one module: the four phases share one run's state (its device, loaders, checkpoints and trainer) and read top
+to bottom in the order they happen.
 """
 
 from __future__ import annotations
