@@ -108,7 +108,7 @@ class _SparseConvolution(nn.Module):
     def _check_input(self, x: SparseConvTensor) -> None:
         if x.features.shape[1] != self.in_channels:
             raise ValueError(f"{self.describe()}: {x.features.shape[1]} input channels, expected {self.in_channels}")
-        if x.features.dtype != self.weight.dtype:
+        if x.features.dtype != self.weight.dtype and not torch.is_autocast_enabled(x.features.device.type):
             raise ValueError(f"{self.describe()}: {x.features.dtype} features against {self.weight.dtype} weights "
                              f"(convert one: model.to({x.features.dtype}) or features.to({self.weight.dtype}))")
 

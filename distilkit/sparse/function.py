@@ -3,7 +3,8 @@
 For kernel index k with pairs (in rows I_k, out rows O_k): out[O_k] += in[I_k] W_k. The backward recomputes the
 gathers instead of keeping them (autograd would store P x C_in floats): grad W_k = in[I_k]^T grad[O_k] and
 grad in[I_k] += grad[O_k] W_k^T. ``index_add_`` accumulates in pair order on the CPU, so a run gives the same bits in
-every process.
+every process. Under autocast (``train.precision: bf16 | fp16``) the products run in autocast's dtype and the sums in
+float32 (as spconv accumulates half-precision products); the output has autocast's dtype.
 """
 
 from __future__ import annotations
@@ -16,37 +17,63 @@ from torch import Tensor
 from distilkit.sparse.rulebook import Rulebook
 
 
-class _RulebookConv(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx: Any, features: Tensor, weight: Tensor, in_idx: Tensor, out_idx: Tensor, bounds: list[int],
-                rows_out: int) -> Tensor:
-        out = features.new_zeros((rows_out, weight.shape[2]))
-        for k in range(weight.shape[0]):
-            s, e = bounds[k], bounds[k + 1]
-            if e > s:
-                out.index_add_(0, out_idx[s:e], torch.mm(features.index_select(0, in_idx[s:e]), weight[k]))
-        ctx.save_for_backward(features, weight, in_idx, out_idx)
-        ctx.bounds = bounds
-        return out
+def _compute_dtypes(features: Tensor) -> tuple[torch.dtype, torch.dtype]:
+    """(the products' dtype, the sums' dtype): autocast's dtype where it is on for the features' device, with sums in
+    float32; else the features' own dtype for both (the layer checks that the weight has it)."""
+    device = features.device.type
+    if torch.is_autocast_enabled(device):
+        return torch.get_autocast_dtype(device), torch.float32
+    return features.dtype, features.dtype
 
-    @staticmethod
-    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
-        features, weight, in_idx, out_idx = ctx.saved_tensors
-        bounds = ctx.bounds
-        need_f, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        grad_f = torch.zeros_like(features) if need_f else None
-        grad_w = torch.zeros_like(weight) if need_w else None
-        grad = grad.contiguous()
-        for k in range(weight.shape[0]):
-            s, e = bounds[k], bounds[k + 1]
-            if e == s:
-                continue
-            g = grad.index_select(0, out_idx[s:e])
-            if grad_w is not None:
-                grad_w[k] = torch.mm(features.index_select(0, in_idx[s:e]).t(), g)
-            if grad_f is not None:
-                grad_f.index_add_(0, in_idx[s:e], torch.mm(g, weight[k].t()))
-        return grad_f, grad_w, None, None, None, None
+
+def _function(device_type: str) -> type[torch.autograd.Function]:
+    """The convolution's autograd function for one device type, declaring its autocast behaviour there
+    (``torch.amp.custom_fwd``/``custom_bwd``): under autocast the gathers and products run in autocast's dtype
+    (bf16 or fp16) and the scatter-adds sum in float32, the backward under the forward's autocast state; without
+    autocast everything runs in the features' dtype, as before."""
+
+    class _RulebookConv(torch.autograd.Function):
+        @staticmethod
+        @torch.amp.custom_fwd(device_type=device_type)
+        def forward(ctx: Any, features: Tensor, weight: Tensor, in_idx: Tensor, out_idx: Tensor, bounds: list[int],
+                    rows_out: int) -> Tensor:
+            dtype, acc = _compute_dtypes(features)
+            f, w = features.to(dtype), weight.to(dtype)
+            out = features.new_zeros((rows_out, weight.shape[2]), dtype=acc)
+            for k in range(weight.shape[0]):
+                s, e = bounds[k], bounds[k + 1]
+                if e > s:
+                    out.index_add_(0, out_idx[s:e], torch.mm(f.index_select(0, in_idx[s:e]), w[k]).to(acc))
+            ctx.save_for_backward(f, w, in_idx, out_idx)
+            ctx.bounds, ctx.dtypes = bounds, (features.dtype, weight.dtype, acc)
+            return out.to(dtype)
+
+        @staticmethod
+        @torch.amp.custom_bwd(device_type=device_type)
+        def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
+            f, w, in_idx, out_idx = ctx.saved_tensors
+            bounds = ctx.bounds
+            features_dtype, weight_dtype, acc = ctx.dtypes
+            need_f, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+            grad_f = f.new_zeros(f.shape, dtype=acc) if need_f else None
+            grad_w = w.new_zeros(w.shape, dtype=acc) if need_w else None
+            grad = grad.to(f.dtype).contiguous()
+            for k in range(w.shape[0]):
+                s, e = bounds[k], bounds[k + 1]
+                if e == s:
+                    continue
+                g = grad.index_select(0, out_idx[s:e])
+                if grad_w is not None:
+                    grad_w[k] = torch.mm(f.index_select(0, in_idx[s:e]).t(), g).to(acc)
+                if grad_f is not None:
+                    grad_f.index_add_(0, in_idx[s:e], torch.mm(g, w[k].t()).to(acc))
+            return (grad_f.to(features_dtype) if grad_f is not None else None,
+                    grad_w.to(weight_dtype) if grad_w is not None else None, None, None, None, None)
+
+    return _RulebookConv
+
+
+_FUNCTIONS: dict[str, type[torch.autograd.Function]] = {}
 
 
 def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: int) -> Tensor:
@@ -54,7 +81,10 @@ def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: in
     if weight.shape[0] != len(book.bounds) - 1:
         raise ValueError(f"sparse convolution: {weight.shape[0]} kernel offsets in the weight, "
                          f"{len(book.bounds) - 1} in the neighbour map")
-    return _RulebookConv.apply(features, weight, book.in_idx, book.out_idx, book.bounds, rows_out)
+    device_type = features.device.type
+    if device_type not in _FUNCTIONS:
+        _FUNCTIONS[device_type] = _function(device_type)
+    return _FUNCTIONS[device_type].apply(features, weight, book.in_idx, book.out_idx, book.bounds, rows_out)
 
 
 __all__ = ["rulebook_conv"]

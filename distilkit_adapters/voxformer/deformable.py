@@ -107,7 +107,7 @@ class DeformCrossAttention(nn.Module):
             rows = seen[t].nonzero().squeeze(1)
             if rows.numel():
                 read = self.deformable_attention(query[rows][None], values[t][None], reference[t][rows][None], shape)
-                slots = slots.index_add(0, rows, read[0])
+                slots = slots.index_add(0, rows, read[0].to(slots.dtype))  # autocast: read in bf16, sum in float32
         count = seen.sum(0).clamp_min(1).to(query.dtype)[:, None]
         return self.dropout(self.output_proj(slots / count)) + query
 
