@@ -16,6 +16,29 @@ if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest -n N: one thread per worker 
 import distilkit  # noqa: F401  first: it sets MKL's reproducibility before any test multiplies a matrix
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--device", default="cpu", choices=("cpu", "cuda"),
+                     help="the device the tests build their tensors and models on (default cpu; cuda: the GPU check)")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if config.getoption("--device") == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            built = f"built with CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
+            pytest.exit(f"--device cuda: CUDA is not available on this machine (torch {torch.__version__}, {built})",
+                        returncode=4)
+
+
+@pytest.fixture
+def device(request: pytest.FixtureRequest) -> "torch.device":
+    """The device of ``--device`` (cpu by default): a test that takes it runs its assertions there."""
+    import torch
+
+    return torch.device(request.config.getoption("--device"))
 FIXTURES = Path(__file__).resolve().parent / "fixtures"  # copied in; tests never read outside the repo
 
 EXPORT_SET = ["beams=16", "azimuth_steps=256", "gt_frames=5", "seed=3"]  # a small exported SemanticKITTI folder

@@ -1,4 +1,5 @@
-"""DSKD (SCPNet eq. 1-2) against a naive float64 N x N implementation."""
+"""DSKD (SCPNet eq. 1-2) against a naive float64 N x N implementation (the fast form on the device of ``--device``, the
+naive one on the CPU)."""
 
 from __future__ import annotations
 
@@ -32,15 +33,16 @@ def naive_dskd(fs: torch.Tensor, ft: torch.Tensor) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("n,cs,ct", [(1, 3, 3), (7, 4, 4), (40, 8, 5), (64, 3, 16)])
-def test_value_and_gradient_match_naive(n: int, cs: int, ct: int) -> None:
+def test_value_and_gradient_match_naive(n: int, cs: int, ct: int, device) -> None:
     g = torch.Generator().manual_seed(n)
     fs = torch.randn(n, cs, dtype=torch.float64, generator=g, requires_grad=True)
     ft = torch.randn(n, ct, dtype=torch.float64, generator=g, requires_grad=True)
-    fast = L.dskd(fs, ft)
-    ga, gb = torch.autograd.grad(fast, (fs, ft))
+    on = [f.detach().to(device).requires_grad_() for f in (fs, ft)]
+    fast = L.dskd(*on)
+    ga, gb = (x.cpu() for x in torch.autograd.grad(fast, on))
     slow = naive_dskd(fs, ft)
     na, nb = torch.autograd.grad(slow, (fs, ft))
-    assert torch.allclose(fast, slow, rtol=1e-6, atol=1e-12)
+    assert torch.allclose(fast.cpu(), slow, rtol=1e-6, atol=1e-12)
     assert (ga - na).norm() <= 1e-6 * na.norm() + 1e-12
     assert (gb - nb).norm() <= 1e-6 * nb.norm() + 1e-12
 
@@ -57,10 +59,10 @@ def test_zero_teacher_rows_count_as_zero_similarity() -> None:
 
 
 @pytest.mark.parametrize("ct", [6, 4])  # unequal widths, and the S/D form of equal widths
-def test_gradcheck(ct: int) -> None:
+def test_gradcheck(ct: int, device) -> None:
     g = torch.Generator().manual_seed(2)
-    fs = torch.randn(9, 4, dtype=torch.float64, generator=g, requires_grad=True)
-    ft = torch.randn(9, ct, dtype=torch.float64, generator=g, requires_grad=True)
+    fs = torch.randn(9, 4, dtype=torch.float64, generator=g).to(device).requires_grad_()
+    ft = torch.randn(9, ct, dtype=torch.float64, generator=g).to(device).requires_grad_()
     assert torch.autograd.gradcheck(L.dskd, (fs, ft))
 
 
@@ -120,14 +122,15 @@ def test_objective_per_sample_mean() -> None:
 
 
 @pytest.mark.parametrize("ct", [5, 3])
-def test_several_row_blocks_match_naive(monkeypatch: pytest.MonkeyPatch, ct: int) -> None:
+def test_several_row_blocks_match_naive(monkeypatch: pytest.MonkeyPatch, ct: int, device) -> None:
     # blocks of 8 rows over 29 rows: partial last block, Gram sums and gradients across blocks
     monkeypatch.setattr(dskd_module, "_BLOCK", 8)
     g = torch.Generator().manual_seed(4)
     fs = torch.randn(29, 3, dtype=torch.float64, generator=g, requires_grad=True)
     ft = torch.randn(29, ct, dtype=torch.float64, generator=g, requires_grad=True)
-    fast = L.dskd(fs, ft)
+    on = [f.detach().to(device).requires_grad_() for f in (fs, ft)]
+    fast = L.dskd(*on)
     slow = naive_dskd(fs, ft)
-    assert torch.allclose(fast, slow, rtol=1e-9, atol=1e-14)
-    for a, b in zip(torch.autograd.grad(fast, (fs, ft)), torch.autograd.grad(slow, (fs, ft))):
-        assert (a - b).norm() <= 1e-9 * b.norm()
+    assert torch.allclose(fast.cpu(), slow, rtol=1e-9, atol=1e-14)
+    for a, b in zip(torch.autograd.grad(fast, on), torch.autograd.grad(slow, (fs, ft))):
+        assert (a.cpu() - b).norm() <= 1e-9 * b.norm()

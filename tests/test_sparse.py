@@ -1,5 +1,6 @@
 """distilkit.sparse against dense convolution (float64, values and gradients of inputs and weights) for every kind
-and Cylinder3D's kernels, with empty samples and voxels at the grid's edges; the same bits in two processes."""
+and Cylinder3D's kernels, with empty samples and voxels at the grid's edges, on the device of ``--device``; the same
+bits in two processes."""
 
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ KERNELS = [(1, 3, 3), (3, 1, 3), (3, 3, 1), (3, 3, 3)]
 SHAPE = (7, 6, 5)
 
 
-def cloud(seed: int = 0, batch: int = 3, channels: int = 4, n: int = 40, empty: int | None = 1) -> SparseConvTensor:
+def cloud(seed: int = 0, batch: int = 3, channels: int = 4, n: int = 40, empty: int | None = 1,
+          device: torch.device = torch.device("cpu")) -> SparseConvTensor:
     """Random active voxels of ``batch`` grids (sample ``empty`` has none), with the grid's corners included."""
     g = torch.Generator().manual_seed(seed)
     rows = []
@@ -29,7 +31,7 @@ def cloud(seed: int = 0, batch: int = 3, channels: int = 4, n: int = 40, empty: 
         rows.append(torch.cat([torch.full((len(coords), 1), b), coords], dim=1))
     idx = torch.cat(rows).int()
     feats = torch.randn(len(idx), channels, generator=g, dtype=torch.float64)
-    return SparseConvTensor(feats, idx, SHAPE, batch)
+    return SparseConvTensor(feats.to(device), idx.to(device), SHAPE, batch)
 
 
 def dense_weight(conv) -> torch.Tensor:
@@ -46,7 +48,7 @@ def at(dense: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
 def grads_match(sparse_out, x, conv, dense_fn, out_idx) -> None:
     """The same loss through both: values, and gradients of the features and of the weight and bias."""
     g = torch.Generator().manual_seed(9)
-    r = torch.randn(sparse_out.features.shape, generator=g, dtype=torch.float64)
+    r = torch.randn(sparse_out.features.shape, generator=g, dtype=torch.float64).to(sparse_out.features.device)
     (sparse_out.features * r).sum().backward()
     got_f, got_w, got_b = x.features.grad.clone(), conv.weight.grad.clone(), conv.bias.grad.clone()
     x.features.grad, conv.weight.grad, conv.bias.grad = None, None, None
@@ -61,10 +63,10 @@ def grads_match(sparse_out, x, conv, dense_fn, out_idx) -> None:
 
 @pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("dilation", [1, 2])
-def test_submanifold_equals_dense_conv3d_at_the_active_sites(kernel, dilation) -> None:
-    x = cloud()
+def test_submanifold_equals_dense_conv3d_at_the_active_sites(kernel, dilation, device) -> None:
+    x = cloud(device=device)
     x.features.requires_grad_()
-    conv = SubMConv3d(4, 5, kernel, dilation=dilation, indice_key="subm").double()
+    conv = SubMConv3d(4, 5, kernel, dilation=dilation, indice_key="subm").double().to(device)
     out = conv(x)
     assert torch.equal(out.indices, x.indices) and out.spatial_shape == list(SHAPE)
     pad = tuple((k - 1) // 2 * dilation for k in kernel)
@@ -76,16 +78,18 @@ def test_submanifold_equals_dense_conv3d_at_the_active_sites(kernel, dilation) -
 
 @pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("stride,padding,dilation", [(2, 1, 1), ((2, 2, 1), (1, 1, 0), 1), (1, 0, 1), (2, 0, 2)])
-def test_strided_equals_dense_conv3d_and_its_active_sites_are_those_reached(kernel, stride, padding, dilation) -> None:
-    x = cloud(1)
+def test_strided_equals_dense_conv3d_and_its_active_sites_are_those_reached(kernel, stride, padding, dilation,
+                                                                            device) -> None:
+    x = cloud(1, device=device)
     x.features.requires_grad_()
     conv = SparseConv3d(4, 3, kernel, stride=stride, padding=padding, dilation=dilation, indice_key="down").double()
+    conv = conv.to(device)
     out = conv(x)
     fn = lambda d: F.conv3d(d, dense_weight(conv), conv.bias, stride=stride, padding=padding, dilation=dilation)  # noqa: E731
     ref = fn(x.dense().detach())
     assert list(ref.shape[2:]) == out.spatial_shape
     reached = F.conv3d((x.dense().detach().abs().sum(1, keepdim=True) > 0).double(),
-                       torch.ones(1, 1, *kernel, dtype=torch.float64), stride=stride, padding=padding,
+                       torch.ones(1, 1, *kernel, dtype=torch.float64, device=device), stride=stride, padding=padding,
                        dilation=dilation)[:, 0] > 0
     assert torch.equal(torch.sort(reached.nonzero().int(), dim=0)[0], torch.sort(out.indices, dim=0)[0])
     grads_match(out, x, conv, fn, out.indices)
@@ -93,13 +97,13 @@ def test_strided_equals_dense_conv3d_and_its_active_sites_are_those_reached(kern
 
 @pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("stride,padding", [(2, 1), ((2, 2, 1), (1, 1, 0))])
-def test_inverse_equals_conv_transpose3d_back_on_the_input_sites(kernel, stride, padding) -> None:
-    x = cloud(2)
-    down = SparseConv3d(4, 6, kernel, stride=stride, padding=padding, indice_key="k1").double()
+def test_inverse_equals_conv_transpose3d_back_on_the_input_sites(kernel, stride, padding, device) -> None:
+    x = cloud(2, device=device)
+    down = SparseConv3d(4, 6, kernel, stride=stride, padding=padding, indice_key="k1").double().to(device)
     y = down(x)
     y = y.replace_feature(torch.randn(y.features.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
-                          .requires_grad_())
-    up = SparseInverseConv3d(6, 2, kernel, indice_key="k1").double()
+                          .to(device).requires_grad_())
+    up = SparseInverseConv3d(6, 2, kernel, indice_key="k1").double().to(device)
     z = up(y)
     assert torch.equal(z.indices, x.indices) and z.spatial_shape == list(SHAPE)
     s, p = (stride,) * 3 if isinstance(stride, int) else stride, (padding,) * 3 if isinstance(padding, int) else padding
@@ -109,19 +113,20 @@ def test_inverse_equals_conv_transpose3d_back_on_the_input_sites(kernel, stride,
     grads_match(z, y, up, lambda d: F.conv_transpose3d(d, w_t, up.bias, stride=s, padding=p, output_padding=extra),
                 x.indices)
     with pytest.raises(KeyError, match="indice_key='nope'"):
-        SparseInverseConv3d(6, 2, kernel, indice_key="nope").double()(y)
+        SparseInverseConv3d(6, 2, kernel, indice_key="nope").double().to(device)(y)
 
 
-def test_an_empty_batch_and_gradcheck() -> None:
-    empty = SparseConvTensor(torch.zeros(0, 4, dtype=torch.float64, requires_grad=True),
-                             torch.zeros(0, 4, dtype=torch.int32), SHAPE, 2)
-    for conv in (SubMConv3d(4, 3, 3).double(), SparseConv3d(4, 3, 3, stride=2, padding=1).double()):
+def test_an_empty_batch_and_gradcheck(device) -> None:
+    empty = SparseConvTensor(torch.zeros(0, 4, dtype=torch.float64, device=device, requires_grad=True),
+                             torch.zeros(0, 4, dtype=torch.int32, device=device), SHAPE, 2)
+    for conv in (SubMConv3d(4, 3, 3), SparseConv3d(4, 3, 3, stride=2, padding=1)):
+        conv = conv.double().to(device)
         out = conv(empty)
         assert out.features.shape == (0, 3)
         out.features.sum().backward()
         assert conv.weight.grad is not None and not conv.weight.grad.any()
-    x = cloud(4, batch=2, channels=2, n=6, empty=None)
-    conv = SparseConv3d(2, 2, (3, 1, 3), stride=2, padding=1).double()
+    x = cloud(4, batch=2, channels=2, n=6, empty=None, device=device)
+    conv = SparseConv3d(2, 2, (3, 1, 3), stride=2, padding=1).double().to(device)
     book = __import__("distilkit.sparse.rulebook", fromlist=["strided"]).strided(
         x.indices, SHAPE, conv.kernel_size, conv.stride, conv.padding, conv.dilation)
     from distilkit.sparse.function import rulebook_conv
