@@ -87,3 +87,42 @@ def test_a_stage_makes_the_racy_gather_backward_repeatable() -> None:
         assert torch.are_deterministic_algorithms_enabled() == was  # the process's setting is given back
     finally:
         torch.set_num_threads(threads)
+
+
+def test_ops_without_a_deterministic_variant_are_collected_and_cudnn_is_pinned_while_a_stage_runs() -> None:
+    import warnings
+
+    from distilkit.repro import deterministic_algorithms, nondeterministic_ops
+
+    before = torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark
+    with pytest.warns(UserWarning, match="another warning"):  # every other warning is shown as before
+        with deterministic_algorithms(), nondeterministic_ops() as ops:
+            assert torch.backends.cudnn.deterministic and not torch.backends.cudnn.benchmark
+            for _ in range(2):  # put_ without accumulate has no deterministic variant, on the CPU too
+                torch.zeros(4).put_(torch.tensor([1, 1]), torch.tensor([1.0, 2.0]))
+            warnings.warn("another warning")
+    assert ops == ["put_"]
+    assert (torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark) == before  # restored
+
+
+def test_a_stage_names_the_ops_that_made_it_not_repeatable(tmp_path: Path, monkeypatch, capsys) -> None:
+    import json
+
+    from conftest import tiny_recipe
+    from distilkit.engine.train.pipeline import Pipeline
+    from distilkit.engine.train.trainer import Trainer
+    from distilkit.recipe import recipe_from_dict
+
+    plain = Pipeline(recipe_from_dict(tiny_recipe(distill=False)), tmp_path / "plain").run()[0]
+    assert "nondeterministic_ops" not in json.loads((plain.run_dir / "summary.json").read_text())
+    orig = Trainer.loss_terms
+
+    def with_put(self, batch):
+        torch.zeros(4).put_(torch.tensor([1, 1]), torch.tensor([1.0, 2.0]))
+        return orig(self, batch)
+
+    monkeypatch.setattr(Trainer, "loss_terms", with_put)
+    result = Pipeline(recipe_from_dict(tiny_recipe(distill=False)), tmp_path / "put").run()[0]
+    assert json.loads((result.run_dir / "summary.json").read_text())["nondeterministic_ops"] == ["put_"]
+    assert "stage teacher: put_ has no deterministic variant on the cpu; this run is not bitwise repeatable" in \
+        capsys.readouterr().out

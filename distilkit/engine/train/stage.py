@@ -1,11 +1,12 @@
 """One stage run, with one owner: build → loop → evaluate → publish.
 
 * **build**: the run folder and its resolved configuration, the stage's seed (once), the device, the frozen
-  teacher and the initial weights (both rebuilt from upstream runs by :func:`~distilkit.engine.assemble.runs.load_run`),
-  the data loaders, and the :class:`~distilkit.engine.train.trainer.Trainer` (student, terms, optimizer);
-* **loop**: batches from the loader (:mod:`~distilkit.engine.train.loader`), one optimizer step each, the lifecycle hooks
-  (:mod:`~distilkit.engine.hooks`) around it; a run started again resumes from ``last.pt`` (models, optimizers, RNG
-  and the batch order);
+  teacher and the initial weights (both rebuilt from upstream runs by
+  :func:`~distilkit.engine.assemble.runs.load_run`), the data loaders, and the
+  :class:`~distilkit.engine.train.trainer.Trainer` (student, terms, optimizer);
+* **loop**: batches from the loader (:mod:`~distilkit.engine.train.loader`), one optimizer step each, the lifecycle
+  hooks (:mod:`~distilkit.engine.hooks`) around it; a run started again resumes from ``last.pt`` (models, optimizers,
+  RNG and the batch order);
 * **evaluate**: the best-validation and the last checkpoint on the test split (the validation split where the data
   has no test split) with the stage's metrics, each process scoring its share;
 * **publish**: ``summary.json`` (which marks the stage finished), ``preview.npz`` and the run report.
@@ -82,12 +83,14 @@ class StageRun:
         self.aux: list[tuple[Any, Any]] = []  # (resolved aux, its frozen model)
         self.eval_progress: Any = None  # where an evaluation shows its progress (the stage's bar), if anywhere
         self.device = pick_device(self.spec.device)
+        self.nondeterministic: list[str] = []  # ops that ran without a deterministic variant (warn_only)
 
     # -- the whole run -----------------------------------------------------------------------
     def run(self) -> StageResult | None:
         """Reuse the finished stage, or build, train, evaluate and publish it (None: stopped early on request)."""
         from distilkit.console import progress_bar, stage_progress
         from distilkit.engine.train.oom import is_out_of_memory, out_of_memory
+        from distilkit.repro import nondeterministic_ops
 
         done = read_summary(self.run_dir)
         if done is not None:
@@ -96,30 +99,32 @@ class StageRun:
             # the label is cosmetic (not part of the identity): show the recipe's current one
             return StageResult(self.name, self.run_dir, {**done, "label": self.stage.spec.label or self.name}, True)
         self._prepare_folder()
-        try:
-            with stage_progress(self.pipeline.console, self.name) as bar:
-                self.eval_progress = bar.evaluation
-                self.build()
-                loop = self.loop(bar)
-            assert self.trainer is not None
-            if loop.step < self.trainer.total_steps:
-                self.pipeline.console.print(f"stage {self.name} stopped after {loop.step} steps (checkpoint kept)")
-                return None
-            split = self.report_split()
-            best = self.best_model()  # read once: scored on the test split, previewed on a validation scene
-            test = {}
-            if split is not None:
-                with progress_bar(self.pipeline.console, f"{self.name}: scoring {split}", transient=True) as advance:
-                    self.eval_progress = lambda done, total: advance(done, total) if done is not None else None
-                    test = self.score(split, best)
-            self.eval_progress = None
-            self.write_preview(best)
-            self.publish_predictions(best[0] if best is not None else None)
-        except (RuntimeError, MemoryError) as exc:  # out of memory: one line that says what to lower
-            if not is_out_of_memory(exc):
-                raise
-            kept = self.checkpoints.kept() if self.trainer is not None else "no checkpoint had been written yet"
-            raise out_of_memory(self.stage, self.info, exc, kept) from None
+        with nondeterministic_ops() as self.nondeterministic:  # ops without a deterministic variant: listed
+            try:
+                with stage_progress(self.pipeline.console, self.name) as bar:
+                    self.eval_progress = bar.evaluation
+                    self.build()
+                    loop = self.loop(bar)
+                assert self.trainer is not None
+                if loop.step < self.trainer.total_steps:
+                    self.pipeline.console.print(f"stage {self.name} stopped after {loop.step} steps (checkpoint kept)")
+                    return None
+                split = self.report_split()
+                best = self.best_model()  # read once: scored on the test split, previewed on a validation scene
+                test = {}
+                if split is not None:
+                    scoring = f"{self.name}: scoring {split}"
+                    with progress_bar(self.pipeline.console, scoring, transient=True) as advance:
+                        self.eval_progress = lambda done, total: advance(done, total) if done is not None else None
+                        test = self.score(split, best)
+                self.eval_progress = None
+                self.write_preview(best)
+                self.publish_predictions(best[0] if best is not None else None)
+            except (RuntimeError, MemoryError) as exc:  # out of memory: one line that says what to lower
+                if not is_out_of_memory(exc):
+                    raise
+                kept = self.checkpoints.kept() if self.trainer is not None else "no checkpoint had been written yet"
+                raise out_of_memory(self.stage, self.info, exc, kept) from None
         return self.publish(loop, split, test)
 
     def report_split(self) -> str | None:
@@ -401,6 +406,11 @@ class StageRun:
             "best": loop.best, "last": loop.last_scores, "report_split": split, "test": test,
             "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
+        if self.nondeterministic:  # this run is not bitwise repeatable: say which ops made it so
+            summary["nondeterministic_ops"] = list(self.nondeterministic)
+            for op in self.nondeterministic:
+                p.console.print(f"[yellow]stage {self.name}: {op} has no deterministic variant on the "
+                                f"{self.device.type}; this run is not bitwise repeatable[/]", highlight=False)
         if not self.world.main:
             return StageResult(self.name, self.run_dir, summary, reused=False)
         atomic_write_json(self.run_dir / "summary.json", summary)
