@@ -9,6 +9,7 @@ float32 (as spconv accumulates half-precision products); the output has autocast
 
 from __future__ import annotations
 
+from functools import cache
 from typing import Any
 
 import torch
@@ -26,6 +27,7 @@ def _compute_dtypes(features: Tensor) -> tuple[torch.dtype, torch.dtype]:
     return features.dtype, features.dtype
 
 
+@cache
 def _function(device_type: str) -> type[torch.autograd.Function]:
     """The convolution's autograd function for one device type, declaring its autocast behaviour there
     (``torch.amp.custom_fwd``/``custom_bwd``): under autocast the gathers and products run in autocast's dtype
@@ -73,18 +75,13 @@ def _function(device_type: str) -> type[torch.autograd.Function]:
     return _RulebookConv
 
 
-_FUNCTIONS: dict[str, type[torch.autograd.Function]] = {}
-
-
 def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: int) -> Tensor:
     """(rows_out, C_out) = the convolution of (N, C_in) ``features`` on ``book`` with ``weight`` (K, C_in, C_out)."""
     if weight.shape[0] != len(book.bounds) - 1:
         raise ValueError(f"sparse convolution: {weight.shape[0]} kernel offsets in the weight, "
                          f"{len(book.bounds) - 1} in the neighbour map")
-    device_type = features.device.type
-    if device_type not in _FUNCTIONS:
-        _FUNCTIONS[device_type] = _function(device_type)
-    return _FUNCTIONS[device_type].apply(features, weight, book.in_idx, book.out_idx, book.bounds, rows_out)
+    return _function(features.device.type).apply(features, weight, book.in_idx, book.out_idx, book.bounds,
+                                                  rows_out)
 
 
 __all__ = ["rulebook_conv"]

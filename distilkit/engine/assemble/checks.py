@@ -84,11 +84,7 @@ def fit_problem(path: Path, model: Any, info: Any, strict: bool, whole: bool = F
 
 def run_problems(res: Any) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
     """What a run of ``res`` would meet: (the data's problems, every problem — the data's and the weights files')."""
-    from distilkit.registry import DATASETS
-
-    entry = DATASETS.entry(res.recipe.data.dataset)
-    has_split = entry.meta.get("has_split", lambda p, s: s != "test")
-    unreadable = data_problems(res, lambda split: bool(has_split(res.data_params, split)))
+    unreadable = data_problems(res, res.has_split)
     return unreadable, unreadable + weights_problems(res)
 
 

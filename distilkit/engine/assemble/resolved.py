@@ -99,3 +99,10 @@ class ResolvedRecipe:
     stages: dict[str, ResolvedStage]
     order: list[str]
 
+    def has_split(self, split: str) -> bool:
+        """Whether the data has ``split`` (the dataset's registered ``has_split``; by default every split but test)."""
+        from distilkit.registry import DATASETS
+
+        has = DATASETS.entry(self.recipe.data.dataset).meta.get("has_split", lambda params, s: s != "test")
+        return bool(has(self.data_params, split))
+

@@ -99,8 +99,7 @@ class RecipeRun:
         return [s for s in ("train", "val", "test") if s in wanted and self.has_split(s)]
 
     def has_split(self, split: str) -> bool:
-        entry = DATASETS.entry(self.recipe.data.dataset)
-        return bool(entry.meta.get("has_split", lambda p, s: s != "test")(self.resolved.data_params, split))
+        return self.resolved.has_split(split)
 
 
 __all__ = ["RecipeRun"]
