@@ -171,3 +171,44 @@ def test_two_processes_give_the_same_bits() -> None:
     runs = [subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, check=True).stdout
             for _ in range(2)]
     assert runs[0] == runs[1] and len(runs[0].strip()) == 64
+
+
+def maps(x: SparseConvTensor) -> list:
+    """Every kind of map: submanifold, strided, the strided one's inverse, and a dilated submanifold one."""
+    from distilkit.sparse.rulebook import strided, submanifold
+
+    book = strided(x.indices, SHAPE, (3, 3, 3), (2, 2, 2), (1, 1, 1), (1, 1, 1))
+    return [submanifold(x.indices, SHAPE, (3, 3, 3), (1, 1, 1)), book, book.inverse(),
+            submanifold(x.indices, SHAPE, (3, 1, 3), (2, 2, 2))]
+
+
+def test_each_kernel_offset_writes_distinct_rows_so_the_scatter_order_cannot_change_the_bits(device) -> None:
+    """Why the scatter-add is deterministic on every device: within one kernel offset no two pairs share an output
+    row (forward) or an input row (the features' gradient), so whatever order the pairs of an offset are added in —
+    atomics on CUDA included — each row receives one addition per offset, offsets in their fixed order. Tested as
+    exactly that: the pairs of each offset shuffled give the same bits in the values and the features' gradient."""
+    from distilkit.sparse.function import rulebook_conv
+    from distilkit.sparse.rulebook import Rulebook
+
+    x = cloud(3, channels=5, n=60, device=device)
+    g = torch.Generator().manual_seed(4)
+    for book in maps(x):
+        for k in range(book.volume):
+            s, e = book.bounds[k], book.bounds[k + 1]
+            assert book.out_idx[s:e].unique().numel() == e - s and book.in_idx[s:e].unique().numel() == e - s
+        perm = torch.cat([s + torch.randperm(e - s, generator=g)
+                          for s, e in zip(book.bounds[:-1], book.bounds[1:])]).to(device)
+        shuffled = Rulebook(book.in_idx[perm], book.out_idx[perm], book.bounds, book.out_indices, book.out_shape,
+                            book.in_indices, book.in_shape, book.kernel, book.dilation, book.subm)
+        w = torch.randn(book.volume, 5, 3, generator=g, dtype=torch.float64).to(device)
+        results = []
+        for b in (book, shuffled):
+            f, wk = x.features.detach().clone().requires_grad_(), w.clone().requires_grad_()
+            out = rulebook_conv(f, wk, b, b.out_indices.shape[0])
+            out.square().sum().backward()
+            results.append((out.detach(), f.grad, wk.grad))
+        (out_a, f_a, w_a), (out_b, f_b, w_b) = results
+        assert torch.equal(out_a, out_b) and torch.equal(f_a, f_b)
+        # the weight's gradient is a GEMM over an offset's pairs: its sum runs in the map's order, fixed by the map's
+        # construction (sorts and searches), so shuffling it only moves the rounding
+        torch.testing.assert_close(w_a, w_b, rtol=1e-12, atol=1e-12)

@@ -5,7 +5,9 @@ grid (its value restricted to the active sites: the two must agree).
 
 The arithmetic: each neighbour pair costs 2 C_in C_out flops in the forward pass and twice that in the backward
 (gradients of the features and of the weight), so GFLOP/s = 6 P C_in C_out / time. It is set beside this CPU's
-single-precision GEMM rate (a 4096 x 4096 ``torch.mm``), measured in the same run.
+single-precision GEMM rate (a 4096 x 4096 ``torch.mm``), measured in the same run. On CUDA the same layer is timed
+on each library backend present (spconv 2.x, spconv-Triton: :mod:`distilkit.sparse.backend`) against the torch
+path, each with its GFLOP/s beside the GPU's GEMM rate.
 """
 
 from __future__ import annotations
@@ -111,7 +113,31 @@ def sparse_cases(device: torch.device, quick: bool) -> list[Case]:
                 + dense_rate)
 
     size = f"SubM 3x3x3 {channels}->{channels}, {len(indices):,} of {'x'.join(map(str, shape))} voxels"
-    return [Case("sparse: SubMConv3d vs dense conv3d", size, sparse, dense, [feats, weight], note=note)]
+    cases = [Case("sparse: SubMConv3d vs dense conv3d", size, on("torch", sparse), dense, [feats, weight],
+                  note=note)]
+    for name in library_backends(device):  # the same layer on each library present, against the torch path
+        cases.append(Case(f"sparse: {name} vs torch backend", size, on(name, sparse), on("torch", sparse),
+                          [feats, weight], note=lambda row, name=name: f"{name}: " + note(row).split("; dense")[0]))
+    return cases
 
 
-__all__ = ["scan_occupancy", "sgemm_gflops", "sparse_cases"]
+def library_backends(device: torch.device) -> list[str]:
+    """The library backends that can time forward + backward on ``device`` (spconv's CPU build has no backward)."""
+    from distilkit.sparse import backend
+
+    if device.type != "cuda":
+        return []
+    return [name for name in ("spconv", "spconv-triton") if backend.problem(name, device.type) is None]
+
+
+def on(name: str, fn: Any) -> Any:
+    """``fn`` with the sparse convolutions on backend ``name``."""
+    from distilkit.sparse.backend import using
+
+    def run() -> Tensor:
+        with using(name):
+            return fn()
+    return run
+
+
+__all__ = ["library_backends", "on", "scan_occupancy", "sgemm_gflops", "sparse_cases"]

@@ -287,4 +287,10 @@ def name_modules(model: nn.Module, prefix: str = "") -> nn.Module:
     return model
 
 
-__all__ = ["SEMANTICS", "Semantics", "SparseConv3d", "SparseInverseConv3d", "SubMConv3d", "name_modules"]
+def uses_sparse(model: nn.Module) -> bool:
+    """Whether ``model`` holds a sparse convolution (whose backend ``DISTILKIT_SPARSE`` chooses)."""
+    return any(isinstance(m, _SparseConvolution) for m in model.modules())
+
+
+__all__ = ["SEMANTICS", "Semantics", "SparseConv3d", "SparseInverseConv3d", "SubMConv3d", "name_modules",
+           "uses_sparse"]

@@ -2,8 +2,14 @@
 
 For kernel index k with pairs (in rows I_k, out rows O_k): out[O_k] += in[I_k] W_k. The backward recomputes the
 gathers instead of keeping them (autograd would store P x C_in floats): grad W_k = in[I_k]^T grad[O_k] and
-grad in[I_k] += grad[O_k] W_k^T. ``index_add_`` accumulates in pair order on the CPU, so a run gives the same bits in
-every process. Under autocast (``train.precision: bf16 | fp16``) the products run in autocast's dtype and the sums in
+grad in[I_k] += grad[O_k] W_k^T.
+
+Deterministic on every device by construction: within one kernel offset no two pairs share an output row (nor an
+input row), so each scatter-add (``index_add_``) writes distinct rows — one addition per row per offset, the
+offsets in their fixed order — and the order its threads run in (atomics on CUDA) cannot change a bit; the maps
+themselves come from sorts and searches, deterministic too. Under ``DISTILKIT_DETERMINISTIC`` PyTorch still routes
+CUDA's ``index_add_`` through its sorted deterministic path (no warning, slower; ``scripts/gpu-check`` measures the
+cost). The CPU tests run this same code (``tests/test_sparse.py``: shuffling an offset's pairs changes no bit). Under autocast (``train.precision: bf16 | fp16``) the products run in autocast's dtype and the sums in
 float32 (as spconv accumulates half-precision products); the output has autocast's dtype.
 """
 
@@ -15,6 +21,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from distilkit.sparse.backend import choose, library_conv, ran
 from distilkit.sparse.rulebook import Rulebook
 
 
@@ -76,10 +83,15 @@ def _function(device_type: str) -> type[torch.autograd.Function]:
 
 
 def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: int) -> Tensor:
-    """(rows_out, C_out) = the convolution of (N, C_in) ``features`` on ``book`` with ``weight`` (K, C_in, C_out)."""
+    """(rows_out, C_out) = the convolution of (N, C_in) ``features`` on ``book`` with ``weight`` (K, C_in, C_out), on
+    the backend :func:`distilkit.sparse.backend.choose` picks for the features' device."""
     if weight.shape[0] != len(book.bounds) - 1:
         raise ValueError(f"sparse convolution: {weight.shape[0]} kernel offsets in the weight, "
                          f"{len(book.bounds) - 1} in the neighbour map")
+    backend = choose(features.device.type)
+    ran(backend)
+    if backend != "torch":
+        return library_conv(backend, features, weight, book, rows_out)
     return _function(features.device.type).apply(features, weight, book.in_idx, book.out_idx, book.bounds,
                                                   rows_out)
 

@@ -14,7 +14,7 @@ Conventions (those of ``torch.nn.functional.conv3d`` and spconv): a kernel index
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import product
 from typing import Sequence
 
@@ -39,6 +39,7 @@ class Rulebook:
     kernel: Triple
     dilation: Triple = (1, 1, 1)
     subm: bool = False  # a submanifold map (outputs at the input's sites), else a strided one or its inverse
+    cache: dict = field(default_factory=dict, repr=False, compare=False)  # derived forms (its inverse, spconv's pairs)
 
     @property
     def pairs(self) -> int:
@@ -50,9 +51,11 @@ class Rulebook:
         return len(self.bounds) - 1
 
     def inverse(self) -> "Rulebook":
-        """The map back: the output's rows feed the input's sites, kernel index by kernel index."""
-        return Rulebook(self.out_idx, self.in_idx, self.bounds, self.in_indices, self.in_shape, self.out_indices,
-                        self.out_shape, self.kernel, self.dilation)
+        """The map back: the output's rows feed the input's sites, kernel index by kernel index (built once)."""
+        if "inverse" not in self.cache:
+            self.cache["inverse"] = Rulebook(self.out_idx, self.in_idx, self.bounds, self.in_indices, self.in_shape,
+                                             self.out_indices, self.out_shape, self.kernel, self.dilation)
+        return self.cache["inverse"]
 
 
 def triple(v: int | Sequence[int], name: str) -> Triple:

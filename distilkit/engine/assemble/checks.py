@@ -46,17 +46,7 @@ def weights_problems(res: Any) -> list[tuple[str, str]]:
 
 def model_shapes(model: Any, info: Any) -> dict[str, tuple[int, ...]]:
     """The state dict's shapes of a resolved model, built on the meta device (nothing allocated) where it can be."""
-    import torch
-
-    from distilkit.engine.assemble.runs import build_model
-
-    try:
-        with torch.device("meta"), torch.random.fork_rng(devices=[]):
-            built = build_model(model, info)
-    except Exception:  # an adapter that computes on real tensors while it is built
-        with torch.random.fork_rng(devices=[]):
-            built = build_model(model, info)
-    return {k: tuple(v.shape) for k, v in built.state_dict().items()}
+    return {k: tuple(v.shape) for k, v in _built(model, info).state_dict().items()}
 
 
 def fit_problem(path: Path, model: Any, info: Any, strict: bool, whole: bool = False) -> str | None:
@@ -101,7 +91,39 @@ def describe(res: Any) -> tuple[str, list[str]]:
         what = spec.cls.network(spec.params)
         if what:
             seen.setdefault(f"{spec.adapter}: {what}", []).append(name)
-    return stages, [f"model of {', '.join(names)} — {line}" for line, names in seen.items()]
+    return stages, [f"model of {', '.join(names)} — {line}" for line, names in seen.items()] + sparse_lines(res)
 
 
-__all__ = ["data_problems", "describe", "fit_problem", "model_shapes", "run_problems", "weights_problems"]
+def sparse_lines(res: Any) -> list[str]:
+    """One line per device whose stages build sparse convolutions: which backend computes them there
+    (``DISTILKIT_SPARSE``; :mod:`distilkit.sparse.backend`)."""
+    from distilkit.engine.assemble.devices import pick_device
+    from distilkit.sparse import backend, uses_sparse
+
+    devices: dict[str, list[str]] = {}
+    sparse: dict[int, bool] = {}  # per model spec: built once
+    for name, stage in res.stages.items():
+        specs = [stage.student] + ([stage.teacher] if stage.teacher is not None else [])
+        for spec in specs:
+            if id(spec) not in sparse:
+                sparse[id(spec)] = uses_sparse(_built(spec, res.data_info))
+        if any(sparse[id(spec)] for spec in specs):
+            devices.setdefault(pick_device(stage.spec.train.device).type, []).append(name)
+    return [f"{backend.describe(device)} — stages {', '.join(names)}" for device, names in devices.items()]
+
+
+def _built(model: Any, info: Any) -> Any:
+    """A resolved model built on the meta device (nothing allocated) where it can be."""
+    import torch
+
+    from distilkit.engine.assemble.runs import build_model
+
+    try:
+        with torch.device("meta"), torch.random.fork_rng(devices=[]):
+            return build_model(model, info)
+    except Exception:  # an adapter that computes on real tensors while it is built
+        with torch.random.fork_rng(devices=[]):
+            return build_model(model, info)
+
+
+__all__ = ["data_problems", "describe", "fit_problem", "model_shapes", "run_problems", "sparse_lines", "weights_problems"]

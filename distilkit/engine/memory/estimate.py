@@ -263,7 +263,7 @@ def estimate_stage(res: Any, stage_name: str) -> MemoryEstimate | None:
     peak, and scaling it with the grid would overstate a large grid). Each phase's per-sample part is bounded at
     the recipe's size by :func:`_bounds`, times ``train.batch_size``, plus what is kept whatever the batch (the
     parameters and the optimizer's state; bounded the same way, as a model's parameters may grow with the grid)."""
-    from distilkit.engine.train.devices import pick_device
+    from distilkit.engine.assemble.devices import pick_device
     from distilkit.registry import DATASETS
 
     stage = res.stages[stage_name]

@@ -16,7 +16,7 @@ def probe_trainer(res: Any, stage_name: str, params: Any, run_dir: Path, batch_s
     from distilkit.engine.train.distributed import SINGLE
     from distilkit.engine.train.loader import BatchPlan
     from distilkit.engine.assemble.runs import build_model, freeze
-    from distilkit.engine.train.devices import pick_device
+    from distilkit.engine.assemble.devices import pick_device
     from distilkit.engine.train.auxiliary import with_aux_inputs
     from distilkit.engine.train.trainer import Trainer
     from distilkit.registry import DATASETS

@@ -38,7 +38,7 @@ from distilkit.files import atomic_write_json, atomic_write_text
 from distilkit.engine.train.loader import BatchPlan, eval_batches, resolve_workers, train_batches
 from distilkit.engine.assemble.runs import load_run
 from distilkit.engine.train.auxiliary import with_aux_inputs
-from distilkit.engine.train.devices import pick_device
+from distilkit.engine.assemble.devices import pick_device
 
 if TYPE_CHECKING:
     from distilkit.engine.train.context import RecipeRun
@@ -84,6 +84,7 @@ class StageRun:
         self.eval_progress: Any = None  # where an evaluation shows its progress (the stage's bar), if anywhere
         self.device = pick_device(self.spec.device)
         self.nondeterministic: list[str] = []  # ops that ran without a deterministic variant (warn_only)
+        self.sparse_backends: set[str] = set()  # which backends computed its sparse convolutions
 
     # -- the whole run -----------------------------------------------------------------------
     def run(self) -> StageResult | None:
@@ -91,6 +92,7 @@ class StageRun:
         from distilkit.console import progress_bar, stage_progress
         from distilkit.engine.train.oom import is_out_of_memory, out_of_memory
         from distilkit.repro import nondeterministic_ops
+        from distilkit.sparse.backend import record as record_backends
 
         done = read_summary(self.run_dir)
         if done is not None:
@@ -99,7 +101,7 @@ class StageRun:
             # the label is cosmetic (not part of the identity): show the recipe's current one
             return StageResult(self.name, self.run_dir, {**done, "label": self.stage.spec.label or self.name}, True)
         self._prepare_folder()
-        with nondeterministic_ops() as self.nondeterministic:  # ops without a deterministic variant: listed
+        with nondeterministic_ops() as self.nondeterministic, record_backends() as self.sparse_backends:
             try:
                 with stage_progress(self.pipeline.console, self.name) as bar:
                     self.eval_progress = bar.evaluation
@@ -406,6 +408,8 @@ class StageRun:
             "best": loop.best, "last": loop.last_scores, "report_split": split, "test": test,
             "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
+        if self.sparse_backends:  # which implementation computed the sparse convolutions (DISTILKIT_SPARSE)
+            summary["sparse_backend"] = sorted(self.sparse_backends)
         if self.nondeterministic:  # this run is not bitwise repeatable: say which ops made it so
             summary["nondeterministic_ops"] = list(self.nondeterministic)
             for op in self.nondeterministic:

@@ -258,12 +258,15 @@ class Trainer:
 
     @staticmethod
     def _roles(term: StageTerm, s_out: dict[str, Any], t_out: dict[str, Any], batch: Batch,
-               partial: bool = False) -> dict[str, Any]:
+               partial: bool = False, float32: bool = False) -> dict[str, Any]:
         """The value of each of a term's roles: a student or teacher tap, or a batch field (``partial``: only the
-        taps the outputs hold — the setup pass runs the student in eval mode, where some adapters return less)."""
+        taps the outputs hold — the setup pass runs the student in eval mode, where some adapters return less;
+        ``float32``: the taps of reduced-precision models in float32, before the term's connector sees them)."""
         cls = term.spec.cls
         taps = {role: (t_out if role in cls.TEACHER_ROLES else s_out)[tap] for role, tap in term.spec.taps.items()
                 if not partial or tap in (t_out if role in cls.TEACHER_ROLES else s_out)}
+        if float32:
+            taps = {role: to_float32(v) for role, v in taps.items()}
         taps.update({role: batch.field(name) for role, name in term.spec.fields.items()})
         if term.connector is not None and term.spec.connector is not None and "student" in taps:
             taps["student"] = term.connector(taps["student"])
@@ -344,9 +347,8 @@ class Trainer:
         from distilkit.engine.train.optim import weight_factor
 
         for i, term in enumerate(self.terms):
-            taps = self._roles(term, s_out, t_out, batch)
-            if self.stage.spec.train.precision != "fp32":  # terms in float32, outside autocast
-                taps = {role: to_float32(v) for role, v in taps.items()}
+            # terms (and their connectors) in float32, outside autocast
+            taps = self._roles(term, s_out, t_out, batch, float32=self.stage.spec.train.precision != "fp32")
             self._last_taps[i] = {role: v.detach() if hasattr(v, "detach") else v for role, v in taps.items()}
             try:
                 weight = term.spec.weight * weight_factor(term.spec.warmup_steps, self._step)
