@@ -80,6 +80,10 @@ class SparseVoxels:
     def detach(self) -> "SparseVoxels":
         return self.with_feats(self.feats.detach())
 
+    def to(self, device: torch.device | str) -> "SparseVoxels":
+        """The same voxels with coordinates and features on ``device``."""
+        return SparseVoxels(self.coords.to(device), self.feats.to(device), self.spatial_shape, self.grid)
+
 
 @dataclass
 class PointCloud:

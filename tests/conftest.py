@@ -110,8 +110,9 @@ def folder_recipe(root, name: str = "kitti", dataset: str = "semantickitti", fra
             "data": {"dataset": dataset, "params": {"root": str(root), **data}}, "stages": {stage: spec}}
 
 
-def make_trainer(pipe, stage_name: str, teacher=None, world=None):
-    """The :class:`~distilkit.engine.train.trainer.Trainer` of a pipeline's stage at its seed, on the CPU, without a run."""
+def make_trainer(pipe, stage_name: str, teacher=None, world=None, device=None):
+    """The :class:`~distilkit.engine.train.trainer.Trainer` of a pipeline's stage at its seed, on ``device`` (the
+    CPU unless given), without a run."""
     import torch
 
     from distilkit.engine.train.distributed import SINGLE
@@ -122,5 +123,5 @@ def make_trainer(pipe, stage_name: str, teacher=None, world=None):
     stage = pipe.resolved.stages[stage_name]
     train_set = pipe.dataset("train")
     plan = BatchPlan(len(train_set), stage.spec.train.batch_size, 0, world)
-    return Trainer(stage, pipe.resolved.data_info, train_set, plan, torch.device("cpu"), collate=pipe.collate,
-                   teacher=teacher, world=world)
+    return Trainer(stage, pipe.resolved.data_info, train_set, plan, torch.device(device or "cpu"),
+                   collate=pipe.collate, teacher=teacher, world=world)

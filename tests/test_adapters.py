@@ -50,10 +50,10 @@ def test_completion_keeps_sparsity() -> None:
     assert int(nz[:, 0].max()) <= 2 + 8 and out[0, :, 12:].abs().sum() == 0
 
 
-def test_scpnet_taps(batch) -> None:
+def test_scpnet_taps(batch, device) -> None:
     cls = ADAPTERS.get("scpnet")
-    model = cls(cls.Params(frames=2, channels=4, point_mlp=[8], seg_channels=4), synthetic_info(P))
-    out = model(batch)
+    model = cls(cls.Params(frames=2, channels=4, point_mlp=[8], seg_channels=4), synthetic_info(P)).to(device)
+    out = model(batch.to(device))
     for name, kind in cls.TAPS.items():
         check_tap(out[name], kind, name)
     assert out["logits"].shape == (2, 20, 32, 32, 4)
@@ -84,16 +84,18 @@ def roles(out: dict, batch) -> dict:
             "target": batch.targets["voxel_target"]}
 
 
-def test_js3cnet_taps_and_uncertainty_loss(batch) -> None:
+def test_js3cnet_taps_and_uncertainty_loss(batch, device) -> None:
     cls = ADAPTERS.get("js3cnet")
-    model = cls(cls.Params(frames=1, seg_channels=4, embed=4, ssc_channels=4, pvi_hidden=4, knn=4), synthetic_info(P))
+    model = cls(cls.Params(frames=1, seg_channels=4, embed=4, ssc_channels=4, pvi_hidden=4, knn=4),
+                synthetic_info(P)).to(device)
+    batch = batch.to(device)
     out = model(batch)
     for name, kind in cls.TAPS.items():
         check_tap(out[name], kind, name)
     assert out["logits"].shape == (2, 20, 32, 32, 4)
     assert out["point_logits"].shape[0] == out["point_target"].shape[0]
     assert out["completion"].spatial_shape == (16, 16, 2)
-    loss = UncertaintyMultiTask(UncertaintyMultiTask.Params(init_log_var=0.3))
+    loss = UncertaintyMultiTask(UncertaintyMultiTask.Params(init_log_var=0.3)).to(device)
     value = loss.compute(roles(out, batch), batch)
     # JS3C-Net eq. 2 with s = log sigma^2: 1/(2 sigma^2) L + log sigma
     tgt = out["point_target"].masked_fill(out["point_target"] == 0, 255)

@@ -1,6 +1,7 @@
-"""Multi-process training on the CPU (gloo): two processes take the same step as one process on the same global
-batch — student, FitNets' connector and every other trainable — and `distilkit run --nproc-per-node 2` (torchrun)
-trains a recipe to the end with one writer."""
+"""Multi-process training: two processes take the same step as one process on the same global batch — student,
+FitNets' connector and every other trainable — on the device of ``--device`` (gloo on the CPU; on CUDA, NCCL where
+each process has a GPU of its own, gloo through the host on one GPU), and `distilkit run --nproc-per-node 2`
+(torchrun) trains a recipe to the end with one writer."""
 
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ def register_camera() -> None:
                      consumes=tuple(tc.TinyCamera.TAPS.values()))
 
 
-def one_step(world: World, folder: Path) -> dict[str, dict[str, torch.Tensor]]:
+def one_step(world: World, folder: Path, device: str = "cpu") -> dict[str, dict[str, torch.Tensor]]:
     """One training step of a distilled student (CE + KD + FitNets with its linear connector) on global batch 0;
     the gradients it took and the weights after it, by qualified name."""
     register_camera()
@@ -53,33 +54,45 @@ def one_step(world: World, folder: Path) -> dict[str, dict[str, torch.Tensor]]:
     pipe = Pipeline(recipe_from_dict(recipe), folder, quiet=True)
     stage, info = pipe.resolved.stages["student"], pipe.resolved.data_info
     torch.manual_seed(7)
-    teacher = freeze(build_model(stage.teacher, info, "teacher"))
-    trainer = make_trainer(pipe, "student", teacher, world)
-    batch = trainer.first_batch()
+    teacher = freeze(build_model(stage.teacher, info, "teacher").to(device))
+    trainer = make_trainer(pipe, "student", teacher, world, device)
+    batch = trainer.first_batch().to(device)
     assert batch.size == 4 // world.size  # this process's share of the global batch
     trainer.train_step(batch, 0)
     named = trainer.named_trainables()
     assert any(n.startswith("connector.") for n, _ in named)  # FitNets' regressor trains too
-    return {"grads": {n: p.grad.detach().clone() for n, p in named},
-            "weights": {n: p.detach().clone() for n, p in named}}
+    assert all(p.grad.device.type == torch.device(device).type for _, p in named)
+    return {"grads": {n: p.grad.detach().cpu().clone() for n, p in named},
+            "weights": {n: p.detach().cpu().clone() for n, p in named}}
 
 
-def _worker(rank: int, size: int, init_file: str, folder: str) -> None:
+def backend(device: str) -> str:
+    """The process group of a run on ``device``: gloo on the CPU; on CUDA, NCCL for CUDA tensors where each process
+    has a GPU of its own (NCCL refuses two ranks on one GPU), else gloo for them too (it copies through the host)."""
+    if device != "cuda":
+        return "gloo"
+    return "cpu:gloo,cuda:nccl" if torch.cuda.device_count() >= 2 else "cpu:gloo,cuda:gloo"
+
+
+def _worker(rank: int, size: int, init_file: str, folder: str, device: str = "cpu") -> None:
     torch.set_num_threads(1)
-    torch.distributed.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=size)
+    if device == "cuda":
+        torch.cuda.set_device(rank % torch.cuda.device_count())
+    torch.distributed.init_process_group(backend(device), init_method=f"file://{init_file}", rank=rank,
+                                         world_size=size)
     world = World(rank, size)
-    torch.save(one_step(world, Path(folder)), Path(folder) / f"out{rank}.pt")
+    torch.save(one_step(world, Path(folder), device), Path(folder) / f"out{rank}.pt")
     leave(world)  # as `distilkit run` ends a process: gloo's teardown can abort at exit
 
 
-def test_two_processes_take_the_same_step_as_one_on_the_global_batch(tmp_path: Path) -> None:
+def test_two_processes_take_the_same_step_as_one_on_the_global_batch(tmp_path: Path, device) -> None:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as each worker; given back after, since later tests compare with subprocesses
     try:
-        single = one_step(World(), tmp_path / "single")
+        single = one_step(World(), tmp_path / "single", device.type)
     finally:
         torch.set_num_threads(threads)
-    mp.spawn(_worker, args=(2, str(tmp_path / "init"), str(tmp_path)), nprocs=2, join=True)
+    mp.spawn(_worker, args=(2, str(tmp_path / "init"), str(tmp_path), device.type), nprocs=2, join=True)
     outs = [torch.load(tmp_path / f"out{r}.pt", weights_only=True) for r in range(2)]
     for name, grad in single["grads"].items():
         for out in outs:

@@ -200,7 +200,8 @@ def reference(r: dict[str, torch.Tensor], pts: torch.Tensor) -> tuple[torch.Tens
     return point_logits, logits[None]
 
 
-def test_a_release_checkpoint_loads_with_every_key_accounted_for_and_gives_the_releases_logits(tmp_path) -> None:
+def test_a_release_checkpoint_loads_with_every_key_accounted_for_and_gives_the_releases_logits(tmp_path,
+                                                                                                 device) -> None:
     from distilkit.weights import load_weights
     from distilkit.errors import DataError
     from distilkit_adapters.js3cnet.adapter import JS3CNetAdapter
@@ -219,10 +220,12 @@ def test_a_release_checkpoint_loads_with_every_key_accounted_for_and_gives_the_r
     assert sorted(left) == ["ignored: complet_sigmas_sq (the uncertainty loss's weight)",
                             "ignored: seg_sigmas_sq (the uncertainty loss's weight)",
                             "ignored: voxelpool.* (unused with pooling_type: mean)"]
-    model = model.double().eval()
+    model = model.double().eval().to(device)
     pts = points()
     with torch.no_grad():
-        out = model.net(pts, torch.zeros(len(pts), dtype=torch.long), 1, GRID)
+        out = model.net(pts.to(device), torch.zeros(len(pts), dtype=torch.long, device=device), 1, GRID)
+        out = {k: out[k].cpu() for k in ("point_logits", "logits")}
+        model = model.cpu()
         want_points, want = reference(release, pts)
     assert torch.allclose(out["point_logits"], want_points, rtol=1e-9, atol=1e-9)
     assert int((want.abs().sum(1) > 0).sum()) > 100 and (want >= 0).all()  # the final ReLU

@@ -177,20 +177,24 @@ def _naive_sde_dpmsolver_pp(x: np.ndarray, abar: np.ndarray, steps: int, noises:
 
 
 @pytest.mark.parametrize("steps", [1, 2, 3, 8, 20])
-def test_samplers_equal_their_naive_forms(steps: int) -> None:
+def test_samplers_equal_their_naive_forms(steps: int, device) -> None:
+    """On the device of --device (the network stand-in and the reference in numpy; the SDE's noise drawn by a
+    generator on that device, the same draws given to the reference)."""
     from distilkit_adapters.lidiff.sampler import ddim, ddim_timesteps, dpm_timesteps, sde_dpmsolver_pp
 
     abar = np.cumprod(1 - np.linspace(3.5e-5, 0.007, 1000))
-    abar_t = torch.from_numpy(abar)
+    abar_t = torch.from_numpy(abar).to(device)
     x = np.random.default_rng(steps).normal(size=(5, 3))
-    eps = lambda x_t, t: torch.from_numpy(_toy_eps(x_t.numpy(), t))  # noqa: E731
-    got = ddim(eps, torch.from_numpy(x), (1 - abar_t).sqrt(), ddim_timesteps(steps, 1000))
-    assert np.allclose(got.numpy(), _naive_ddim(x, abar, steps), atol=1e-12)
-    gen = torch.Generator().manual_seed(3)
-    noises = [torch.randn((5, 3), generator=gen, dtype=torch.float64).numpy() for _ in range(steps)]
-    got = sde_dpmsolver_pp(eps, torch.from_numpy(x), abar_t, dpm_timesteps(steps, 1000),
-                           torch.Generator().manual_seed(3))
-    assert np.allclose(got.numpy(), _naive_sde_dpmsolver_pp(x, abar, steps, noises), atol=1e-10)
+    x_t = torch.from_numpy(x).to(device)
+    eps = lambda x_t, t: torch.from_numpy(_toy_eps(x_t.cpu().numpy(), t)).to(x_t.device)  # noqa: E731
+    got = ddim(eps, x_t, (1 - abar_t).sqrt(), ddim_timesteps(steps, 1000))
+    assert got.device.type == device.type
+    assert np.allclose(got.cpu().numpy(), _naive_ddim(x, abar, steps), atol=1e-12)
+    gen = torch.Generator(device=device).manual_seed(3)
+    noises = [torch.randn((5, 3), generator=gen, dtype=torch.float64, device=device).cpu().numpy()
+              for _ in range(steps)]
+    got = sde_dpmsolver_pp(eps, x_t, abar_t, dpm_timesteps(steps, 1000), torch.Generator(device=device).manual_seed(3))
+    assert np.allclose(got.cpu().numpy(), _naive_sde_dpmsolver_pp(x, abar, steps, noises), atol=1e-10)
 
 
 def test_dpm_solver_runs_on_the_offset_from_the_duplicated_scan() -> None:

@@ -105,7 +105,7 @@ def scenes(b: int = 2, n: int = 48, k: int = 4):
     return scan, scan.repeat(1, k, 1) + 0.3 * torch.randn(b, n * k, 3, generator=g)
 
 
-def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_named(tmp_path) -> None:
+def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_named(tmp_path, device) -> None:
     model = lidiff(duplicate=4).eval()
     state = model.state_dict()
     assert any(k.startswith("net.partial_enc.stem.0.weight") for k in state) and "net.model.up1.0.net.0.weight" in state
@@ -121,7 +121,10 @@ def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_na
     scan, noisy = scenes()
     t = torch.tensor([10, 900])
     with torch.no_grad():
-        assert torch.equal(loaded.predict_noise(noisy, t, scan), model.predict_noise(noisy, t, scan))
+        want = model.predict_noise(noisy, t, scan)
+        assert torch.equal(loaded.predict_noise(noisy, t, scan), want)
+        on = loaded.to(device).predict_noise(noisy.to(device), t.to(device), scan.to(device)).cpu()  # --device
+        assert torch.allclose(on, want, rtol=1e-4, atol=1e-4 * float(want.abs().max()))
     bad = dict(ckpt["state_dict"])
     bad.pop("model.last.0.weight")
     bad["model.extra.kernel"] = torch.zeros(27, 3, 3)

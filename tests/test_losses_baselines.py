@@ -3,6 +3,8 @@ device of ``--device``, their references on the CPU)."""
 
 from __future__ import annotations
 
+import copy
+
 
 import pytest
 import torch
@@ -191,9 +193,11 @@ def test_nst(g, b, cs, ct, spatial, device) -> None:
         L.nst(s, t[..., :1])
 
 
-def test_fitnet(g) -> None:
+def test_fitnet(g, device) -> None:
     s = torch.randn(2, 3, 4, 4, 2, dtype=D, generator=g, requires_grad=True)
     t = torch.randn(2, 3, 4, 4, 2, dtype=D, generator=g)
+    on_device_matches(L.fitnet, lambda s, t: sum((a - b) ** 2 for a, b in zip(s.reshape(-1), t.reshape(-1))) / s.numel(),
+                      (s, t), device)
     want = sum(float((a - b).detach() ** 2) for a, b in zip(s.reshape(-1), t.reshape(-1))) / s.numel()
     assert L.fitnet(s, t).item() == pytest.approx(want, rel=1e-12)
     (grad,) = torch.autograd.grad(L.fitnet(s, t), s)
@@ -209,17 +213,22 @@ def _rgo_inputs(g, b=2, k=4, shape=(4, 3, 2)):
     return s, t, labels, mask
 
 
-def test_rgo2d_region(g) -> None:
+def test_rgo2d_region(g, device) -> None:
     s, t, labels, mask = _rgo_inputs(g)
+    on_device_matches(lambda *a: sum(L.rgo2d_region(*a)), lambda *a: sum(naive_rgo2d_region(*a)), (s, t, labels, mask),
+                      device)
     fast = L.rgo2d_region(s, t, labels, mask)
     slow = naive_rgo2d_region(s, t, labels, mask)
     assert close(fast[0], slow[0]) and close(fast[1], slow[1])
     grads_close(lambda: sum(L.rgo2d_region(s, t, labels, mask)), lambda: sum(naive_rgo2d_region(s, t, labels, mask)), (s, t))
 
 
-def test_rgo2d_regions_and_weights(g) -> None:
+def test_rgo2d_regions_and_weights(g, device) -> None:
     s, t, labels, mask = _rgo_inputs(g, shape=(8, 8, 2))
     regs = range_regions((8, 8, 2), "boxes")
+    on_device_matches(L.rgo2d, lambda s, t, labels, mask: sum(
+        w * sum(naive_rgo2d_region(s, t, labels, mask & r)) for w, r in zip((0.06, 0.15, 0.20), regs)),
+        (s, t, labels, mask), device)
     assert regs[0].sum() == 2 * 2 * 2 and regs[1].sum() == 4 * 4 * 2 and regs[2].all()
     want = sum(w * sum(naive_rgo2d_region(s, t, labels, mask & r)) for w, r in zip((0.06, 0.15, 0.20), regs))
     assert close(L.rgo2d(s, t, labels, mask), want)
@@ -304,9 +313,11 @@ def naive_cleaners(ys, yt, labels, T, kd_sc, kd_sa, ignore):
 
 
 @pytest.mark.parametrize("T", [1.0, 2.0])
-def test_cleaners_matches_its_definition(g, T) -> None:
+def test_cleaners_matches_its_definition(g, T, device) -> None:
     s, t, labels, _ = _rgo_inputs(g)
     labels[1, 1, 1, 0] = 7  # a class id the data may use as its ignore label
+    on_device_matches(lambda s, t, labels: L.cleaners(s, t, labels, T, 0.7, 1.3, 7),
+                      lambda s, t, labels: naive_cleaners(s, t, labels, T, 0.7, 1.3, 7), (s, t, labels), device)
     fast = L.cleaners(s, t, labels, T, kd_sc=0.7, kd_sa=1.3, ignore_index=7)
     slow = naive_cleaners(s, t, labels, T, 0.7, 1.3, 7)
     assert close(fast, slow)
@@ -326,7 +337,7 @@ def naive_relation_gap(a, b):
                for i in range(n) for j in range(n)) / n**2
 
 
-def test_pvkd_is_kd_plus_the_mean_relation_gap_inside_supervoxels(g) -> None:
+def test_pvkd_is_kd_plus_the_mean_relation_gap_inside_supervoxels(g, device) -> None:
     coords = torch.unique(torch.stack([torch.randint(0, 2, (60,), generator=g), torch.randint(0, 8, (60,), generator=g),
                                        torch.randint(0, 8, (60,), generator=g), torch.randint(0, 2, (60,), generator=g)],
                                       1), dim=0)
@@ -349,13 +360,16 @@ def test_pvkd_is_kd_plus_the_mean_relation_gap_inside_supervoxels(g) -> None:
 
     assert close(fast(), slow())
     grads_close(fast, slow, (fs, ls))
+    on_device_matches(lambda fs, ft, groups, ls, lt, mask: L.pvkd(fs, ft, groups, ls, lt, 2.0, mask, output_weight=0.5,
+                                                                  affinity_weight=10.0),
+                      lambda *a: slow(), (fs, ft, groups, ls, lt, mask), device)
     chosen = torch.tensor([0, 2])
     ids = torch.unique(groups)
     want = sum(naive_relation_gap(fs[groups == ids[j]], ft[groups == ids[j]]) for j in chosen) / 2
     assert close(L.pvkd_affinity(fs, ft, groups, chosen), want)
 
 
-def test_mgd_reconstructs_the_teacher_from_the_kept_positions(g) -> None:
+def test_mgd_reconstructs_the_teacher_from_the_kept_positions(g, device) -> None:
     s = torch.randn(2, 3, 4, 4, dtype=D, generator=g, requires_grad=True)
     t = torch.randn(2, 3, 4, 4, dtype=D, generator=g)
     gen = torch.nn.Conv2d(3, 3, 3, padding=1).to(D)
@@ -367,6 +381,9 @@ def test_mgd_reconstructs_the_teacher_from_the_kept_positions(g) -> None:
         want = want + (out[tuple(idx)] - t[tuple(idx)]) ** 2
     want = want / t.numel()
     assert close(L.mgd(s, t, gen, keep=keep), want)
+    on_device = copy.deepcopy(gen).to(device)
+    on_device_matches(lambda s, t, keep: L.mgd(s, t, on_device, keep=keep), lambda s, t, keep: L.mgd(s, t, gen, keep=keep),
+                      (s, t, keep), device)
     torch.manual_seed(3)
     drawn = L.mgd(s, t, gen, mask_ratio=0.65)
     torch.manual_seed(3)

@@ -35,15 +35,15 @@ def naive_scores(conf):
             "miou": float(np.mean(ious)), "class_iou": ious}
 
 
-def test_confusion_rows_are_predictions() -> None:
+def test_confusion_rows_are_predictions(device) -> None:
     g = torch.Generator().manual_seed(0)
     pred = torch.randint(0, 5, (2, 6, 5, 4), generator=g)
     target = torch.randint(0, 5, (2, 6, 5, 4), generator=g)
     target[0, 0] = 255
     invalid = torch.rand(2, 6, 5, 4, generator=g) < 0.2
-    conf = ssc_confusion(pred, target, 5, invalid)
+    conf = ssc_confusion(pred.to(device), target.to(device), 5, invalid.to(device))
     assert conf.dtype == torch.int64
-    assert np.array_equal(conf.numpy(), naive_confusion(pred.numpy(), target.numpy(), 5, invalid.numpy()))
+    assert np.array_equal(conf.cpu().numpy(), naive_confusion(pred.numpy(), target.numpy(), 5, invalid.numpy()))
     one = ssc_confusion(torch.tensor([3]), torch.tensor([1]), 5)
     assert one[3, 1] == 1 and one.sum() == 1
 
@@ -61,14 +61,14 @@ def test_scores_match_official_definitions() -> None:
     assert got["class_iou"][3] == 0.0 and len(got["class_iou"]) == 5
 
 
-def test_metric_accumulates_over_split_not_per_frame() -> None:
+def test_metric_accumulates_over_split_not_per_frame(device) -> None:
     m = SSCMetric(3)
     a_pred, a_gt = torch.tensor([1, 1, 0, 2]), torch.tensor([1, 0, 0, 2])
     b_pred, b_gt = torch.tensor([2, 2]), torch.tensor([1, 1])
-    m.update(a_pred, a_gt)
-    m.update(b_pred, b_gt)
+    m.update(a_pred.to(device), a_gt.to(device))
+    m.update(b_pred.to(device), b_gt.to(device))
     conf = naive_confusion(torch.cat([a_pred, b_pred]).numpy(), torch.cat([a_gt, b_gt]).numpy(), 3)
-    assert np.array_equal(m.confusion.numpy(), conf)
+    assert np.array_equal(m.confusion.cpu().numpy(), conf)
     assert m.compute()["miou"] == pytest.approx(naive_scores(conf)["miou"])
 
 

@@ -73,16 +73,22 @@ def test_changing_the_teacher_changes_the_student_identity(tmp_path) -> None:
     assert pipeline(tmp_path, r2).hashes == a.hashes
 
 
-def test_teacher_is_frozen_and_unchanged_by_a_step(tmp_path) -> None:
+def test_teacher_is_frozen_and_unchanged_by_a_step(tmp_path, device) -> None:
+    """Three training steps of a distilled student on the device of --device: the student moves, the teacher not."""
     pipe = pipeline(tmp_path, tiny_recipe(steps=1))
     pipe.run()
     stage = pipe.resolved.stages["student"]
-    teacher = load_run(pipe.run_dir("teacher"), model=stage.teacher, info=pipe.resolved.data_info, role="teacher")
+    teacher = load_run(pipe.run_dir("teacher"), model=stage.teacher, info=pipe.resolved.data_info,
+                       role="teacher").to(device)
     before = {k: v.clone() for k, v in teacher.state_dict().items()}
     assert not teacher.training and not any(p.requires_grad for p in teacher.parameters())
-    trainer = make_trainer(pipe, "student", teacher)
+    trainer = make_trainer(pipe, "student", teacher, device=device)
+    start = {k: v.clone() for k, v in trainer.student.state_dict().items()}
     for step in range(3):
-        trainer.train_step(trainer.plan.batch(trainer.train_set, trainer.collate, step), step)
+        logged = trainer.train_step(trainer.prepare(trainer.plan.batch(trainer.train_set, trainer.collate, step)), step)
+        assert all(v == v for v in logged.values() if isinstance(v, float))  # finite numbers logged, no NaN
+    assert all(p.device.type == device.type for p in trainer.student.parameters())
+    assert any(not torch.equal(start[k], v) for k, v in trainer.student.state_dict().items())
     after = teacher.state_dict()
     assert all(torch.equal(before[k], after[k]) for k in before)  # weights and BN buffers
     assert not teacher.training

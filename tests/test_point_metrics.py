@@ -21,10 +21,10 @@ def brute_nn_dist(q: np.ndarray, s: np.ndarray) -> np.ndarray:
     return np.sqrt(((q[:, None] - s[None]) ** 2).sum(-1)).min(1)
 
 
-def test_chamfer_is_the_mean_of_both_directions_halved() -> None:
+def test_chamfer_is_the_mean_of_both_directions_halved(device) -> None:
     p, g = scene(300, 0), scene(400, 1)
     want = (brute_nn_dist(g.numpy(), p.numpy()).mean() + brute_nn_dist(p.numpy(), g.numpy()).mean()) / 2
-    assert chamfer_distance(p, g) == pytest.approx(want, rel=1e-12)
+    assert chamfer_distance(p.to(device), g.to(device)) == pytest.approx(want, rel=1e-12)
     assert chamfer_distance(g, g) == 0
 
 
@@ -42,14 +42,14 @@ def test_jsd_bev_matches_lidiffs_histogram_and_scipy() -> None:
     assert jsd_bev(g, g) == 0.0
 
 
-def test_voxel_iou_counts_equal_dense_occupancy_histograms() -> None:
+def test_voxel_iou_counts_equal_dense_occupancy_histograms(device) -> None:
     p, g = scene(3000, 4, 8.0), scene(3000, 5, 8.0)
     for size in (0.5, 2.0):
         bins = int(100 / size)
         hp = np.histogramdd(p.numpy(), bins=bins, range=[(-50, 50)] * 3)[0] > 0
         hg = np.histogramdd(g.numpy(), bins=bins, range=[(-50, 50)] * 3)[0] > 0
         want = (int((hp & hg).sum()), int((hp & ~hg).sum()), int((~hp & hg).sum()))
-        assert voxel_confusion(p, g, size) == want
+        assert voxel_confusion(p.to(device), g.to(device), size) == want
 
 
 def test_jsd_3d_is_the_unclipped_point_count_histograms_distance() -> None:

@@ -172,7 +172,7 @@ def reference(r: dict, pts: torch.Tensor, shared: bool) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("semantics", ["spconv1", "spconv2"])
-def test_a_release_checkpoint_gives_the_releases_logits(semantics, tmp_path) -> None:
+def test_a_release_checkpoint_gives_the_releases_logits(semantics, tmp_path, device) -> None:
     from distilkit.weights import load_weights
     from distilkit_adapters.scpnet.adapter import SCPNetAdapter
     from distilkit_adapters.scpnet.cylinder import SCPNetPaper
@@ -185,10 +185,11 @@ def test_a_release_checkpoint_gives_the_releases_logits(semantics, tmp_path) -> 
     assert release["cylinder_3d_spconv_seg.upBlock0.conv3.weight"].shape == (3, 3, 3, 512, 512)
     torch.save(release, tmp_path / "scpnet_release.pt")
     assert load_weights(model, SCPNetAdapter.read_weights(str(tmp_path / "scpnet_release.pt")), True, "release") == []
-    model = model.double().eval()
+    model = model.double().eval().to(device)
     pts = points().double()
     with torch.no_grad():
-        _, _, logits = model.net(pts, torch.zeros(len(pts), dtype=torch.long), 1, GRID)
+        _, _, logits = model.net(pts.to(device), torch.zeros(len(pts), dtype=torch.long, device=device), 1, GRID)
+        logits = logits.cpu()
         want = reference(release, pts, shared=semantics == "spconv1")
     active = want.abs().sum(1) > 0
     assert int(active.sum()) > 300 and torch.equal(logits.abs().sum(1) > 0, active)

@@ -17,6 +17,17 @@ def val(x: torch.Tensor) -> float:
     return float(x.detach())
 
 
+def same_on(device: torch.device, fn, *inputs: torch.Tensor) -> None:
+    """``fn`` of ``inputs`` copied to ``device`` against ``fn`` of them here: the value and the gradient of each
+    input that requires one (the CPU value itself is checked against the naive form by the test)."""
+    here = [x.detach().to(device).requires_grad_(x.requires_grad) for x in inputs]
+    a, b = fn(*here), fn(*inputs)
+    assert val(a) == pytest.approx(val(b), rel=1e-9, abs=1e-12)
+    wants = [i for i, x in enumerate(inputs) if x.requires_grad]
+    for x, y in zip(torch.autograd.grad(a, [here[i] for i in wants]), torch.autograd.grad(b, [inputs[i] for i in wants])):
+        assert torch.allclose(x.cpu(), y, rtol=1e-9, atol=1e-12)
+
+
 def cloud(m: int, seed: int, scale: float = 5.0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     return torch.rand(m, 3, generator=g, dtype=torch.float64) * scale
@@ -51,8 +62,9 @@ def test_nearest_and_self_excluded_neighbours_match_brute_force() -> None:
         assert torch.allclose(d[nbr[i]].sort().values, d.sort().values[:5])
 
 
-def test_scene_wise_is_the_mean_squared_distance_to_the_nearest_target_point() -> None:
+def test_scene_wise_is_the_mean_squared_distance_to_the_nearest_target_point(device) -> None:
     g, t = cloud(40, 3).requires_grad_(), cloud(70, 4)
+    same_on(device, L.scene_wise, g, t)
     idx = naive_nn(g.detach().numpy(), t.numpy())
     want = ((g.detach().numpy() - t.numpy()[idx]) ** 2).mean()  # per element: the released code's MSE scale
     assert val(L.scene_wise(g, t)) == pytest.approx(want, rel=1e-12)
@@ -72,9 +84,10 @@ def test_scene_wise_is_the_mean_squared_distance_to_the_nearest_target_point() -
     assert val(L.scene_wise(batch_g, batch_t)) == pytest.approx(float(want), rel=1e-12)
 
 
-def test_curvature_follows_eq_13_to_15() -> None:
+def test_curvature_follows_eq_13_to_15(device) -> None:
     p = cloud(60, 5)
-    assert np.allclose(L.curvature(p, k=8).numpy(), naive_curvature(p.numpy(), 8), rtol=1e-9, atol=1e-12)
+    assert np.allclose(L.curvature(p.to(device), k=8).cpu().numpy(), naive_curvature(p.numpy(), 8), rtol=1e-9,
+                       atol=1e-12)
     plane = torch.cat([cloud(50, 6)[:, :2], torch.zeros(50, 1, dtype=torch.float64)], 1)
     assert L.curvature(plane, k=6).abs().max() < 1e-12  # a plane has no variation out of it
 
@@ -88,9 +101,10 @@ def test_key_points_are_the_most_curved_of_a_random_sample() -> None:
     assert got.tolist() == want.tolist()
 
 
-def test_point_wise_compares_distance_matrices_of_key_points_and_their_nearest_generated_points() -> None:
+def test_point_wise_compares_distance_matrices_of_key_points_and_their_nearest_generated_points(device) -> None:
     g, t = cloud(45, 8).requires_grad_(), cloud(90, 9)
     key = torch.tensor([3, 17, 40, 41, 88])
+    same_on(device, L.point_wise, g, t, key)
     kp = t[key].numpy()
     matched = g.detach().numpy()[naive_nn(kp, g.detach().numpy())]
     d_t = np.sqrt(((kp[:, None] - kp[None]) ** 2).sum(-1))
@@ -104,10 +118,11 @@ def test_point_wise_compares_distance_matrices_of_key_points_and_their_nearest_g
     assert val(batch) == pytest.approx(float(want), rel=1e-12)
 
 
-def test_vsd_gradient_is_the_formula_and_not_zero_unlike_the_released_form() -> None:
+def test_vsd_gradient_is_the_formula_and_not_zero_unlike_the_released_form(device) -> None:
     x0 = cloud(30, 10).requires_grad_()
     e_t, e_a = cloud(30, 11), cloud(30, 12)
     w = torch.tensor(0.7, dtype=torch.float64)
+    same_on(device, L.vsd, x0, e_t, e_a, w)
     L.vsd(x0, e_t, e_a, w).backward()
     assert torch.allclose(x0.grad, w * (e_t - e_a) / x0.numel(), rtol=0, atol=1e-15)
     assert x0.grad.abs().max() > 0
@@ -120,11 +135,13 @@ def test_vsd_gradient_is_the_formula_and_not_zero_unlike_the_released_form() -> 
         L.vsd(x0, e_t[:10], e_a)
 
 
-def test_distillation_dpo_moves_the_winner_like_vsd_and_the_loser_the_other_way() -> None:
+def test_distillation_dpo_moves_the_winner_like_vsd_and_the_loser_the_other_way(device) -> None:
     """Distillation-DPO's intended generator gradient (issue 18): exact for both completions, and none reaches the
     four noise predictions (the released loss's gradient is 0, as ScoreLiDAR's)."""
     win, lose = cloud(30, 20).requires_grad_(), cloud(30, 21).requires_grad_()
     preds = [cloud(30, s).requires_grad_() for s in (22, 23, 24, 25)]
+    same_on(device, lambda w, l, *p: L.distillation_dpo(w, l, *(x.detach() for x in p), weight=0.5), win, lose,
+            *(p.detach() for p in preds))
     e_tw, e_aw, e_tl, e_al = preds
     w = torch.tensor([[[0.5]], [[2.0]]], dtype=torch.float64)  # w(t) per scene
     win2, lose2 = win.expand(2, -1, -1), lose.expand(2, -1, -1)

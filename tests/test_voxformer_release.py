@@ -255,8 +255,8 @@ def reference_head(r: dict, feats: torch.Tensor, to_image: torch.Tensor, propose
 
 
 @pytest.mark.parametrize("space", ["plane", "3d"])
-def test_a_released_checkpoint_loads_with_every_key_accounted_for_and_gives_the_releases_logits(space,
-                                                                                                 tmp_path) -> None:
+def test_a_released_checkpoint_loads_with_every_key_accounted_for_and_gives_the_releases_logits(space, tmp_path,
+                                                                                                 device) -> None:
     from distilkit.data.camera import intrinsics, lidar_to_camera
     from distilkit.data.info import DataInfo
     from distilkit.data.params import CameraParams
@@ -289,7 +289,9 @@ def test_a_released_checkpoint_loads_with_every_key_accounted_for_and_gives_the_
     proposed = torch.zeros(8, 8, 1, dtype=torch.bool)
     proposed[1:7, 2:6] = True
     with torch.no_grad():
-        feats, queries, logits = model.net(images, k, ext, proposed[None])
+        model = model.to(device)  # the network on the device of --device, the reference on the CPU
+        feats, queries, logits = model.net(images.to(device), k.to(device), ext.to(device), proposed[None].to(device))
+        model, feats, queries, logits = model.cpu(), feats.cpu(), queries.to("cpu"), logits.cpu()
         pad = torch.eye(4, dtype=torch.float64)
         pad[:3, :3] = k[0, 0]
         r = {key: v.double() for key, v in release.items()}

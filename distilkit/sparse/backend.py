@@ -6,7 +6,9 @@ spconv-triton`` (``auto`` when unset), or :func:`using` in code, which wins over
 * ``spconv`` — spconv 2.x's ``indice_conv`` (its gather-GEMM-scatter, ``ConvAlgo.Native``) on distilkit's own
   neighbour maps. Forward and backward on CUDA (a ``spconv-cu1xx`` build); spconv's CPU build (``pip install
   spconv``) computes the forward only — its backward asks for CUDA — so it serves inference on the CPU and a step
-  that needs gradients there is refused.
+  that needs gradients there is refused. spconv 2.3.8's CPU forward races when torch runs more than one thread (its
+  own ``SubMConv3d`` gave outputs up to 0.27 apart over five calls on the same input with 2 threads, none apart with
+  1; the same on distilkit's maps), so distilkit runs it with one thread.
 * ``spconv-triton`` — spconv-Triton's ``indice_conv``, the same functions in Triton (NVIDIA and AMD GPUs; not on
   the CPU).
 * ``auto`` — on CUDA the first of spconv (a CUDA build), spconv-triton, torch that imports; elsewhere torch.
@@ -175,7 +177,14 @@ def library_conv(name: str, features: Tensor, weight: Tensor, book: Any, rows_ou
                                  f"{ENV}=torch, or run without gradients (torch.no_grad()) for inference")
     pairs, counts = _pairs(book)
     filters = weight.permute(2, 0, 1).contiguous()
-    return functional.indice_conv(features.contiguous(), filters, pairs, counts, rows_out, algo)
+    if features.device.type != "cpu":
+        return functional.indice_conv(features.contiguous(), filters, pairs, counts, rows_out, algo)
+    threads = torch.get_num_threads()  # spconv's CPU forward races with more than one thread: run it with one
+    torch.set_num_threads(1)
+    try:
+        return functional.indice_conv(features.contiguous(), filters, pairs, counts, rows_out, algo)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def ran(name: str) -> None:
