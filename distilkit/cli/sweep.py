@@ -10,7 +10,10 @@ from distilkit.cli.base import command
 
 EXAMPLES = {
     "sweep": ["distilkit sweep recipes/sweeps/quickstart_methods.yaml --jobs 2",
-              "distilkit sweep recipes/sweeps/scpnet_table4.yaml --plan             # commands for a cluster"],
+              "distilkit sweep recipes/sweeps/scpnet_table4.yaml --plan             # commands for a cluster",
+              "distilkit sweep recipes/sweeps/quickstart_methods.yaml --launcher slurm --partition gpu --gpus-per-run 1 "
+              "--time 8:00:00 --slurm account=mylab",
+              "distilkit sweep recipes/sweeps/quickstart_methods.yaml --status"],
 }
 
 
@@ -26,12 +29,31 @@ def add(sub: Any) -> None:
                    "stages first) for a cluster scheduler, run nothing; `distilkit sweep` afterwards collects")
     w.add_argument("--collect", action="store_true", help="train nothing: the table of the runs finished so far")
     w.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    s = w.add_argument_group("on a Slurm cluster (pip install 'distilkit[slurm]'; the sweep file's launcher: block "
+                             "gives the same, these win)")
+    s.add_argument("--launcher", choices=("local", "slurm"), default="local",
+                   help="local: parallel processes here (default); slurm: every run queued at once, upstream first")
+    s.add_argument("--gpus-per-run", type=int, default=None, metavar="N", help="GPUs of one run (> 1: DDP)")
+    s.add_argument("--cpus-per-run", type=int, default=None, metavar="N", help="CPUs of one run (its threads)")
+    s.add_argument("--mem", default=None, help="memory of one run (sbatch --mem, e.g. 32G)")
+    s.add_argument("--time", default=None, help="a job's time limit (minutes or D-HH:MM:SS; default 4 h): a run "
+                   "that needs longer is requeued from its checkpoint")
+    s.add_argument("--partition", default=None, help="Slurm partition")
+    s.add_argument("--slurm", nargs="+", action="extend", default=None, metavar="KEY=VALUE",
+                   help="any other sbatch option, e.g. --slurm account=mylab qos=high constraint=a100")
+    s.add_argument("--array-parallelism", type=int, default=None, metavar="N", help="runs of one array at a time")
+    s.add_argument("--status", action="store_true", help="one line per submitted run: pending, running, done or "
+                   "failed, its job id and log (a failed job's last log line)")
+    s.add_argument("--wait", action="store_true", help="after submitting (or alone), show progress until every job "
+                   "has ended, then collect the table")
     w.set_defaults(fn=sweep)
 
 
 def sweep(args: argparse.Namespace) -> int:
     from distilkit.sweep.runner import run_sweep
 
+    cluster = {"gpus": args.gpus_per_run, "cpus": args.cpus_per_run, "mem": args.mem, "time": args.time,
+               "partition": args.partition, "array_parallelism": args.array_parallelism, "extra": args.slurm}
     run_sweep(args.sweep, args.output, seeds=args.seeds, jobs=args.jobs, plan=args.plan, collect=args.collect,
-              quiet=args.quiet)
+              quiet=args.quiet, launcher=args.launcher, cluster=cluster, status=args.status, wait=args.wait)
     return 0

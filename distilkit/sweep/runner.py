@@ -98,12 +98,19 @@ class SweepRun:
                 names = self.sweep.upstream_stages(variant)
                 if not names:
                     continue
-                pipe = self.pipes[variant, seed]
-                key = tuple(sorted(pipe.run_dir(n).name for n in names))
+                key = self.upstream_key(Task(variant, seed, tuple(names), self.recipe_file(variant)))
                 if key not in seen:
                     seen.add(key)
                     out.append(Task(variant, seed, tuple(names), self.recipe_file(variant)))
         return out
+
+    def upstream_key(self, task: Task) -> tuple[str, ...]:
+        """The folders of the upstream runs a task's variant needs at its seed (what one upstream task trains)."""
+        pipe = self.pipes[task.variant, task.seed]
+        return tuple(sorted(pipe.run_dir(n).name for n in self.sweep.upstream_stages(task.variant)))
+
+    def task(self, variant: str, seed: int, stages: tuple[str, ...]) -> Task:
+        return Task(variant, seed, tuple(stages), self.recipe_file(variant))
 
     def variant_tasks(self) -> list[Task]:
         return [Task(v, s, (v,), self.recipe_file(v)) for s in self.seeds for v in self.sweep.recipes]
@@ -287,11 +294,16 @@ class Children:
 
 
 def run_sweep(path: str | Path, output: str | Path = "runs", seeds: list[int] | None = None, jobs: int = 1,
-              plan: bool = False, collect: bool = False, quiet: bool = False) -> Path | None:
-    """``distilkit sweep``: run (or plan, or only collect) a sweep file and write its results."""
+              plan: bool = False, collect: bool = False, quiet: bool = False, launcher: str = "local",
+              cluster: dict[str, Any] | None = None, status: bool = False, wait: bool = False) -> Path | None:
+    """``distilkit sweep``: run (or plan, or only collect) a sweep file and write its results; with ``launcher``
+    ``slurm``, queue its runs on Slurm (:mod:`distilkit.sweep.slurm`); ``status``: their states; ``wait``: until
+    the queued runs have ended, then collect."""
     if jobs < 1:
         raise DistilkitError(f"--jobs must be at least 1, got {jobs}")
     sweep = SweepRun(path, output, seeds, quiet=quiet)
+    if status or wait or launcher == "slurm":
+        return _on_slurm(sweep, path, launcher, cluster or {}, status, wait, quiet)
     if plan:
         lines = sweep.plan()
         print(f"# {len(lines)} commands for sweep {sweep.sweep.name}: run the first "
@@ -306,6 +318,41 @@ def run_sweep(path: str | Path, output: str | Path = "runs", seeds: list[int] | 
         sweep.console.print(f"sweep finished in {time.monotonic() - started:.1f} s")
     if failures:
         raise DistilkitError("some runs failed (the others are in the table):\n  " + "\n  ".join(failures))
+    return result
+
+
+def _on_slurm(sweep: SweepRun, path: str | Path, launcher: str, cluster: dict[str, Any], status: bool, wait: bool,
+              quiet: bool) -> Path | None:
+    from distilkit.sweep import slurm
+
+    console = sweep.console
+    if status:
+        for line in slurm.status(sweep):
+            print(f"{line.state:8} {line.job_id:>12}  {line.title}  log {line.log}"
+                  + (f"  — {line.detail}" if line.detail else ""))
+        return None
+    if launcher == "slurm":
+        from distilkit.sweep.slurm import Resources, parse_slurm_options
+
+        res = Resources.merge(sweep.sweep.spec.launcher, {**cluster, "extra": parse_slurm_options(cluster.get("extra"))})
+        submitted = slurm.submit(sweep, res)
+        total = len(sweep.variant_tasks())
+        console.print(f"sweep [bold]{sweep.sweep.name}[/]: {len(submitted)} job(s) queued on Slurm for "
+                      f"{total} runs ({res.cpus} CPUs, {res.gpus} GPUs, {res.time} min each); records in "
+                      f"{sweep.root / 'slurm' / 'jobs.json'}", highlight=False)
+        for item in submitted:
+            after = f" after {', '.join(item.after)}" if item.after else ""
+            print(f"  {item.job_id:>12}  {item.title}{after}  log {item.log}")
+        if not wait:
+            console.print(f"`distilkit sweep {path} --status` shows their states, `--wait` follows them, and "
+                          f"`distilkit sweep {path}` collects the table once they have ended", highlight=False)
+            return None
+    states = slurm.wait(sweep, console, quiet=quiet)
+    failed = [s for s in states if s.state == "failed"]
+    result = sweep.collect()
+    if failed:
+        raise DistilkitError("some runs failed (the others are in the table):\n  " + "\n  ".join(
+            f"{s.title}: job {s.job_id}, {s.detail} (log: {s.log})" for s in failed))
     return result
 
 

@@ -36,6 +36,20 @@ class VariantSpec(_Strict):
                                 description="recipe overrides by dotted path, e.g. {stages.student.optimizer.lr: 0.01}")
 
 
+class LauncherSpec(_Strict):
+    """How ``distilkit sweep --launcher slurm`` allocates each run (the command line's flags win)."""
+
+    gpus_per_run: int | None = Field(None, ge=0, description="GPUs of one run (> 1: distilkit run --nproc-per-node)")
+    cpus_per_run: int | None = Field(None, ge=1, description="CPUs of one run (its threads)")
+    mem: str | None = Field(None, description="memory of one run, as sbatch --mem takes it (e.g. 32G)")
+    time: str | int | None = Field(None, description="time limit of one job (minutes or D-HH:MM:SS); a longer run "
+                                                     "is requeued from its checkpoint")
+    partition: str | None = Field(None, description="Slurm partition")
+    array_parallelism: int | None = Field(None, ge=1, description="runs of one array at a time")
+    slurm: dict[str, str | int] = Field(default_factory=dict, description="any other sbatch option, e.g. "
+                                                                          "{account: mylab, qos: high}")
+
+
 class SweepSpec(_Strict):
     """A comparison of variants of one stage of a recipe over seeds."""
 
@@ -57,6 +71,8 @@ class SweepSpec(_Strict):
     set: dict[str, Any] = Field(default_factory=dict, alias="set",
                                 description="overrides by dotted path applied to the base recipe for every variant")
     variants: dict[str, VariantSpec] = Field(..., min_length=1, description="name -> variant, in table order")
+    launcher: LauncherSpec | None = Field(None, description="resources of each run on a cluster "
+                                                            "(`--launcher slurm`)")
 
     @model_validator(mode="after")
     def _names(self) -> "SweepSpec":
@@ -174,4 +190,4 @@ def load_sweep(path: str | Path) -> Sweep:
     return Sweep(spec, base, source)
 
 
-__all__ = ["Sweep", "SweepSpec", "VariantSpec", "load_sweep", "set_path", "variant_data"]
+__all__ = ["LauncherSpec", "Sweep", "SweepSpec", "VariantSpec", "load_sweep", "set_path", "variant_data"]

@@ -1,7 +1,8 @@
 """Stopping a run on request without losing its work: SIGTERM (a scheduler's, or a sweep's on its own way out) asks
 the training loop to finish the step it is in, write ``last.pt`` and stop; a run started by a sweep also stops when
 that sweep's process is gone (killed outright), so no run is left training without its parent. A second SIGTERM
-stops at once (the last checkpoint is kept either way)."""
+stops at once (the last checkpoint is kept either way), unless it comes within 2 s of the first: Slurm's ``scancel
+--signal=TERM --full`` delivers one signal more than once."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import threading
 from typing import Any
 
 PARENT_ENV = "DISTILKIT_PARENT_PID"  # set by `distilkit sweep` for the runs it starts
+DUPLICATE_S = 2.0  # a second SIGTERM sooner than this after the first is the same signal delivered twice
 _requested = threading.Event()
 
 
@@ -23,9 +25,17 @@ def request() -> None:
     _requested.set()
 
 
+_first: list[float] = []  # when the first SIGTERM came
+
+
 def _on_term(signum: int, frame: Any) -> None:
-    if _requested.is_set():  # asked twice: now
+    import time
+
+    if _requested.is_set():  # asked twice: now — unless it is one signal delivered twice (a scheduler's, to every
+        if _first and time.monotonic() - _first[0] < DUPLICATE_S:  # process of a job and again to its shell)
+            return
         raise KeyboardInterrupt
+    _first.append(time.monotonic())
     _requested.set()
 
 

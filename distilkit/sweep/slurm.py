@@ -1,0 +1,375 @@
+"""``distilkit sweep FILE --launcher slurm``: every run of a sweep queued on a Slurm cluster at once, through submitit
+(``pip install 'distilkit[slurm]'``).
+
+What is submitted: one job per upstream task (the teachers: shared, or one per seed) and, for each set of variant
+runs that need the same upstream jobs, one job array whose tasks wait on those jobs (``--dependency=afterok:...``,
+``--kill-on-invalid-dep=yes``: a failed upstream job cancels its dependents instead of leaving them pending). A task
+that is finished already is not submitted. Each job runs the same ``distilkit run`` of the same recipe on the same
+output folder as the local launcher, in a child process with as many threads as the CPUs Slurm gave the job
+(``SLURM_CPUS_PER_TASK``), so the stage cache, the locks, resume and bitwise repeatability hold unchanged; with
+``--gpus-per-run N`` > 1 the run is ``distilkit run --nproc-per-node N`` (torchrun inside the job: ranks, world size
+and the master address are those of the job's node, the existing DDP path).
+
+Preemption and time limits: the jobs are submitted with ``--signal=TERM@90`` and submitit's preemption signal set
+to SIGTERM (``SUBMITIT_PREEMPT_SIGNAL``), so both a time limit's warning and a preemption (or ``scancel
+--signal=TERM``) reach :meth:`RunJob.checkpoint`: the run finishes its step and writes ``last.pt``, and the job
+requeues itself (``scontrol requeue``: same job id, so dependencies hold); the requeued job resumes from that
+checkpoint and ends with the bits of an uninterrupted run. The job's Python replaces the batch shell (``exec``, no
+``srun``): ``srun`` ends its step on SIGTERM and a shell dies of it, either of which would end the job before the
+requeue; so the signal is sent to the batch shell (``--signal=B:TERM@90``), which is that Python.
+
+What ran where is kept in ``<output>/<sweep>/slurm/jobs.json``; :func:`status` reads it with ``squeue`` and
+``scontrol`` (states of queued and recently ended jobs) and the runs' own ``summary.json`` (done). Slurm's accounting
+(``sacct``, slurmdbd with a database) is not needed: a run is done exactly when its summary exists, and a job that
+has left the queue without one has failed (its log's last line says why).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from distilkit.errors import DistilkitError
+
+EXTRA = "pip install 'distilkit[slurm]'"
+PREEMPT_ENV = "SUBMITIT_PREEMPT_SIGNAL"
+TIME_RE = re.compile(r"(?:(\d+)-)?(\d+(?::\d+){0,2})")
+
+
+def submitit_module() -> Any:
+    """submitit, or one line naming the extra that installs it."""
+    try:
+        import submitit
+    except ImportError:
+        raise DistilkitError(f"--launcher slurm needs submitit: {EXTRA}") from None
+    return submitit
+
+
+def minutes(value: str | int) -> int:
+    """A Slurm time in whole minutes (seconds round up): ``MINUTES``, ``MINUTES:SECONDS``, ``HOURS:MINUTES:SECONDS``,
+    ``DAYS-HOURS``, ``DAYS-HOURS:MINUTES``, ``DAYS-HOURS:MINUTES:SECONDS``."""
+    text = str(value).strip()
+    match = TIME_RE.fullmatch(text)
+    if not match:
+        raise DistilkitError(f"--time {text!r}: give minutes, H:MM:SS or D-HH:MM:SS (Slurm's forms)")
+    parts = [int(p) for p in match.group(2).split(":")]
+    if match.group(1) is None:
+        if len(parts) == 1:
+            total, secs = parts[0], 0
+        elif len(parts) == 2:
+            total, secs = parts
+        else:
+            total, secs = parts[0] * 60 + parts[1], parts[2]
+    else:
+        hours, mins, secs = parts + [0] * (3 - len(parts))
+        total = int(match.group(1)) * 1440 + hours * 60 + mins
+    return total + (1 if secs else 0)
+
+
+@dataclass
+class Resources:
+    """One run's allocation: the command line's values over the sweep file's ``launcher:`` block."""
+
+    gpus: int = 0
+    cpus: int = 1
+    mem: str | None = None
+    time: int = 240  # minutes; a run longer than this is requeued from its checkpoint
+    partition: str | None = None
+    extra: dict[str, str] = field(default_factory=dict)  # any other sbatch option: account, qos, constraint, ...
+    array_parallelism: int = 64
+
+    @staticmethod
+    def merge(block: Any, cli: dict[str, Any]) -> "Resources":
+        """``block`` (the sweep file's ``launcher:``, or None) with the command line's values (None: not given)."""
+        base = block.model_dump() if block is not None else {}
+        want = {"gpus": base.get("gpus_per_run"), "cpus": base.get("cpus_per_run"), "mem": base.get("mem"),
+                "time": base.get("time"), "partition": base.get("partition"),
+                "array_parallelism": base.get("array_parallelism")}
+        for key, value in cli.items():
+            if value is not None and key != "extra":
+                want[key] = value
+        extra = {str(k): str(v) for k, v in (base.get("slurm") or {}).items()}
+        extra.update(cli.get("extra") or {})
+        out = Resources(**{k: v for k, v in want.items() if v is not None}, extra=extra)
+        out.time = minutes(out.time)
+        if out.gpus < 0 or out.cpus < 1 or out.array_parallelism < 1:
+            raise DistilkitError(f"launcher: gpus per run {out.gpus}, cpus per run {out.cpus}, array parallelism "
+                                 f"{out.array_parallelism}: give gpus >= 0, cpus >= 1, parallelism >= 1")
+        return out
+
+
+def parse_slurm_options(values: list[str] | None) -> dict[str, str]:
+    """``--slurm KEY=VALUE`` (repeated) as sbatch options (``account=lab``, ``qos=high``)."""
+    out: dict[str, str] = {}
+    for item in values or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise DistilkitError(f"--slurm {item!r}: give KEY=VALUE (an sbatch option, e.g. account=mylab)")
+        out[key.strip().lstrip("-")] = value.strip()
+    return out
+
+
+class RunJob:
+    """The body of one Slurm job (pickled by submitit): ``distilkit ARGV`` in a child process with the job's CPUs as
+    its threads; :meth:`checkpoint` (on SIGTERM) lets the run finish its step and write ``last.pt``, then submitit
+    requeues the job with this same body, which resumes."""
+
+    def __init__(self, argv: list[str], grace: float = 10.0) -> None:
+        self.argv = list(argv)
+        self.grace = grace  # seconds the run has to stop on the signal it got before it is sent one
+        self._child: subprocess.Popen | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"argv": self.argv, "grace": self.grace}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.argv, self.grace, self._child = state["argv"], state.get("grace", 10.0), None
+
+    def __call__(self) -> int:
+        from distilkit.engine.train.stop import PARENT_ENV
+
+        threads = os.environ.get("SLURM_CPUS_PER_TASK") or "1"
+        env = {**os.environ, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads, PARENT_ENV: str(os.getpid())}
+        print(f"distilkit {' '.join(self.argv)} (threads {threads}, job {os.environ.get('SLURM_JOB_ID', '?')}, "
+              f"restart {os.environ.get('SLURM_RESTART_COUNT', '0')})", flush=True)
+        self._child = subprocess.Popen([sys.executable, "-m", "distilkit", *self.argv], env=env)
+        code = self._child.wait()
+        if code != 0:
+            raise RuntimeError(f"distilkit {' '.join(self.argv)}: exit status {code}")
+        return code
+
+    def checkpoint(self) -> Any:
+        """Called by submitit on the preemption signal: the run stops after its step with ``last.pt`` written (it
+        got the signal too; if not, it is sent one), then the job is requeued with a fresh body."""
+        from submitit.helpers import DelayedSubmission
+
+        child = self._child
+        if child is not None and not _reaped(child, self.grace):  # the signal reached only this process: pass it on
+            child.send_signal(signal.SIGTERM)
+            _reaped(child, None)
+        print(f"checkpointed (run exit status {child.returncode if child else None}); requeueing", flush=True)
+        return DelayedSubmission(RunJob(self.argv, self.grace))
+
+
+def _reaped(child: subprocess.Popen, timeout: float | None) -> bool:
+    """Whether ``child`` has exited within ``timeout`` seconds (None: wait for it), by ``os.waitpid`` polling rather
+    than ``Popen.wait``: a scheduler may deliver one signal twice, and a handler that interrupts another's
+    ``Popen.wait`` would block on its lock for good."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while child.returncode is None:
+        try:
+            pid, code = os.waitpid(child.pid, os.WNOHANG)
+        except ChildProcessError:  # reaped already (by the interrupted wait)
+            return True
+        if pid:
+            child.returncode = os.waitstatus_to_exitcode(code)
+            return True
+        if deadline is not None and time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+@dataclass
+class Submitted:
+    """One submitted task: what it runs and where its job writes."""
+
+    title: str
+    variant: str
+    seed: int
+    stages: list[str]
+    job_id: str
+    log: str
+    after: list[str]
+
+
+def _setup_signal(submitit: Any) -> None:
+    """SIGTERM as submitit's preemption signal, in this process (the ``--signal`` line) and in the jobs (the
+    environment sbatch exports)."""
+    os.environ.setdefault(PREEMPT_ENV, "TERM")
+    from submitit.core.job_environment import JobEnvironment
+
+    JobEnvironment.USR_SIG = os.environ[PREEMPT_ENV]
+    submitit.SlurmExecutor  # noqa: B018  (imported: its environment class reads USR_SIG at submission)
+
+
+def _executor(submitit: Any, folder: Path, res: Resources, name: str, after: list[str]) -> Any:
+    # the job's Python replaces the batch shell (exec, no srun): a signal to the job or to the batch shell
+    # (B:TERM@90 before the time limit) reaches it, and no shell or srun ends the job before it has requeued itself
+    ex = submitit.SlurmExecutor(folder=str(folder / "%j"), max_num_timeout=100,
+                                python=f"exec {shlex.quote(sys.executable)}")
+    extra: dict[str, Any] = {"kill-on-invalid-dep": "yes", "requeue": True,
+                             "signal": f"B:{os.environ[PREEMPT_ENV]}@90", **res.extra}
+    params: dict[str, Any] = {"job_name": f"distilkit-{name}", "cpus_per_task": res.cpus, "ntasks_per_node": 1,
+                              "nodes": 1, "time": res.time, "array_parallelism": res.array_parallelism,
+                              "stderr_to_stdout": True, "use_srun": False, "additional_parameters": extra}
+    if res.gpus:
+        params["gpus_per_node"] = res.gpus
+    if res.mem:
+        params["mem"] = res.mem
+    if res.partition:
+        params["partition"] = res.partition
+    if after:
+        params["dependency"] = "afterok:" + ":".join(after)
+    ex.update_parameters(**params)
+    return ex
+
+
+def submit(run: Any, res: Resources) -> list[Submitted]:
+    """Queue every unfinished task of the sweep ``run`` (a :class:`~distilkit.sweep.runner.SweepRun`): upstream jobs
+    first, then the variants' arrays that wait on them; written to ``slurm/jobs.json`` and returned."""
+    submitit = submitit_module()
+    _setup_signal(submitit)
+    run.write_recipes()
+    folder = run.root / "slurm"
+    folder.mkdir(parents=True, exist_ok=True)
+    extra_argv = ["--nproc-per-node", str(res.gpus)] if res.gpus > 1 else []
+    output = run.output.resolve()  # the jobs may start elsewhere on the shared file system
+
+    def argv(task: Any) -> list[str]:
+        return [*replace(task, recipe_file=task.recipe_file.resolve()).argv(output), "--quiet", *extra_argv]
+    submitted: list[Submitted] = []
+    upstream_job: dict[tuple[str, ...], str] = {}  # the upstream runs' folders -> the job that trains them
+    queued = {(s.title): s.job_id for s in (status(run) if (folder / "jobs.json").is_file() else [])
+              if s.state in ("pending", "running")}  # submitted before and still queued: not again
+    for task in run.upstream_tasks():
+        key = run.upstream_key(task)
+        if run.finished(task):
+            continue
+        if task.title in queued:
+            upstream_job[key] = queued[task.title]
+            continue
+        ex = _executor(submitit, folder, res, run.sweep.name, [])
+        job = ex.submit(RunJob(argv(task)))
+        upstream_job[key] = job.job_id
+        submitted.append(Submitted(task.title, task.variant, task.seed, list(task.stages), job.job_id,
+                                   str(job.paths.stdout), []))
+    groups: dict[tuple[str, ...], list[Any]] = {}
+    for task in run.variant_tasks():
+        if run.finished(task) or task.title in queued:
+            continue
+        key = run.upstream_key(task)
+        after = tuple(sorted({upstream_job[key]} if key in upstream_job else set()))
+        groups.setdefault(after, []).append(task)
+    for after, tasks in groups.items():
+        ex = _executor(submitit, folder, res, run.sweep.name, list(after))
+        with ex.batch():
+            jobs = [ex.submit(RunJob(argv(t))) for t in tasks]
+        for task, job in zip(tasks, jobs):
+            submitted.append(Submitted(task.title, task.variant, task.seed, list(task.stages), job.job_id,
+                                       str(job.paths.stdout), list(after)))
+    record = folder / "jobs.json"
+    previous = json.loads(record.read_text(encoding="utf-8")) if record.is_file() else []
+    from distilkit.files import atomic_write_text
+
+    atomic_write_text(record, json.dumps(previous + [asdict(s) for s in submitted], indent=1))
+    return submitted
+
+
+# -- status -------------------------------------------------------------------------------------------------------
+
+def _queue_states(ids: list[str]) -> dict[str, str]:
+    """Job id -> state of the jobs ``squeue`` still lists (PENDING, RUNNING, ...), array tasks by ``N_i``."""
+    if not ids or shutil.which("squeue") is None:
+        return {}
+    done = subprocess.run(["squeue", "-h", "-r", "-o", "%i|%T|%r", "-j", ",".join(sorted({i.split("_")[0]
+                                                                                          for i in ids}))],
+                          capture_output=True, text=True)
+    out = {}
+    for line in done.stdout.splitlines():
+        parts = line.strip().split("|")
+        if len(parts) == 3:
+            out[parts[0]] = parts[1] + (f" ({parts[2]})" if parts[2] not in ("None", "") else "")
+    return out
+
+
+def _ended_state(job_id: str) -> str | None:
+    """The state ``scontrol`` remembers of a job that left the queue (for MinJobAge), else None."""
+    if shutil.which("scontrol") is None:
+        return None
+    done = subprocess.run(["scontrol", "show", "job", job_id], capture_output=True, text=True)
+    match = re.search(r"JobState=(\S+)", done.stdout)
+    return match.group(1) if match else None
+
+
+def _last_line(path: str) -> str:
+    try:
+        lines = [ln for ln in Path(path).read_text(encoding="utf-8", errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return "(no log)"
+    errors = [ln for ln in lines if "Error" in ln or "error:" in ln]
+    return (errors or lines or ["(empty log)"])[-1].strip()
+
+
+@dataclass
+class TaskStatus:
+    title: str
+    state: str  # pending | running | done | failed
+    job_id: str
+    log: str
+    detail: str = ""
+
+
+def status(run: Any) -> list[TaskStatus]:
+    """One line per submitted task, newest submission of each task first: done (its summary exists), pending or
+    running (``squeue``), else failed (the job left the queue without finishing the run)."""
+    record = run.root / "slurm" / "jobs.json"
+    if not record.is_file():
+        raise DistilkitError(f"no Slurm jobs recorded for sweep {run.sweep.name} under {run.root} (submit with "
+                             "--launcher slurm first)")
+    latest: dict[tuple[str, int, tuple[str, ...]], dict[str, Any]] = {}
+    for item in json.loads(record.read_text(encoding="utf-8")):
+        latest[item["variant"], item["seed"], tuple(item["stages"])] = item
+    queued = _queue_states([i["job_id"] for i in latest.values()])
+    out = []
+    for (variant, seed, stages), item in latest.items():
+        task = run.task(variant, seed, stages)
+        if run.finished(task):
+            out.append(TaskStatus(item["title"], "done", item["job_id"], item["log"]))
+            continue
+        state = queued.get(item["job_id"])
+        if state is not None:
+            word = "running" if state.startswith(("RUNNING", "COMPLETING")) else "pending"
+            out.append(TaskStatus(item["title"], word, item["job_id"], item["log"], state))
+            continue
+        ended = _ended_state(item["job_id"]) or "left the queue"
+        if item["after"] and not Path(item["log"]).is_file():  # cancelled by --kill-on-invalid-dep
+            why = f"never ran: the upstream job {', '.join(item['after'])} did not finish"
+        else:
+            why = _last_line(item["log"])
+        out.append(TaskStatus(item["title"], "failed", item["job_id"], item["log"], f"{ended}: {why}"))
+    return out
+
+
+def wait(run: Any, console: Any, poll: float = 5.0, quiet: bool = False) -> list[TaskStatus]:
+    """Show the jobs' progress until none is pending or running; the final states."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn(f"[cyan]sweep[/] {run.sweep.name} on Slurm"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("{task.fields[states]}"), TimeElapsedColumn(), console=console,
+                  disable=quiet) as progress:
+        bar = None
+        while True:
+            states = status(run)
+            counts = {s: sum(t.state == s for t in states) for s in ("pending", "running", "done", "failed")}
+            text = ", ".join(f"{n} {s}" for s, n in counts.items() if n)
+            if bar is None:
+                bar = progress.add_task("jobs", total=len(states), states=text)
+            progress.update(bar, completed=counts["done"] + counts["failed"], states=text)
+            if not counts["pending"] and not counts["running"]:
+                return states
+            time.sleep(poll)
+
+
+__all__ = ["EXTRA", "Resources", "RunJob", "Submitted", "TaskStatus", "minutes", "parse_slurm_options", "status",
+           "submit", "wait"]

@@ -1,0 +1,192 @@
+"""``distilkit sweep --launcher slurm`` without a cluster: what it submits, read from recording ``sbatch``,
+``squeue`` and ``scontrol`` programs put first on PATH (each writes what it was given and answers as Slurm does);
+the requeue handler against a real ``distilkit run``; the extra named when submitit is missing. The same on a real
+Slurm: tests/test_slurm_real.py (slow)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from test_sweep import write_sweep
+from distilkit.cli import main
+
+SBATCH = r"""#!/usr/bin/env bash
+# records the submission script it is given and answers as sbatch does
+dir="$(dirname "$0")"
+n=$(( $(cat "$dir/count" 2>/dev/null || echo 100) + 1 ))
+echo "$n" > "$dir/count"
+cp "$1" "$dir/sbatch-$n.sh"
+echo "Submitted batch job $n"
+"""
+SQUEUE = r"""#!/usr/bin/env bash
+# lists every recorded job as pending (array tasks too), in the format asked for (%i|%T|%r)
+dir="$(dirname "$0")"
+for f in "$dir"/sbatch-*.sh; do
+  n=${f##*/sbatch-}; n=${n%.sh}
+  if grep -q -- "--array=0-1" "$f"; then echo "${n}_0|PENDING|Dependency"; echo "${n}_1|PENDING|Dependency";
+  else echo "$n|PENDING|Priority"; fi
+done
+"""
+SCONTROL = r"""#!/usr/bin/env bash
+echo "JobId=$3 JobState=FAILED Reason=NonZeroExitCode"
+"""
+
+
+@pytest.fixture
+def slurm_bin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A folder first on PATH with the recording sbatch (and squeue / scontrol answering from its records)."""
+    folder = tmp_path / "bin"
+    folder.mkdir()
+    for name, text in (("sbatch", SBATCH), ("squeue", SQUEUE), ("scontrol", SCONTROL)):
+        (folder / name).write_text(text)
+        (folder / name).chmod(0o755)
+    monkeypatch.setenv("PATH", f"{folder}{os.pathsep}{os.environ['PATH']}")
+    return folder
+
+
+def options(script: str) -> dict[str, str]:
+    return dict(re.findall(r"^#SBATCH --([a-z-]+)(?:=(.*))?$", script, flags=re.M))
+
+
+def test_the_plan_queues_upstream_first_then_arrays_that_wait_on_it(tmp_path, slurm_bin, capsys) -> None:
+    path = write_sweep(tmp_path, upstream="shared", launcher={"cpus_per_run": 3, "mem": "3G", "partition": "cpu",
+                                                              "slurm": {"account": "lab", "qos": "low"}})
+    out = tmp_path / "runs"
+    assert main(["sweep", str(path), "-o", str(out), "--launcher", "slurm", "--cpus-per-run", "2", "--time",
+                 "1-02:00:00", "--slurm", "qos=high", "constraint=avx2"]) == 0
+    printed = capsys.readouterr().out
+    scripts = {int(p.stem.split("-")[1]): p.read_text() for p in slurm_bin.glob("sbatch-*.sh")}
+    assert sorted(scripts) == [101, 102, 103]  # the teacher, then one array per set of upstream jobs
+    teacher, plain, distilled = (options(scripts[n]) for n in (101, 102, 103))
+    assert "dependency" not in teacher and "array" not in teacher
+    assert "dependency" not in plain and plain["array"] == "0-1%2"  # `none` distils from nothing: it waits for none
+    assert distilled["dependency"] == "afterok:101" and distilled["array"] == "0-1%2"
+    for opts in (teacher, plain, distilled):
+        # the command line wins over the sweep file's launcher block, which gives the rest
+        assert opts["cpus-per-task"] == "2" and opts["mem"] == "3G" and opts["partition"] == "cpu"
+        assert opts["account"] == "lab" and opts["qos"] == "high" and opts["constraint"] == "avx2"
+        assert opts["time"] == str(26 * 60) and opts["signal"] == "B:TERM@90" and "requeue" in opts
+        assert opts["kill-on-invalid-dep"] == "yes" and opts["ntasks-per-node"] == "1"
+    assert f"exec {sys.executable}" in scripts[101]  # the job's Python replaces the batch shell, no srun
+    assert "srun" not in scripts[101]
+    record = json.loads((out / "sw" / "slurm" / "jobs.json").read_text())
+    assert [(r["title"], r["job_id"], r["after"]) for r in record] == [
+        ("teacher (for dskd), seed 0", "101", []), ("none, seed 0", "102_0", []), ("none, seed 1", "102_1", []),
+        ("dskd, seed 0", "103_0", ["101"]), ("dskd, seed 1", "103_1", ["101"])]
+    assert "103_1  dskd, seed 1 after 101" in printed
+    # each job runs the same `distilkit run` as the local launcher, with absolute paths
+    from submitit.core.utils import DelayedSubmission
+
+    body = DelayedSubmission.load(out / "sw" / "slurm" / "103_1" / "103_1_submitted.pkl").function
+    assert body.argv == ["run", str((out / "sw" / "recipes" / "dskd.yaml").resolve()), "--seed", "1", "--output",
+                         str(out.resolve()), "--stage", "dskd", "--quiet"]
+    # --status: squeue's states; a second submission queues nothing that is queued already
+    assert main(["sweep", str(path), "-o", str(out), "--status"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 5 and all(line.startswith("pending") for line in lines), lines
+    assert main(["sweep", str(path), "-o", str(out), "--launcher", "slurm"]) == 0
+    assert len(list(slurm_bin.glob("sbatch-*.sh"))) == 3
+
+
+def test_a_job_that_left_the_queue_without_its_run_is_failed_with_its_logs_last_line(tmp_path, slurm_bin,
+                                                                                      capsys) -> None:
+    path = write_sweep(tmp_path, seeds=[0])
+    out = tmp_path / "runs"
+    assert main(["sweep", str(path), "-o", str(out), "--launcher", "slurm", "--gpus-per-run", "2"]) == 0
+    capsys.readouterr()
+    scripts = {int(p.stem.split("-")[1]): p.read_text() for p in slurm_bin.glob("sbatch-*.sh")}
+    assert all(options(s)["gpus-per-node"] == "2" for s in scripts.values())
+    record = json.loads((out / "sw" / "slurm" / "jobs.json").read_text())
+    assert all(r["job_id"] for r in record)
+    (slurm_bin / "squeue").write_text("#!/usr/bin/env bash\n")  # nothing queued any more
+    teacher = next(r for r in record if r["title"].startswith("teacher"))
+    Path(teacher["log"]).parent.mkdir(parents=True, exist_ok=True)
+    Path(teacher["log"]).write_text("starting\nRuntimeError: distilkit run ...: exit status 2\n")
+    assert main(["sweep", str(path), "-o", str(out), "--status"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    by_title = {re.split(r"\s+", line, maxsplit=2)[2].split("  log")[0]: line for line in lines}
+    assert "FAILED: RuntimeError: distilkit run ...: exit status 2" in by_title["teacher (for dskd), seed 0"]
+    assert "never ran: the upstream job" in by_title["dskd, seed 0"]
+    from submitit.core.utils import DelayedSubmission
+
+    body = DelayedSubmission.load(Path(teacher["log"]).parent / f"{teacher['job_id']}_submitted.pkl").function
+    assert body.argv[-2:] == ["--nproc-per-node", "2"]  # several GPUs: the existing DDP path inside the job
+
+
+def test_launcher_problems_are_one_line(tmp_path, slurm_bin, capsys) -> None:
+    path = write_sweep(tmp_path)
+    out = str(tmp_path / "r")
+    for argv, why in ((["--launcher", "slurm", "--time", "2 hours"], "--time '2 hours': give minutes, H:MM:SS or "
+                                                                       "D-HH:MM:SS"),
+                      (["--launcher", "slurm", "--slurm", "account"], "--slurm 'account': give KEY=VALUE"),
+                      (["--status"], "no Slurm jobs recorded for sweep sw")):
+        assert main(["sweep", str(path), "-o", out, *argv]) == 2
+        err = capsys.readouterr().err
+        assert why in err and len(err.strip().splitlines()) == 1, err
+    bad = yaml.safe_load(path.read_text())
+    bad["launcher"] = {"cpus": 2}
+    path.write_text(yaml.safe_dump(bad))
+    assert main(["sweep", str(path), "-o", out, "--launcher", "slurm"]) == 2
+    assert "launcher.cpus" in capsys.readouterr().err
+    assert not list(slurm_bin.glob("sbatch-*.sh"))  # nothing was submitted
+
+
+def test_without_submitit_the_slurm_launcher_names_the_extra(tmp_path) -> None:
+    path = write_sweep(tmp_path)
+    code = ("import sys; sys.modules['submitit'] = None\n"
+            "from distilkit.cli import main\n"
+            f"raise SystemExit(main(['sweep', {str(path)!r}, '-o', {str(tmp_path / 'r')!r}, '--launcher', 'slurm']))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 2, done.stderr
+    assert "--launcher slurm needs submitit: pip install 'distilkit[slurm]'" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+
+
+def test_the_requeue_handler_stops_the_run_with_its_checkpoint_and_the_requeued_body_ends_with_the_same_bits(
+        tmp_path) -> None:
+    """RunJob.checkpoint as submitit calls it on SIGTERM, against a real `distilkit run`: the run that did not get the
+    signal itself is sent one, stops after its step with last.pt, and the body handed back for the requeue resumes
+    it to the bits of an uninterrupted run."""
+    import time
+
+    import torch
+
+    from conftest import tiny_recipe
+    from distilkit.sweep.slurm import RunJob
+
+    recipe = tiny_recipe(steps=40, distill=False)
+    recipe["stages"]["teacher"]["train"].update({"checkpoint_every": 5, "eval_every": 40, "log_every": 10})
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
+    argv = ["run", str(tmp_path / "r.yaml"), "--output", str(tmp_path / "a"), "--quiet"]
+    job = RunJob(argv, grace=0.5)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    job._child = subprocess.Popen([sys.executable, "-m", "distilkit", *argv], env=env)
+    deadline = time.monotonic() + 120
+    while not list((tmp_path / "a").rglob("last.pt")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    again = job.checkpoint().function
+    assert job._child.returncode is not None  # it had stopped before the handler returned
+    last = next((tmp_path / "a").rglob("last.pt"))
+    stopped_at = torch.load(last, weights_only=True)["step"]
+    assert 0 < stopped_at < 40 and not list((tmp_path / "a").rglob("summary.json"))
+    assert isinstance(again, RunJob) and again.argv == argv
+    os.environ.update({"SLURM_CPUS_PER_TASK": "1"})
+    try:
+        assert again() == 0  # the requeued job: resumes
+    finally:
+        os.environ.pop("SLURM_CPUS_PER_TASK")
+    full = subprocess.run([sys.executable, "-m", "distilkit", "run", str(tmp_path / "r.yaml"), "--output",
+                           str(tmp_path / "b"), "--quiet"], env=env, check=True)
+    assert full.returncode == 0
+    a = torch.load(next((tmp_path / "a").rglob("last.pt")), weights_only=True)
+    b = torch.load(next((tmp_path / "b").rglob("last.pt")), weights_only=True)
+    assert a["step"] == b["step"] == 40
+    assert all(torch.equal(a["student"][k], b["student"][k]) for k in b["student"])
