@@ -6,6 +6,7 @@ each process has a GPU of its own, gloo through the host on one GPU), and `disti
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -123,6 +124,48 @@ def test_distilkit_run_with_two_processes_trains_with_one_writer(tmp_path: Path)
         steps = [json.loads(x).get("step") for x in (run / "metrics.jsonl").read_text().splitlines()
                  if "loss" in json.loads(x)]
         assert steps == [1, 2, 3]  # each step logged once: one writer
+
+
+def test_two_slurm_tasks_train_as_torchrun_would_start_them(tmp_path: Path) -> None:
+    """`srun -n 2 distilkit run ...`: two processes with Slurm's task variables (as srun sets them in a step) and no
+    torchrun train one run together, and its weights equal torchrun's two processes' bit for bit."""
+    recipe: dict[str, Any] = tiny_recipe(steps=3, distill=False)
+    recipe["stages"]["teacher"]["train"].update(batch_size=2, eval_every=3)
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    base = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "RANK", "WORLD_SIZE", "LOCAL_RANK",
+                                                                      "MASTER_"))}
+    base.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    procs = [subprocess.Popen([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "slurm"),
+                               "-q"], env={**base, "SLURM_STEP_ID": "0", "SLURM_NTASKS": "2", "SLURM_PROCID": str(i),
+                                           "SLURM_LOCALID": str(i), "SLURM_JOB_ID": str(4000 + os.getpid() % 1000),
+                                           "SLURM_STEP_NODELIST": "localhost"},
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
+    done = subprocess.run([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "torchrun"), "-q",
+                           "--nproc-per-node", "2"], capture_output=True, text=True, env=base)
+    assert done.returncode == 0, done.stderr[-3000:]
+    (a,) = (tmp_path / "slurm" / "tiny").glob("teacher-*")
+    (b,) = (tmp_path / "torchrun" / "tiny").glob("teacher-*")
+    assert json.loads((a / "summary.json").read_text())["processes"] == 2
+    x = torch.load(a / "checkpoints" / "last.pt", weights_only=True)["student"]
+    y = torch.load(b / "checkpoints" / "last.pt", weights_only=True)["student"]
+    assert all(torch.equal(x[k], y[k]) for k in y)
+
+
+def test_the_first_host_of_a_slurm_node_list(monkeypatch, tmp_path) -> None:
+    """Read off the list where scontrol is missing (and, where Slurm is installed, as scontrol expands it)."""
+    from distilkit.engine.train.distributed import first_host
+
+    lists = {"node[03-05,07],gpu1": "node03", "gpu1,node[1-2]": "gpu1", "localhost": "localhost",
+             "n[7,9]": "n7"}
+    import shutil
+
+    if shutil.which("scontrol"):
+        assert {k: first_host(k) for k in lists} == lists
+    monkeypatch.setenv("PATH", str(tmp_path))  # no scontrol
+    assert {k: first_host(k) for k in lists} == lists
 
 
 def scored(world: World, folder: Path) -> dict[str, Any]:

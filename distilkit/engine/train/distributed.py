@@ -100,9 +100,44 @@ def leave(world: World, code: int = 0) -> None:
     os._exit(code)
 
 
+def first_host(nodelist: str) -> str:
+    """The first host of a Slurm node list (``node[03-05,07],gpu1`` -> ``node03``): ``scontrol show hostnames`` where
+    it answers, else read off the list."""
+    import shutil
+    import subprocess
+
+    if shutil.which("scontrol"):
+        done = subprocess.run(["scontrol", "show", "hostnames", nodelist], capture_output=True, text=True)
+        if done.returncode == 0 and done.stdout.strip():
+            return done.stdout.split()[0]
+    head = nodelist.split(",")[0] if "[" not in nodelist.split(",")[0] else nodelist
+    if "[" not in head:
+        return head
+    prefix, rest = head.split("[", 1)
+    return prefix + rest.split("]")[0].split(",")[0].split("-")[0]
+
+
+def from_slurm() -> None:
+    """Inside a Slurm step of several tasks (``srun``: ``SLURM_STEP_ID`` set, ``SLURM_NTASKS`` > 1) and not under
+    torchrun: the variables torchrun would set, from Slurm's — ``RANK`` = ``SLURM_PROCID``, ``WORLD_SIZE`` =
+    ``SLURM_NTASKS``, ``LOCAL_RANK`` = ``SLURM_LOCALID``, ``MASTER_ADDR`` the step's first node, ``MASTER_PORT`` from
+    the job id — so that ``srun distilkit run ...`` trains with one process per task. A batch script (no step) is one
+    process whatever ``--ntasks`` says."""
+    env = os.environ
+    if "WORLD_SIZE" in env or "SLURM_STEP_ID" not in env or int(env.get("SLURM_NTASKS", "1")) <= 1:
+        return
+    env["RANK"], env["WORLD_SIZE"] = env["SLURM_PROCID"], env["SLURM_NTASKS"]
+    env["LOCAL_RANK"] = env.get("SLURM_LOCALID", "0")
+    env.setdefault("MASTER_ADDR", first_host(env.get("SLURM_STEP_NODELIST") or env.get("SLURM_JOB_NODELIST",
+                                                                                       "localhost")))
+    env.setdefault("MASTER_PORT", str(20000 + int(env.get("SLURM_JOB_ID", "0")) % 20000))
+
+
 def world_from_env() -> World:
-    """The world ``torchrun`` describes in the environment (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``), its process
-    group started (gloo for CPU tensors, NCCL for CUDA ones); a single process without them."""
+    """The world ``torchrun`` describes in the environment (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``; or Slurm's
+    tasks of an ``srun`` step, :func:`from_slurm`), its process group started (gloo for CPU tensors, NCCL for CUDA
+    ones); a single process without them."""
+    from_slurm()
     size = int(os.environ.get("WORLD_SIZE", "1"))
     if size <= 1:
         return SINGLE
@@ -123,4 +158,4 @@ def sync_batchnorm(model: nn.Module, world: World, device: torch.device) -> nn.M
     return model
 
 
-__all__ = ["SINGLE", "World", "leave", "sync_batchnorm", "world_from_env"]
+__all__ = ["SINGLE", "World", "first_host", "from_slurm", "leave", "sync_batchnorm", "world_from_env"]
