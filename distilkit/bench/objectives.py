@@ -1,4 +1,4 @@
-"""``distilkit bench dskd | pkt | rgo2d | kd | nst | structural``: each objective's shipped form against the naive
+"""``distilkit bench dskd | pkt | rgo2d | kd | nst | structural | relation``: each objective's shipped form against the naive
 form of its paper's formula (or the authors' code) at realistic 3-D sizes, forward + backward."""
 
 from __future__ import annotations
@@ -197,3 +197,23 @@ def structural_cases(device: torch.device, quick: bool) -> list[Case]:
                           (lambda gen=gen, gt=gt, key=key: structural(gen.detach().double(), gt.double(), key))))
     return cases
 
+
+
+def naive_relation(fs: Tensor, ft: Tensor) -> Tensor:
+    """L2COcc's release: the dense (B, P, P) cosine matrices of each model and their mean L1 distance."""
+    a = torch.nn.functional.normalize(fs.flatten(2), dim=1)
+    b = torch.nn.functional.normalize(ft.flatten(2), dim=1)
+    return torch.nn.functional.l1_loss(a.transpose(1, 2) @ a, b.transpose(1, 2) @ b)
+
+
+@register("relation")
+def relation_cases(device: torch.device, quick: bool) -> list[Case]:
+    """L2COcc's relational term at a TPV plane of 128 x 128 positions (P^2 = 2.7e8), 64 channels."""
+    from distilkit.losses import l2cocc_relation
+
+    side = 48 if quick else 128
+    g = torch.Generator().manual_seed(0)
+    fs = torch.randn(1, 64, side, side, generator=g).to(device).requires_grad_(True)
+    ft = torch.randn(1, 64, side, side, generator=g).to(device)
+    return [Case("l2cocc_relation", f"1 × 64 × {side} × {side} (P = {side * side:,})",
+                 lambda: l2cocc_relation(fs, ft), lambda: naive_relation(fs, ft), [fs])]

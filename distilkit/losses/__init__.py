@@ -12,6 +12,8 @@ from distilkit.losses.cleaners import cleaners
 from distilkit.losses.dpo import distillation_dpo
 from distilkit.losses.dskd import dskd
 from distilkit.losses.feature import fitnet, nst, pkt
+from distilkit.losses.hassc import hassc_kd, teacher_batch_miou
+from distilkit.losses.l2cocc import l2cocc_fsd, l2cocc_pad, l2cocc_relation
 from distilkit.losses.logit import dist, kd
 from distilkit.losses.mgd import mgd
 from distilkit.losses.proposal import depth_l1, occupancy_ce
@@ -25,4 +27,5 @@ from distilkit.losses.vsd import vsd
 __all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "pvkd", "pvkd_affinity", "supervoxel_ids", "mgd", "cleaners",
            "rgo2d_region", "rgo2d", "cross_entropy", "lovasz_softmax", "vsd", "scene_wise", "point_wise", "curvature",
            "select_keypoints", "structural", "weighted_ce", "partial_ce", "geo_scal", "sem_scal", "log_frequency_weights",
-           "depth_l1", "occupancy_ce", "distillation_dpo"]
+           "depth_l1", "occupancy_ce", "distillation_dpo", "hassc_kd", "teacher_batch_miou", "l2cocc_pad", "l2cocc_fsd",
+           "l2cocc_relation"]
