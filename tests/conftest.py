@@ -125,3 +125,21 @@ def make_trainer(pipe, stage_name: str, teacher=None, world=None, device=None):
     plan = BatchPlan(len(train_set), stage.spec.train.batch_size, 0, world)
     return Trainer(stage, pipe.resolved.data_info, train_set, plan, torch.device(device or "cpu"),
                    collate=pipe.collate, teacher=teacher, world=world)
+
+
+def on_device_matches(fast, naive, inputs, device, rel: float = 1e-6) -> None:
+    """``fast`` of ``inputs`` copied to ``device`` against ``naive`` of them on the CPU: value and the gradients of
+    the inputs that require one."""
+    import torch
+
+    here = [x.detach().to(device).requires_grad_(x.requires_grad) if x is not None else None for x in inputs]
+    a, b = fast(*here), naive(*inputs)
+    a_value, b_value = a.detach().cpu(), b.detach()
+    assert bool((a_value - b_value).abs() <= rel * b_value.abs() + 1e-12), (float(a_value), float(b_value))
+    wants = [i for i, x in enumerate(inputs) if x is not None and x.requires_grad]
+    ga = torch.autograd.grad(a, [here[i] for i in wants], allow_unused=True)
+    gb = torch.autograd.grad(b, [inputs[i] for i in wants], allow_unused=True)
+    for x, y in zip(ga, gb):
+        x = torch.zeros(()) if x is None else x.cpu()
+        y = torch.zeros(()) if y is None else y
+        assert (x - y).norm() <= rel * y.norm() + 1e-12

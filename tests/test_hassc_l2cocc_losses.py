@@ -11,6 +11,7 @@ import pytest
 import torch
 
 import distilkit.losses as L
+from conftest import on_device_matches
 from distilkit.losses import l2cocc as l2
 
 D = torch.float64
@@ -24,18 +25,6 @@ def labels_of(b, spatial, g, k=4):
     lab = torch.randint(0, k, (b, *spatial), generator=g)
     lab[torch.rand(b, *spatial, generator=g) < 0.2] = 255
     return lab
-
-
-def on_device(fast, naive, inputs, device, rel=1e-9):
-    here = [x.detach().to(device).requires_grad_(x.requires_grad) if isinstance(x, torch.Tensor) else x
-            for x in inputs]
-    a, b = fast(*here), naive(*inputs)
-    assert math.isclose(float(a.detach()), float(b.detach()), rel_tol=rel, abs_tol=1e-12), (float(a), float(b))
-    wants = [i for i, x in enumerate(inputs) if isinstance(x, torch.Tensor) and x.requires_grad]
-    ga = torch.autograd.grad(a, [here[i] for i in wants])
-    gb = torch.autograd.grad(b, [inputs[i] for i in wants])
-    for x, y in zip(ga, gb):
-        assert (x.cpu() - y).norm() <= rel * y.norm() + 1e-13
 
 
 def naive_hassc(s, t, labels, temp, miou):
@@ -60,8 +49,8 @@ def test_hassc_kd_is_the_per_sample_mean_of_the_valid_voxels_kl(temp, miou, devi
     g = torch.Generator().manual_seed(0)
     s, t = rand(2, 4, 3, 2, 2, g=g), rand(2, 4, 3, 2, 2, g=g)
     lab = labels_of(2, (3, 2, 2), g)
-    on_device(lambda s, t, lab: L.hassc_kd(s, t, lab, temp, miou), lambda s, t, lab: naive_hassc(s, t, lab, temp, miou),
-              (s, t, lab), device)
+    on_device_matches(lambda s, t, lab: L.hassc_kd(s, t, lab, temp, miou),
+                      lambda s, t, lab: naive_hassc(s, t, lab, temp, miou), (s, t, lab), device, rel=1e-9)
     lab[1] = 255  # a sample without a valid voxel gives 0 and still counts in the batch mean
     assert math.isclose(float(L.hassc_kd(s, t, lab, temp)), float(naive_hassc(s, t, lab, temp, None)), rel_tol=1e-9)
     with pytest.raises(ValueError, match="labels"):
@@ -98,8 +87,8 @@ def test_l2cocc_pad_is_kldivloss_mean_over_valid_nonempty_voxels_and_classes(inc
     g = torch.Generator().manual_seed(1)
     s, t = rand(2, 5, 3, 3, 2, g=g), rand(2, 5, 3, 3, 2, g=g)
     lab = labels_of(2, (3, 3, 2), g, k=5)
-    on_device(lambda s, t, lab: L.l2cocc_pad(s, t, lab, include_empty),
-              lambda s, t, lab: naive_pad(s, t, lab, include_empty), (s, t, lab), device)
+    on_device_matches(lambda s, t, lab: L.l2cocc_pad(s, t, lab, include_empty),
+                      lambda s, t, lab: naive_pad(s, t, lab, include_empty), (s, t, lab), device, rel=1e-9)
     # the release's own computation (torch.nn.KLDivLoss) on one sample
     one = lab[:1]
     keep = (one != 255) & ((one != 0) | include_empty)
@@ -127,7 +116,7 @@ def test_l2cocc_fsd_is_the_mean_cosine_distance_over_the_masked_positions(spatia
     g = torch.Generator().manual_seed(2)
     s, t = rand(2, 6, *spatial, g=g), rand(2, 6, *spatial, g=g)
     mask = torch.rand(2, *spatial, generator=g) < 0.6
-    on_device(L.l2cocc_fsd, naive_fsd, (s, t, mask), device)
+    on_device_matches(L.l2cocc_fsd, naive_fsd, (s, t, mask), device, rel=1e-9)
     assert float(L.l2cocc_fsd(s, t, torch.zeros_like(mask))) == 0.0
 
 
@@ -152,7 +141,7 @@ def test_l2cocc_relation_in_row_blocks_equals_the_dense_pxp_form(cs, ct, spatial
     s, t = rand(2, cs, *spatial, g=g), rand(2, ct, *spatial, g=g)
     with torch.no_grad():
         s[0, :, 0] = 0  # a zero feature: its cosines are 0, its diagonal |0 - 1| = 1
-    on_device(L.l2cocc_relation, naive_relation, (s, t), device)
+    on_device_matches(L.l2cocc_relation, naive_relation, (s, t), device, rel=1e-9)
     # finite differences (away from the zero feature, where normalising is not continuous)
     x, y = rand(1, cs, *spatial, g=g), rand(1, ct, *spatial, g=g)
     assert torch.autograd.gradcheck(L.l2cocc_relation, (x, y))

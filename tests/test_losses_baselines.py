@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import distilkit.losses as L
+from conftest import on_device_matches
 from distilkit.losses.rgo2d import range_regions
 
 D = torch.float64
@@ -24,21 +25,6 @@ def grads_close(fa, fb, inputs, rel: float = 1e-6) -> None:
     gb = torch.autograd.grad(fb(), inputs, allow_unused=True)
     for x, y in zip(ga, gb):
         x = torch.zeros(()) if x is None else x
-        y = torch.zeros(()) if y is None else y
-        assert (x - y).norm() <= rel * y.norm() + 1e-12
-
-
-def on_device_matches(fast, naive, inputs, device, rel: float = 1e-6) -> None:
-    """``fast`` of ``inputs`` copied to ``device`` against ``naive`` of them on the CPU: value and the gradients of
-    the inputs that require one."""
-    here = [x.detach().to(device).requires_grad_(x.requires_grad) if x is not None else None for x in inputs]
-    a, b = fast(*here), naive(*inputs)
-    assert close(a.detach().cpu(), b.detach(), rel)
-    wants = [i for i, x in enumerate(inputs) if x is not None and x.requires_grad]
-    ga = torch.autograd.grad(a, [here[i] for i in wants], allow_unused=True)
-    gb = torch.autograd.grad(b, [inputs[i] for i in wants], allow_unused=True)
-    for x, y in zip(ga, gb):
-        x = torch.zeros(()) if x is None else x.cpu()
         y = torch.zeros(()) if y is None else y
         assert (x - y).norm() <= rel * y.norm() + 1e-12
 

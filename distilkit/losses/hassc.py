@@ -11,8 +11,9 @@ from the batch, neither predicted nor labelled, as IoU 0).
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
+
+from distilkit.losses.logit import kl_per_sample
 
 
 def hassc_kd(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, temperature: float = 1.0,
@@ -25,13 +26,7 @@ def hassc_kd(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, tem
     if temperature <= 0:
         raise ValueError(f"hassc_kd: temperature must be positive, got {temperature}")
     t = float(temperature)
-    log_s = F.log_softmax(student_logits.flatten(2) / t, dim=1)
-    log_t = F.log_softmax(teacher_logits.to(student_logits.dtype).flatten(2) / t, dim=1)
-    per_voxel = (log_t.exp() * (log_t - log_s)).sum(1) * t * t  # (B, N)
-    keep = labels.flatten(1) != 255
-    counts = keep.sum(1)
-    sums = (per_voxel * keep).sum(1)
-    loss = torch.where(counts > 0, sums / counts.clamp_min(1), sums * 0).mean()
+    loss = kl_per_sample(student_logits, teacher_logits, labels != 255, t).mean() * t * t
     if teacher_miou is not None:
         loss = loss * torch.exp(torch.as_tensor(teacher_miou, dtype=loss.dtype, device=loss.device))
     return loss

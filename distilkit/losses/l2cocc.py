@@ -26,6 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from distilkit.losses.logit import kl_per_sample
+
 _ENTRIES = 1 << 24  # entries of one row block of the P x P matrices (64 MiB in float32)
 
 
@@ -41,15 +43,8 @@ def l2cocc_pad(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, i
             student_logits.shape[2:]:
         raise ValueError(f"l2cocc_pad: student {tuple(student_logits.shape)}, teacher {tuple(teacher_logits.shape)} "
                          f"and labels {tuple(labels.shape)} must be (B, K, *spatial) twice and (B, *spatial)")
-    k = student_logits.shape[1]
-    log_s = F.log_softmax(_voxels(student_logits), dim=2)
-    log_t = F.log_softmax(_voxels(teacher_logits.to(student_logits.dtype)), dim=2)
-    flat = labels.flatten(1)
-    keep = (flat != 255) if include_empty else (flat != 255) & (flat != 0)
-    per_voxel = (log_t.exp() * (log_t - log_s)).sum(2)  # (B, N)
-    counts = keep.sum(1)
-    sums = (per_voxel * keep).sum(1)
-    per_sample = torch.where(counts > 0, sums / (counts.clamp_min(1) * k), sums * 0)
+    keep = (labels != 255) if include_empty else (labels != 255) & (labels != 0)
+    per_sample = kl_per_sample(student_logits, teacher_logits, keep) / student_logits.shape[1]  # KLDivLoss: / K too
     return per_sample.mean()
 
 

@@ -31,6 +31,18 @@ def kd(student_logits: Tensor, teacher_logits: Tensor, temperature: float = 1.0,
     return temperature**2 * kl.mean()
 
 
+def kl_per_sample(student_logits: Tensor, teacher_logits: Tensor, keep: Tensor, temperature: float = 1.0) -> Tensor:
+    """(B,) each sample's mean over its kept positions of KL(softmax(t/T) || softmax(s/T)) (0 where none is kept);
+    logits (B, K, *S), ``keep`` (B, *S) bool. HASSC's and L2COcc's per-sample reductions are built on it."""
+    log_ps = torch.log_softmax(student_logits.flatten(2) / temperature, dim=1)
+    log_pt = torch.log_softmax(teacher_logits.to(student_logits.dtype).flatten(2) / temperature, dim=1)
+    kl = (log_pt.exp() * (log_pt - log_ps)).sum(1)  # (B, N): one KL per position
+    keep = keep.flatten(1)
+    counts = keep.sum(1)
+    sums = (kl * keep).sum(1)
+    return torch.where(counts > 0, sums / counts.clamp_min(1), sums * 0)
+
+
 def pearson_rows(a: Tensor, b: Tensor, eps: float = 1e-8) -> Tensor:
     """Pearson correlation of matching rows: cosine of the mean-centred rows (eps in the denominator)."""
     a = a - a.mean(dim=1, keepdim=True)

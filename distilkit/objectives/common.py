@@ -9,6 +9,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from distilkit.data.classes import IGNORE_INDEX
+from distilkit.errors import GridMismatchError
 from distilkit.geometry.voxel import align_across_grids
 from distilkit.structures import SparseVoxels
 
@@ -38,8 +39,6 @@ def aligned_pairs(student: SparseVoxels, teacher: SparseVoxels) -> tuple[Tensor,
     scaled coordinates (its parent voxel); a finer teacher is first pooled into the student's
     voxels (mean over the active child voxels). See :func:`distilkit.geometry.voxel.align_across_grids`.
     """
-    from distilkit.errors import GridMismatchError
-
     target = student.grid if student.grid is not None and teacher.grid is not None else student.spatial_shape
     try:
         t, found = align_across_grids(student.coords, target, teacher.detach())
@@ -61,3 +60,25 @@ def match_spatial(x: Tensor, shape: tuple[int, ...]) -> Tensor:
 
 def conv1x1(cin: int, cout: int, dims: int) -> torch.nn.Module:
     return (torch.nn.Conv3d if dims == 3 else torch.nn.Conv2d)(cin, cout, 1)
+
+
+def release_labels(target: Tensor, ignore_index: int) -> Tensor:
+    """The data's labels with its ignore label as 255 (the releases' convention)."""
+    return torch.where(target == ignore_index, torch.full_like(target, 255), target)
+
+
+def occupied_at(labels: Tensor, shape: tuple[int, ...]) -> Tensor:
+    """(B, *shape) bool: where a block of the label grid holds a labelled non-empty voxel (label not 0 nor 255) —
+    the release's ``target != 0`` at the feature's resolution (its 2-D planes: the mean over the collapsed axis
+    != 0). A 2-D map is taken as the (X, Y) plane; the grid must be an integer multiple of the map."""
+    occ = ((labels != 0) & (labels != 255)).float()
+    if len(shape) == 2 and occ.dim() == 4:
+        occ = occ.amax(dim=3)
+    if len(shape) != occ.dim() - 1:
+        raise GridMismatchError(f"labels {tuple(labels.shape[1:])} and a feature map {shape}: no common axes")
+    factors = [a // b if b and a % b == 0 else 0 for a, b in zip(occ.shape[1:], shape)]
+    if not all(factors):
+        raise GridMismatchError(f"labels {tuple(labels.shape[1:])} are not an integer multiple of the feature map "
+                                f"{shape}")
+    pool = F.max_pool3d if len(shape) == 3 else F.max_pool2d
+    return pool(occ[:, None], kernel_size=factors)[:, 0] > 0

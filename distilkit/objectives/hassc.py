@@ -12,7 +12,7 @@ from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.losses.hassc import hassc_kd, teacher_batch_miou
 from distilkit.objectives.base import MultiTapObjective, register_objective
-from distilkit.objectives.l2cocc import release_labels
+from distilkit.objectives.common import release_labels
 
 
 class HASSCKDParams(BaseModel):

@@ -6,41 +6,17 @@ from __future__ import annotations
 
 from typing import Any
 
-import torch
-import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
 from distilkit.choices import Choice
 from distilkit.data.batch import Batch
-from distilkit.errors import GridMismatchError
 from distilkit.losses.l2cocc import l2cocc_fsd, l2cocc_pad, l2cocc_relation
 from distilkit.objectives.base import MultiTapObjective, register_objective
+from distilkit.objectives.common import occupied_at, release_labels
 
 _EMPTY_NAN = Choice("a sample (or map) with nothing to align", "0", "not stated",
                     "NaN (KLDivLoss and .mean() over no element)")
-
-
-def release_labels(target: Tensor, ignore_index: int) -> Tensor:
-    """The data's labels with its ignore label as 255 (the releases' convention)."""
-    return torch.where(target == ignore_index, torch.full_like(target, 255), target)
-
-
-def occupied_at(labels: Tensor, shape: tuple[int, ...]) -> Tensor:
-    """(B, *shape) bool: where a block of the label grid holds a labelled non-empty voxel (label not 0 nor 255) —
-    the release's ``target != 0`` at the feature's resolution (its 2-D planes: the mean over the collapsed axis
-    != 0). A 2-D map is taken as the (X, Y) plane; the grid must be an integer multiple of the map."""
-    occ = ((labels != 0) & (labels != 255)).float()
-    if len(shape) == 2 and occ.dim() == 4:
-        occ = occ.amax(dim=3)
-    if len(shape) != occ.dim() - 1:
-        raise GridMismatchError(f"labels {tuple(labels.shape[1:])} and a feature map {shape}: no common axes")
-    factors = [a // b if b and a % b == 0 else 0 for a, b in zip(occ.shape[1:], shape)]
-    if not all(factors):
-        raise GridMismatchError(f"labels {tuple(labels.shape[1:])} are not an integer multiple of the feature map "
-                                f"{shape}")
-    pool = F.max_pool3d if len(shape) == 3 else F.max_pool2d
-    return pool(occ[:, None], kernel_size=factors)[:, 0] > 0
 
 
 class PADParams(BaseModel):

@@ -193,14 +193,13 @@ class Submitted:
     after: list[str]
 
 
-def _setup_signal(submitit: Any) -> None:
+def _setup_signal() -> None:
     """SIGTERM as submitit's preemption signal, in this process (the ``--signal`` line) and in the jobs (the
     environment sbatch exports)."""
     os.environ.setdefault(PREEMPT_ENV, "TERM")
     from submitit.core.job_environment import JobEnvironment
 
     JobEnvironment.USR_SIG = os.environ[PREEMPT_ENV]
-    submitit.SlurmExecutor  # noqa: B018  (imported: its environment class reads USR_SIG at submission)
 
 
 def _executor(submitit: Any, folder: Path, res: Resources, name: str, after: list[str]) -> Any:
@@ -229,7 +228,7 @@ def submit(run: Any, res: Resources) -> list[Submitted]:
     """Queue every unfinished task of the sweep ``run`` (a :class:`~distilkit.sweep.runner.SweepRun`): upstream jobs
     first, then the variants' arrays that wait on them; written to ``slurm/jobs.json`` and returned."""
     submitit = submitit_module()
-    _setup_signal(submitit)
+    _setup_signal()
     run.write_recipes()
     folder = run.root / "slurm"
     folder.mkdir(parents=True, exist_ok=True)
@@ -240,7 +239,7 @@ def submit(run: Any, res: Resources) -> list[Submitted]:
         return [*replace(task, recipe_file=task.recipe_file.resolve()).argv(output), "--quiet", *extra_argv]
     submitted: list[Submitted] = []
     upstream_job: dict[tuple[str, ...], str] = {}  # the upstream runs' folders -> the job that trains them
-    queued = {(s.title): s.job_id for s in (status(run) if (folder / "jobs.json").is_file() else [])
+    queued = {s.title: s.job_id for s in (status(run) if (folder / "jobs.json").is_file() else [])
               if s.state in ("pending", "running")}  # submitted before and still queued: not again
     for task in run.upstream_tasks():
         key = run.upstream_key(task)
