@@ -130,7 +130,8 @@ def test_sweep_file_problems_are_named(tmp_path: Path, change: dict, message: st
 
 
 @pytest.mark.parametrize(("name", "seeds"), [("quickstart_methods", 6), ("scpnet_table4", 6),
-                                             ("scribble2scene_table5", 3), ("dskd_weight", 6)])
+                                             ("scribble2scene_table5", 3), ("dskd_weight", 6), ("hassc", 6),
+                                             ("l2cocc", 6)])
 def test_shipped_sweeps_resolve(name: str, seeds: int, tmp_path: Path) -> None:
     sweep = SweepRun(ROOT / "recipes" / "sweeps" / f"{name}.yaml", tmp_path, quiet=True)
     assert sweep.sweep.baseline == "none" and len(sweep.variant_tasks()) == seeds * len(sweep.sweep.recipes)
@@ -158,6 +159,24 @@ def test_the_scribble2scene_table_varies_the_camera_student_of_its_recipe(tmp_pa
     teacher_dirs = {sweep.pipes[v, s].run_dir("teacher_labeler").name for v in sweep.sweep.recipes for s in sweep.seeds
                     if v != "none"}
     assert len(teacher_dirs) == 1
+
+
+def test_the_hassc_sweep_keeps_its_own_ema_teacher_and_the_l2cocc_sweep_the_lidar_teacher(tmp_path: Path) -> None:
+    """A variant that sets ``teacher: {ema: true}`` keeps it (the sweep's teacher edge is not forced on it) and needs
+    no upstream teacher; HASSC's variant differs from the baseline only in what the file says."""
+    hassc = SweepRun(ROOT / "recipes" / "sweeps" / "hassc.yaml", tmp_path, quiet=True).sweep
+    full = hassc.recipes["hassc"].stages["hassc"]
+    assert full.teacher.ema is not None and full.teacher.from_ is None and full.labels.from_ == "dean"
+    assert [t.name for t in full.distill] == ["hassc_kd", "hassc_hvm"]
+    assert [(t.name, t.weight) for t in full.task_losses] == [("hassc_ce", 10), ("geo_scal", None)]
+    assert "teacher_labeler" not in hassc.upstream_stages("hassc")
+    assert hassc.recipes["ema_kd"].stages["ema_kd"].teacher.ema is not None
+    base = hassc.recipes["none"].stages["none"]
+    assert base.teacher is None and [t.name for t in base.task_losses] == ["weighted_ce", "geo_scal"]
+    l2 = SweepRun(ROOT / "recipes" / "sweeps" / "l2cocc.yaml", tmp_path, quiet=True).sweep
+    stage = l2.recipes["pad_fsd"].stages["pad_fsd"]
+    assert stage.teacher.from_ == "lidar_teacher" and "bottleneck" in stage.teacher.taps
+    assert [(t.name, t.connector) for t in stage.distill] == [("l2cocc_pad", None), ("l2cocc_fsd", "linear")]
 
 
 @pytest.mark.parametrize("name", ["scpnet_table4"])

@@ -12,6 +12,8 @@ from distilkit.losses.cleaners import cleaners
 from distilkit.losses.dpo import distillation_dpo
 from distilkit.losses.dskd import dskd
 from distilkit.losses.feature import fitnet, nst, pkt
+from distilkit.losses.hardness import (geometry_weighted_ce, hard_voxel_ce, local_geometric_anisotropy,
+                                      sample_hard_voxels, voxel_sample)
 from distilkit.losses.hassc import hassc_kd, teacher_batch_miou
 from distilkit.losses.l2cocc import l2cocc_fsd, l2cocc_pad, l2cocc_relation
 from distilkit.losses.logit import dist, kd
@@ -28,4 +30,5 @@ __all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "pvkd", "pvkd_affinity"
            "rgo2d_region", "rgo2d", "cross_entropy", "lovasz_softmax", "vsd", "scene_wise", "point_wise", "curvature",
            "select_keypoints", "structural", "weighted_ce", "partial_ce", "geo_scal", "sem_scal", "log_frequency_weights",
            "depth_l1", "occupancy_ce", "distillation_dpo", "hassc_kd", "teacher_batch_miou", "l2cocc_pad", "l2cocc_fsd",
-           "l2cocc_relation"]
+           "l2cocc_relation", "local_geometric_anisotropy", "geometry_weighted_ce", "sample_hard_voxels",
+           "hard_voxel_ce", "voxel_sample"]

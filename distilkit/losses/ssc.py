@@ -100,4 +100,22 @@ def log_frequency_weights(counts: Tensor, scale: float = 10.0) -> Tensor:
     return (scale / torch.log(counts.double() + 0.001)).float()
 
 
-__all__ = ["geo_scal", "log_frequency_weights", "partial_ce", "sem_scal", "weighted_ce"]
+# HASSC's and VoxFormer's class weights for SemanticKITTI's 20 classes (release hassc_voxformer_head.py): 10 / ln(f_c +
+# 0.001) on SemanticKITTI's voxel counts, rounded to 3 digits
+RELEASE_WEIGHTS_SEMANTICKITTI = (0.446, 0.603, 0.852, 0.856, 0.747, 0.734, 0.801, 0.796, 0.818, 0.557, 0.653, 0.568,
+                                 0.683, 0.560, 0.603, 0.530, 0.688, 0.574, 0.716, 0.786)
+
+
+def split_class_weights(train_set: object, num_classes: int, field: str = "voxel_label",
+                        scale: float = 10.0) -> Tensor:
+    """``scale / ln(f_c + 0.001)`` from the training split's counts of ``field`` (a class never seen gets the largest
+    weight; all ones when no class is seen)."""
+    from distilkit.data.stats import label_counts
+
+    voxel, _ = label_counts(train_set, num_classes, field)
+    present = voxel > 0
+    w = log_frequency_weights(voxel.clamp_min(1), scale)
+    return w.masked_fill(~present, float(w[present].max()) if bool(present.any()) else 1.0)
+
+
+__all__ = ["RELEASE_WEIGHTS_SEMANTICKITTI", "split_class_weights", "geo_scal", "log_frequency_weights", "partial_ce", "sem_scal", "weighted_ce"]

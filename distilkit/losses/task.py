@@ -13,6 +13,7 @@ from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES
 from distilkit.losses.chamfer import chamfer
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
+from distilkit.errors import DistilkitError
 from distilkit.registry import TASK_LOSSES, NoParams
 from distilkit.term import Term
 
@@ -145,13 +146,16 @@ class _ClassWeighted(TaskLoss):
         self.weight = self.weight.new_ones(self.num_classes)  # the data's class table's size
         if self.params.class_weights == "none":
             return
-        from distilkit.data.stats import label_counts
-        from distilkit.losses.ssc import log_frequency_weights
+        from distilkit.losses.ssc import RELEASE_WEIGHTS_SEMANTICKITTI, split_class_weights
 
-        voxel, _ = label_counts(train_set, self.num_classes, self.COUNTED)  # sized by the data's class table
-        present = voxel > 0
-        w = log_frequency_weights(voxel.clamp_min(1), self.params.scale)
-        self.weight = w.masked_fill(~present, float(w[present].max()) if bool(present.any()) else 1.0).to(self.weight)
+        if self.params.class_weights == "release":  # HASSC's table for SemanticKITTI's classes
+            if self.num_classes != len(RELEASE_WEIGHTS_SEMANTICKITTI):
+                raise DistilkitError(f"class_weights: release is the table of SemanticKITTI's 20 classes; the data has "
+                                     f"{self.num_classes} (use log_frequency)")
+            self.weight = torch.tensor(RELEASE_WEIGHTS_SEMANTICKITTI).to(self.weight)
+            return
+        # sized by the data's class table
+        self.weight = split_class_weights(train_set, self.num_classes, self.COUNTED, self.params.scale).to(self.weight)
 
 
 class WeightedCE(_ClassWeighted):
@@ -196,6 +200,38 @@ class PartialCE(_ClassWeighted):
         return partial_ce(taps["student"], taps["target"], weight, self.ignore_index)
 
 
+class _GeometryCEParams(_WeightedParams):
+    class_weights: Literal["none", "log_frequency", "release"] = Field(
+        "log_frequency", description="log_frequency: scale / ln(f_c + 0.001) from the training split's voxel counts "
+                                     "(the release's table is this formula on SemanticKITTI's counts); release: that "
+                                     "table itself (20 classes); none")
+
+
+class GeometryWeightedCE(_ClassWeighted):
+    """HASSC's geometry-weighted CE: w_y · CE · (1 + LGA) per valid voxel, the mean over the batch's valid voxels, with
+    LGA (the count of face neighbours with another label, :func:`~distilkit.losses.hardness.local_geometric_anisotropy`)
+    derived from the labels the stage trains on."""
+
+    CHOICES = (
+        Choice("LGA", "derived from the training labels per batch: face neighbours (6) with another label; outside "
+               "the volume or ignored: not counted", "local geometric anisotropy of the voxel's neighbourhood",
+               "loaded from precomputed files (values 0-6) that the release does not ship the script for"),
+        Choice("class weights", "10 / ln(f_c + 0.001) from the training split's counts",
+               "class-weighted CE", "a table of 20 numbers: the same formula on SemanticKITTI's counts",
+               "`class_weights: release`"),
+    )
+    Params = _GeometryCEParams
+    BATCH = {"target": "voxel_target"}
+
+    def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
+        from distilkit.losses.hardness import geometry_weighted_ce, local_geometric_anisotropy
+
+        target = taps["target"]
+        weight = self.weight if self.params.class_weights != "none" else None
+        lga = local_geometric_anisotropy(target, self.ignore_index)
+        return geometry_weighted_ce(taps["student"], target, weight, lga, self.ignore_index)
+
+
 class _VoxelLoss(TaskLoss):
     """A parameterless loss ``FUNCTION(logits, target, ignore_index)`` of :mod:`distilkit.losses.ssc`."""
 
@@ -233,6 +269,9 @@ TASK_LOSSES.add("uncertainty_multitask", UncertaintyMultiTask,
 TASK_LOSSES.add("weighted_ce", WeightedCE, description="class-weighted voxel CE, normalised by valid voxels or weights",
                 paper="VoxFormer (Li et al. CVPR 2023); MonoScene (Cao & de Charette CVPR 2022)",
                 consumes=("voxel_logits",))
+TASK_LOSSES.add("hassc_ce", GeometryWeightedCE, description="class-weighted voxel CE × (1 + local geometric "
+                "anisotropy), the mean over valid voxels", paper="HASSC (Wang et al. CVPR 2024), eq. of L_ssc with LGA; "
+                "dense_heads/hassc_voxformer_head.py", consumes=("voxel_logits",))
 TASK_LOSSES.add("partial_ce", PartialCE, description="CE over the voxels a scribble labels with a class",
                 paper="Scribble2Scene (Wang et al. IJCAI 2024), Dean-Labeler", consumes=("voxel_logits",))
 TASK_LOSSES.add("geo_scal", GeoScal, description="scene-class affinity loss on geometry (occupancy)",

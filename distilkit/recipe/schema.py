@@ -40,22 +40,58 @@ class ModelSpec(_Strict):
                                          description="extra taps recorded from submodules by forward hooks")
 
 
+class EmaSpec(_Strict):
+    """A stage that is its own teacher: an exponential moving average of its student (HASSC's mean teacher).
+
+    A copy of the student at step 0; before the forward of step k (0-based) — i.e. after optimiser step k − 1 —
+    t ← m·t + (1 − m)·s with m = min(1 − 1/(k + 1), ``momentum``), without gradients (HASSC's
+    ``SelfDistillTeacherOcc.momentum_update``, called at the start of every ``forward_train``)."""
+
+    momentum: float = Field(0.99, ge=0, lt=1, description="the largest momentum m (HASSC 0.99); m = min(1 - 1/(k+1), "
+                                                          "momentum) at step k")
+    buffers: Literal["average", "copy_once"] = Field(
+        "average", description="average: buffers (BatchNorm statistics) averaged like the parameters, integer ones "
+                               "copied (default: an eval-mode teacher then uses statistics of the weights it has); "
+                               "copy_once: copied at step 0 only, parameters averaged (the HASSC release)")
+    mode: Literal["eval", "train"] = Field(
+        "eval", description="eval: the teacher runs in eval mode (the paper; the release asks for it); train: "
+                            "dropout and batch statistics on (what the release's teacher does in fact: mmcv's "
+                            "runner calls model.train() on the detector, the teacher being its submodule)")
+
+
 class TeacherSpec(_Strict):
-    """Where a stage's frozen teacher comes from: an earlier stage or a checkpoint file."""
+    """Where a stage's frozen teacher comes from: an earlier stage, a checkpoint file, or the stage's own student
+    (``ema``: a moving average of it, updated as it trains)."""
 
     from_: str | None = Field(None, alias="from", description="name of an earlier stage whose best model is the teacher")
     checkpoint: str | None = Field(None, description="path of a distilkit checkpoint (loaded with weights_only=True)")
     model: ModelSpec | None = Field(None, description="the teacher's model (required with `checkpoint`)")
     which: Literal["best", "last"] = Field("best", description="checkpoint of the upstream stage to use")
+    ema: EmaSpec | None = Field(None, description="the student's exponential moving average is the teacher (HASSC): "
+                                                  "`ema: true` or its settings")
     taps: dict[str, HookTapSpec] = Field(default_factory=dict,
                                          description="extra teacher taps recorded from submodules by forward hooks")
 
+    @field_validator("ema", mode="before")
+    @classmethod
+    def _ema_shorthand(cls, value: Any) -> Any:
+        if value is True:
+            return {}
+        if value is False:
+            return None
+        return value
+
     @model_validator(mode="after")
     def _one_source(self) -> "TeacherSpec":
-        if (self.from_ is None) == (self.checkpoint is None):
-            raise ValueError("give exactly one of `from` (an earlier stage) or `checkpoint` (a file)")
+        sources = [n for n, v in (("from", self.from_), ("checkpoint", self.checkpoint), ("ema", self.ema))
+                   if v is not None]
+        if len(sources) != 1:
+            raise ValueError("give exactly one of `from` (an earlier stage), `checkpoint` (a file) or `ema` (the "
+                             f"student's moving average){'; got ' + ', '.join(sources) if sources else ''}")
         if self.checkpoint is not None and self.model is None:
             raise ValueError("a `checkpoint` teacher needs `model` (adapter and params)")
+        if self.ema is not None and self.model is not None:
+            raise ValueError("an `ema` teacher is the student's own model: leave out `model`")
         return self
 
 

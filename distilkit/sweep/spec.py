@@ -133,7 +133,8 @@ def variant_data(sweep: Sweep, variant: str) -> dict[str, Any]:
     if chosen.distill is not None:
         stage["distill"] = [t.model_dump(mode="json", by_alias=True, exclude_none=True, exclude_defaults=True)
                             for t in chosen.distill]
-    if spec.teacher is not None and stage.get("distill"):
+    own = isinstance(stage.get("teacher"), dict) and stage["teacher"].get("ema") not in (None, False)
+    if spec.teacher is not None and stage.get("distill") and not own:  # a variant that is its own teacher keeps it
         stage["teacher"] = {"from": spec.teacher}
     if not stage.get("distill"):  # no distillation: no teacher, so the run does not depend on one
         stage.pop("teacher", None)

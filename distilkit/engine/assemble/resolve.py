@@ -171,7 +171,9 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
             stage_info = dataclasses.replace(info, fields=info.fields | {f for a in aux for f in a.inputs.values()})
         teacher, teacher_from = None, None
         if spec.teacher is not None:
-            if spec.teacher.from_ is not None:
+            if spec.teacher.ema is not None:  # the student's moving average: the student's model
+                teacher = student
+            elif spec.teacher.from_ is not None:
                 teacher_from = spec.teacher.from_
                 up = stages.get(teacher_from)
                 teacher = up.student if up else None
@@ -200,7 +202,8 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         extras = extra_metrics(spec.train.metrics, student, info, path, problems) if student is not None else []
         hooks = resolve_hooks(spec.train.hooks, path, problems)
         if info is not None:
-            own_teacher = teacher if teacher_from is None else None  # a teacher stage was checked as a student
+            # a teacher stage was checked as a student, an EMA teacher is the student
+            own_teacher = teacher if teacher_from is None and (spec.teacher is None or spec.teacher.ema is None) else None
             for model, where in ((student, f"{path}.model"), (own_teacher, f"{path}.teacher.model")):
                 if model is not None:
                     problems.extend(data_problems(model, stage_info, where))

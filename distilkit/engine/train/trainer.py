@@ -3,7 +3,8 @@ connectors and the optimizer, and one training step.
 
 Per step (:meth:`Trainer.train_step`): ``s_out = student(batch)``; the teacher's outputs under ``no_grad`` when a
 term reads a teacher tap; ``loss = sum_j w_j task_j + sum_i w_i objective_i(taps)``; backward, a finite-gradient
-check, clipping, the optimizer step, then each objective's own ``update``. The stage's run (the loop, its hooks,
+check, clipping, the optimizer step, then each objective's own ``update``. A stage that is its own teacher
+(``teacher: {ema: ...}``) moves its moving-average teacher before the step's forward (:mod:`~distilkit.engine.train.ema`). The stage's run (the loop, its hooks,
 evaluation, checkpoints) is :mod:`distilkit.engine.train.stage`; this class is what it optimises.
 """
 
@@ -20,6 +21,8 @@ from distilkit.adapter import Adapter
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.engine.train.distributed import SINGLE, World, sync_batchnorm
+from distilkit.engine.train.ema import EmaTeacher
+from distilkit.engine.train.groups import freeze, param_groups
 from distilkit.weights import load_weights
 from distilkit.engine.train.loader import BatchPlan, Collate
 from distilkit.engine.assemble.resolved import ResolvedStage, ResolvedTerm
@@ -71,6 +74,12 @@ class Trainer:
         self.task = nn.ModuleList(t.cls(t.params) for t in stage.task_losses).to(self.device)
         self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
         self.teacher = teacher
+        self.ema: EmaTeacher | None = None  # the stage is its own teacher (``teacher: {ema: ...}``)
+        ema = stage.spec.teacher.ema if stage.spec.teacher is not None else None
+        if ema is not None and stage.distill:
+            assert stage.teacher is not None
+            self.ema = EmaTeacher(stage.teacher, info, self.student, ema, self.device)
+            self.teacher = self.ema.model
         # per objective: the projection of its student tap (nn.Identity where it has none)
         self.connectors = nn.ModuleList(nn.Identity() for _ in stage.distill)
         self.steps_per_epoch = plan.steps_per_epoch
@@ -79,10 +88,11 @@ class Trainer:
             term.module.prepare(train_set)
         self._setup_terms()
         own = {id(t.module) for t, o in zip(self.terms, self.own_optimizers) if o is not None}  # train themselves
-        self._freeze({id(p) for t in self.terms if id(t.module) in own for p in t.module.parameters()})
+        freeze(self.stage, [(n, p) for n, p in self._named_parameters() if id(p) not in
+                            {id(q) for t in self.terms if id(t.module) in own for q in t.module.parameters()}])
         self.trainable = [p for m in (self.student, *[t.module for t in self.terms if id(t.module) not in own],
                                       self.connectors) for p in m.parameters() if p.requires_grad]
-        self.optimizer = self._optimizer(self._param_groups())
+        self.optimizer = self._optimizer(param_groups(self.stage, self.named_trainables()))
         self.scaler = torch.amp.GradScaler(self.device.type, enabled=spec.precision == "fp16")
         self.total_steps = spec.steps if spec.steps is not None else spec.epochs * self.steps_per_epoch
         self.rank_rng(0)
@@ -101,6 +111,8 @@ class Trainer:
             "adapter": self.stage.student.adapter, "adapter_params": self.stage.student.params.model_dump(mode="json"),
         }
         if full:
+            if self.ema is not None:
+                out["ema_teacher"] = self.ema.state_dict()
             out["optimizer"] = self.optimizer.state_dict()
             out["term_optimizers"] = [o.state_dict() if o is not None else {} for o in self.own_optimizers]
             if self.scaler.is_enabled():
@@ -113,6 +125,11 @@ class Trainer:
         self.task.load_state_dict(ckpt["task_losses"])
         self.objectives.load_state_dict(ckpt["objectives"])
         self.connectors.load_state_dict(ckpt.get("connectors", {}))
+        if self.ema is not None:
+            if "ema_teacher" not in ckpt:
+                raise DistilkitError(f"stage {self.stage.name!r}: the checkpoint to resume from has no EMA teacher "
+                                     "(it was written by a run without `teacher: {ema: ...}`)")
+            self.ema.load_state_dict(ckpt["ema_teacher"])
         for opt, state in zip(self.own_optimizers, ckpt.get("term_optimizers", [])):
             if opt is not None and state:
                 opt.load_state_dict(state)
@@ -156,49 +173,6 @@ class Trainer:
         """Trainable parameters by qualified name (see :meth:`_named_parameters`)."""
         mine = {id(p) for p in self.trainable}
         return [(n, p) for n, p in self._named_parameters() if p.requires_grad and id(p) in mine]
-
-    def _freeze(self, own: set[int]) -> None:
-        """Keep the parameters that ``freeze`` names, or that a parameter group gives ``lr_scale: 0``, as they are
-        (no gradient, no optimizer state). A ``freeze`` glob that matches nothing is an error (a typo would
-        otherwise train what it meant to keep)."""
-        from fnmatch import fnmatchcase
-
-        def matches(pat: str, name: str) -> bool:
-            return fnmatchcase(name, pat) or ("." not in pat and fnmatchcase(name.rsplit(".", 1)[-1], pat))
-
-        named = [(n, p) for n, p in self._named_parameters() if id(p) not in own]
-        for pat in self.stage.spec.freeze:
-            hit = [p for n, p in named if matches(pat, n)]
-            if not hit:
-                raise DistilkitError(f"stage {self.stage.name!r}: freeze {pat!r} matches no parameter (names look "
-                                     f"like {', '.join(n for n, _ in named[:3])})")
-            for p in hit:
-                p.requires_grad_(False)
-        for group in self.stage.param_groups:
-            if group["lr_scale"] == 0:
-                for n, p in named:
-                    first = next((g for g in self.stage.param_groups if matches(g["match"], n)), None)
-                    if first is group:  # first match wins, as for the optimizer's groups
-                        p.requires_grad_(False)
-
-    def _param_groups(self) -> list[dict[str, Any]]:
-        """Optimizer groups: each parameter joins the first group whose ``match`` fits its name."""
-        from fnmatch import fnmatchcase
-
-        o = self.stage.spec.optimizer
-        groups = [{"params": [], "lr": o.lr * g["lr_scale"], "name": g["match"],
-                   **({"weight_decay": g["weight_decay"]} if g.get("weight_decay") is not None else {})}
-                  for g in self.stage.param_groups]
-        rest: dict[str, Any] = {"params": [], "lr": o.lr, "name": "default"}
-        for name, p in self.named_trainables():
-            for spec, group in zip(self.stage.param_groups, groups):
-                pat = spec["match"]
-                if fnmatchcase(name, pat) or ("." not in pat and fnmatchcase(name.rsplit(".", 1)[-1], pat)):
-                    group["params"].append(p)
-                    break
-            else:
-                rest["params"].append(p)
-        return [g for g in (rest, *groups) if g["params"]]
 
     def _optimizer(self, params: list[dict[str, Any]]) -> torch.optim.Optimizer:
         """The registered optimizer (``optimizer.name``) over the groups; each group keeps its ``base_lr``, which
@@ -366,6 +340,7 @@ class Trainer:
         """One optimizer step of the student (then the objectives' own updates); returns the values to log."""
         self._step = step
         lr = self._set_lr(step)
+        momentum = self.ema.update(step) if self.ema is not None else None  # before the forward, as HASSC's release
         terms = self.loss_terms(batch)
         loss = torch.stack(list(terms.values())).sum()
         bad = [k for k, v in terms.items() if not torch.isfinite(v)]
@@ -390,6 +365,8 @@ class Trainer:
         extra: dict[str, float] = {}
         for i, term in enumerate(self.terms):
             extra.update(term.module.update(step, batch, self._last_taps.get(i, {})))
+        if momentum is not None:
+            extra["ema_momentum"] = momentum
         return {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}, "lr": lr, **extra}
 
 def _no_params() -> Any:
