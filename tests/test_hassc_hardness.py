@@ -239,3 +239,15 @@ def test_the_objective_equals_the_naive_composition_of_both_branches(device) -> 
     torch.testing.assert_close(gs.double().cpu(), ns, rtol=rel, atol=rel * 1e-3)
     torch.testing.assert_close(gf.double().cpu(), nf, rtol=rel, atol=rel * 1e-3)
     assert float(ns.abs().sum()) > 0 and float(nf.abs().sum()) > 0
+
+
+def test_the_release_class_weights_need_semantickittis_classes() -> None:
+    from distilkit.losses.ssc import RELEASE_WEIGHTS_SEMANTICKITTI, class_weights, log_frequency_weights
+
+    table = class_weights("release", None, 20)
+    assert table.tolist() == pytest.approx(list(RELEASE_WEIGHTS_SEMANTICKITTI))
+    with pytest.raises(ValueError, match="20 classes; the data has 5"):
+        class_weights("release", None, 5)
+    assert torch.equal(class_weights("none", None, 3), torch.ones(3))
+    # the table is VoxFormer's 10 / ln(f + 0.001) on SemanticKITTI's counts: empty (5.4e9 voxels) -> 0.446
+    assert float(log_frequency_weights(torch.tensor([5.41773033e09]))[0]) == pytest.approx(0.446, abs=5e-4)

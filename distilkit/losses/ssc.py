@@ -118,4 +118,20 @@ def split_class_weights(train_set: object, num_classes: int, field: str = "voxel
     return w.masked_fill(~present, float(w[present].max()) if bool(present.any()) else 1.0)
 
 
-__all__ = ["RELEASE_WEIGHTS_SEMANTICKITTI", "split_class_weights", "geo_scal", "log_frequency_weights", "partial_ce", "sem_scal", "weighted_ce"]
+def class_weights(kind: str, train_set: object, num_classes: int, field: str = "voxel_label",
+                  scale: float = 10.0) -> Tensor:
+    """A term's class weights by name: ``log_frequency`` (:func:`split_class_weights`), ``release`` (the releases'
+    SemanticKITTI table: the data must have its 20 classes) or ``none`` (ones)."""
+    if kind == "none":
+        return torch.ones(num_classes)
+    if kind == "release":
+        if num_classes != len(RELEASE_WEIGHTS_SEMANTICKITTI):
+            raise ValueError(f"class_weights: release is the table of SemanticKITTI's 20 classes; the data has "
+                             f"{num_classes} (use log_frequency)")
+        return torch.tensor(RELEASE_WEIGHTS_SEMANTICKITTI)
+    if kind == "log_frequency":
+        return split_class_weights(train_set, num_classes, field, scale)
+    raise ValueError(f"unknown class weights {kind!r} (log_frequency, release or none)")
+
+
+__all__ = ["RELEASE_WEIGHTS_SEMANTICKITTI", "class_weights", "split_class_weights", "geo_scal", "log_frequency_weights", "partial_ce", "sem_scal", "weighted_ce"]

@@ -143,19 +143,13 @@ class _ClassWeighted(TaskLoss):
         self.register_buffer("weight", torch.ones(NUM_CLASSES))
 
     def prepare(self, train_set: Any) -> None:
-        self.weight = self.weight.new_ones(self.num_classes)  # the data's class table's size
-        if self.params.class_weights == "none":
-            return
-        from distilkit.losses.ssc import RELEASE_WEIGHTS_SEMANTICKITTI, split_class_weights
+        from distilkit.losses.ssc import class_weights
 
-        if self.params.class_weights == "release":  # HASSC's table for SemanticKITTI's classes
-            if self.num_classes != len(RELEASE_WEIGHTS_SEMANTICKITTI):
-                raise DistilkitError(f"class_weights: release is the table of SemanticKITTI's 20 classes; the data has "
-                                     f"{self.num_classes} (use log_frequency)")
-            self.weight = torch.tensor(RELEASE_WEIGHTS_SEMANTICKITTI).to(self.weight)
-            return
-        # sized by the data's class table
-        self.weight = split_class_weights(train_set, self.num_classes, self.COUNTED, self.params.scale).to(self.weight)
+        try:  # sized by the data's class table
+            w = class_weights(self.params.class_weights, train_set, self.num_classes, self.COUNTED, self.params.scale)
+        except ValueError as exc:
+            raise DistilkitError(str(exc)) from None
+        self.weight = w.to(self.weight)
 
 
 class WeightedCE(_ClassWeighted):

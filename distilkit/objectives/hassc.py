@@ -106,15 +106,13 @@ class HASSCHardVoxels(MultiTapObjective):
         self.register_buffer("class_weight", torch.ones(1))
 
     def prepare(self, train_set: Any) -> None:
-        from distilkit.losses.ssc import RELEASE_WEIGHTS_SEMANTICKITTI, split_class_weights
+        from distilkit.losses.ssc import class_weights
 
-        if self.params.class_weights == "release":
-            if self.num_classes != len(RELEASE_WEIGHTS_SEMANTICKITTI):
-                raise DistilkitError(f"hassc_hvm: class_weights: release is SemanticKITTI's 20 classes' table; the "
-                                     f"data has {self.num_classes} (use log_frequency)")
-            self.class_weight = torch.tensor(RELEASE_WEIGHTS_SEMANTICKITTI).to(self.class_weight)
-        else:
-            self.class_weight = split_class_weights(train_set, self.num_classes).to(self.class_weight)
+        try:
+            self.class_weight = class_weights(self.params.class_weights, train_set, self.num_classes).to(
+                self.class_weight)
+        except ValueError as exc:
+            raise DistilkitError(f"hassc_hvm: {exc}") from None
 
     def setup(self, taps: dict[str, Any], batch: Batch) -> None:
         k, c = taps["student"].shape[1], taps["features"].shape[1]
