@@ -83,7 +83,7 @@ def describe(res: Any) -> tuple[str, list[str]]:
     saying whether it is the paper's network or a stand-in."""
     stages = ", ".join(
         f"{n} ({s.student.adapter}" + "".join(f"; {edge} <- {up}" for edge, up in s.spec.edges().items())
-        + ("; teacher <- its own EMA" if s.spec.teacher is not None and s.spec.teacher.ema is not None else "")
+        + ("; teacher <- its own EMA" if s.ema is not None else "")
         + (f"; {', '.join(t.name for t in s.distill)}" if s.distill else "") + ")"
         for n, s in res.stages.items())
     seen: dict[str, list[str]] = {}

@@ -90,6 +90,11 @@ class ResolvedStage:
     hooks: list[ResolvedHook] = field(default_factory=list)  # the recipe's registered hooks (train.hooks)
     aux: list[ResolvedAux] = field(default_factory=list)  # frozen auxiliary models, run before the student
 
+    @property
+    def ema(self) -> Any:
+        """The settings of the stage's own moving-average teacher (``teacher: {ema: ...}``), else None."""
+        return self.spec.teacher.ema if self.spec.teacher is not None else None
+
 
 @dataclass
 class ResolvedRecipe:

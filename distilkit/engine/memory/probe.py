@@ -30,7 +30,7 @@ def probe_trainer(res: Any, stage_name: str, params: Any, run_dir: Path, batch_s
     device = pick_device(spec.train.device)
     torch.manual_seed(0)
     teacher = None
-    if stage.teacher is not None and stage.distill and stage.spec.teacher.ema is None:  # an EMA: the trainer's
+    if stage.teacher is not None and stage.distill and stage.ema is None:  # an EMA: the trainer's
         teacher = freeze(build_model(stage.teacher, info, "teacher").to(device))
     aux = [(a, freeze(build_model(a.model, info, f"aux model {a.name!r}").to(device))) for a in stage.aux]
     plan = BatchPlan(len(train_set), batch_size, 0, SINGLE)

@@ -86,7 +86,7 @@ def code_versions(res: Any, stage: Any) -> dict[str, Any]:
         "task_losses": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.task_losses},
         "distill": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.distill},
     }
-    if stage.spec.teacher is not None and stage.spec.teacher.ema is not None:
+    if stage.ema is not None:
         out["ema_teacher"] = 1  # the moving average's code (engine.train.ema): raise when what it computes changes
     elif stage.teacher is not None and stage.teacher_from is None:  # a checkpoint teacher: its adapter's code
         out["teacher_adapter"] = getattr(stage.teacher.cls, "VERSION", 1)

@@ -196,8 +196,7 @@ class StageRun:
         seed_everything(self.seed)
         self.load_aux()
         teacher = None
-        own = self.stage.spec.teacher is not None and self.stage.spec.teacher.ema is not None  # the trainer's EMA
-        if self.stage.teacher is not None and self.stage.distill and not own:
+        if self.stage.teacher is not None and self.stage.distill and self.stage.ema is None:  # an EMA: the trainer's
             teacher = load_run(self.upstream("teacher"), model=self.stage.teacher, info=self.info,
                                device=self.device, role="teacher")
         init = None
@@ -398,7 +397,7 @@ class StageRun:
         summary = {
             "status": "finished", "stage": self.name, "hash": p.hashes[self.name], "label": stage.spec.label or self.name,
             "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),
-            "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint or ("ema" if stage.spec.teacher.ema else None)
+            "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint or ("ema" if stage.ema else None)
                                               if stage.spec.teacher else None),
             "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": self.seed,
             "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them

@@ -75,10 +75,9 @@ class Trainer:
         self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
         self.teacher = teacher
         self.ema: EmaTeacher | None = None  # the stage is its own teacher (``teacher: {ema: ...}``)
-        ema = stage.spec.teacher.ema if stage.spec.teacher is not None else None
-        if ema is not None and stage.distill:
+        if stage.ema is not None and stage.distill:
             assert stage.teacher is not None
-            self.ema = EmaTeacher(stage.teacher, info, self.student, ema, self.device)
+            self.ema = EmaTeacher(stage.teacher, info, self.student, stage.ema, self.device)
             self.teacher = self.ema.model
         # per objective: the projection of its student tap (nn.Identity where it has none)
         self.connectors = nn.ModuleList(nn.Identity() for _ in stage.distill)
