@@ -16,7 +16,9 @@ deterministic variant only warns (``warn_only``), and :func:`nondeterministic_op
 stage's summary names the ops that made it not repeatable.
 
 On by default; ``DISTILKIT_DETERMINISTIC=0`` turns both off (faster where the deterministic variants are slower).
-Same numbers need the same thread count too (``torch.get_num_threads()``, recorded in each stage's summary).
+Same numbers need the same thread count and the same processor too (``torch.get_num_threads()`` and
+:func:`processor`, recorded in each stage's summary): MKL and oneDNN choose their kernels by the CPU's instruction
+sets.
 """
 
 from __future__ import annotations
@@ -64,6 +66,22 @@ def deterministic_algorithms() -> Iterator[bool]:
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
         torch.utils.deterministic.fill_uninitialized_memory = was[2]  # type: ignore[attr-defined]
         torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = cudnn
+
+
+def processor() -> str:
+    """The CPU's model name (Linux: ``/proc/cpuinfo``) and the instruction set PyTorch's kernels dispatch to, e.g.
+    "Intel(R) Xeon(R) Processor (AVX512)"."""
+    import platform
+
+    import torch
+
+    name = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            name = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), name)
+    except OSError:
+        pass
+    return f"{name} ({torch.backends.cpu.get_cpu_capability()})"
 
 
 NOT_DETERMINISTIC = "does not have a deterministic implementation"

@@ -170,6 +170,24 @@ def test_python_dash_m_works() -> None:
     assert out.returncode == 0 and "distilkit" in out.stdout
 
 
+@pytest.mark.parametrize("argv", [["list"], ["sweep", "recipes/sweeps/l2cocc.yaml", "--plan"]],
+                         ids=["rich output", "plain print"])
+def test_output_piped_into_a_reader_that_has_gone_ends_quietly(argv: list[str]) -> None:
+    """`distilkit sweep ... --plan | head -1`: the reader closes the pipe before the command is done writing; status
+    1 and no traceback, whether the output went through rich's console or plain print."""
+    import os
+
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone before a byte is written
+    try:
+        out = subprocess.run([sys.executable, "-m", "distilkit", *argv], stdout=write, stderr=subprocess.PIPE,
+                             text=True, timeout=120, cwd=ROOT)
+    finally:
+        os.close(write)
+    assert out.returncode == 1, out.stderr
+    assert "Traceback" not in out.stderr and "BrokenPipeError" not in out.stderr, out.stderr
+
+
 def test_bench_quick_reports_a_speedup(capsys) -> None:
     from distilkit.bench import run_bench
 

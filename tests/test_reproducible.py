@@ -6,6 +6,7 @@ in a racy order once it is large enough to be split between them."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -23,11 +24,13 @@ RECIPE = {
              "params": {"scale": 4, "num_train": 2, "num_val": 1, "num_test": 1, "input_frames": 4, "gt_frames": 2,
                         "azimuth_steps": 768}},
     "stages": {"js3c": {"model": {"adapter": "js3cnet", "params": {"frames": 4}},
-                        "train": {"steps": 10, "batch_size": 2, "eval_every": 10}}},
+                        "train": {"steps": 10, "batch_size": 2, "eval_every": 10, "log_every": 1}}},
 }
 
 
-def _train(recipe: Path, out: Path) -> dict[str, torch.Tensor]:
+def _train(recipe: Path, out: Path) -> tuple[dict[str, torch.Tensor], list[float], str]:
+    """The student of ``last.pt``, the loss logged at each step and the processor, from one `distilkit run` in a
+    process of its own."""
     env = {k: v for k, v in os.environ.items() if k not in ("MKL_CBWR", "DISTILKIT_DETERMINISTIC",
                                                              "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
     env["OMP_NUM_THREADS"] = "2"  # two threads (the race needs two), the same in both processes
@@ -37,17 +40,27 @@ def _train(recipe: Path, out: Path) -> dict[str, torch.Tensor]:
     (run_dir,) = (out / "repro").glob("js3c-*")
     summary = yaml.safe_load((run_dir / "summary.json").read_text())
     assert summary["deterministic"] is True and summary["threads"] == 2
-    return load_checkpoint(run_dir / "checkpoints" / "last.pt")["student"]
+    assert summary["status"] == "finished" and summary["steps"] == 10, summary  # not stopped early
+    lines = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    losses = [line["loss"] for line in lines if "loss" in line]
+    return load_checkpoint(run_dir / "checkpoints" / "last.pt")["student"], losses, summary["cpu"]
 
 
 @pytest.mark.slow
 def test_two_processes_training_the_same_js3cnet_stage_write_identical_checkpoints(tmp_path: Path) -> None:
     recipe = tmp_path / "repro.yaml"
     recipe.write_text(yaml.safe_dump(RECIPE))
-    first, second = _train(recipe, tmp_path / "a"), _train(recipe, tmp_path / "b")
+    (first, first_losses, first_cpu), (second, second_losses, second_cpu) = (_train(recipe, tmp_path / "a"),
+                                                                             _train(recipe, tmp_path / "b"))
+    assert len(first_losses) == len(second_losses) == 10
+    # where they part, if they do: a loss at step 1 that differs is a different forward pass (data or weights at
+    # step 0); a later one, a different update before it
+    parted = next((i + 1 for i, (x, y) in enumerate(zip(first_losses, second_losses)) if x != y), None)
     assert first.keys() == second.keys()
     differ = [k for k in first if not torch.equal(first[k], second[k])]
-    assert not differ, f"{len(differ)} of {len(first)} tensors differ between the processes: {differ[:5]}"
+    assert not differ and parted is None, (
+        f"{len(differ)} of {len(first)} tensors differ between the processes: {differ[:5]}; the logged losses first "
+        f"differ at step {parted}: {first_losses} vs {second_losses}; processors: {first_cpu!r}, {second_cpu!r}")
 
 
 def test_importing_distilkit_sets_the_libraries_reproducibility_before_torch_loads_and_can_opt_out() -> None:
@@ -106,15 +119,15 @@ def test_ops_without_a_deterministic_variant_are_collected_and_cudnn_is_pinned_w
 
 
 def test_a_stage_names_the_ops_that_made_it_not_repeatable(tmp_path: Path, monkeypatch, capsys) -> None:
-    import json
-
     from conftest import tiny_recipe
     from distilkit.engine.train.pipeline import Pipeline
     from distilkit.engine.train.trainer import Trainer
     from distilkit.recipe import recipe_from_dict
 
     plain = Pipeline(recipe_from_dict(tiny_recipe(distill=False)), tmp_path / "plain").run()[0]
-    assert "nondeterministic_ops" not in json.loads((plain.run_dir / "summary.json").read_text())
+    summary = json.loads((plain.run_dir / "summary.json").read_text())
+    assert "nondeterministic_ops" not in summary
+    assert summary["cpu"].endswith(f"({torch.backends.cpu.get_cpu_capability()})")  # rounding depends on it
     orig = Trainer.loss_terms
 
     def with_put(self, batch):

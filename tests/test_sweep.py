@@ -195,3 +195,32 @@ def test_the_paper_tables_are_the_same_runs_as_the_readme_comparison(name: str, 
             mine = table.pipes[variant, seed].run_dir(variant).name.rsplit("-", 1)[1]
             theirs = readme.pipes[twin, seed].run_dir(twin).name.rsplit("-", 1)[1]
             assert mine == theirs, (variant, twin, seed)
+
+
+def _record(name: str, seed: int, miou: float, upstream: bool = False, metric: str = "ssc"):
+    from distilkit.sweep.results import RunRecord
+
+    scores = {"miou": miou, "iou": 0.5} if metric == "ssc" else {"iou": miou, "precision": 0.8, "recall": 0.7}
+    key = "miou" if metric == "ssc" else "iou"
+    summary = {"stage": name, "label": name, "adapter": "voxformer", "objectives": [], "input": "1 frame",
+               "metric": {"name": metric, "key": key}, "report_split": "test",
+               "test": {"best": scores, "last": scores, "best_step": 5}, "best": {"step": 5, "scores": scores}}
+    return RunRecord(name, seed, Path(f"/runs/{name}-{seed}"), summary, upstream)
+
+
+def test_upstream_rows_get_no_difference_and_one_scored_by_another_metric_is_a_note_not_a_row() -> None:
+    """The table's columns are the variants' metric: an upstream query-proposal stage (occupancy IoU, precision)
+    would put its IoU under 'mIoU'; a labeler scored like the variants keeps its row, without a Δ to the baseline."""
+    from distilkit.sweep.results import sweep_rows
+
+    records = [_record("none", s, 0.20 + 0.01 * s) for s in (0, 1)] + \
+              [_record("kd", s, 0.25 + 0.02 * s) for s in (0, 1)] + \
+              [_record("labeler", 0, 0.5, upstream=True), _record("proposal", 0, 0.66, upstream=True, metric="occupancy")]
+    rows, notes = sweep_rows(records, "none", ["none", "kd", "proposal", "labeler"])
+    by = {r["stage"]: r for r in rows}
+    assert list(by) == ["none", "kd", "labeler"]
+    assert by["kd"]["delta"] == pytest.approx([0.05, 0.06])  # the variants are compared
+    assert by["labeler"]["delta"] == [] and by["labeler"]["label"] == "*labeler* (upstream)"
+    assert by["labeler"]["main"] == [0.5]
+    assert notes == ["Upstream *proposal* (seed 0) is scored by its own metric, not in the table: test IoU 66.00, "
+                     "precision 80.00 (best validation IoU 66.00)."]

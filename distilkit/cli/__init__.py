@@ -36,7 +36,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)  # `import distilkit` set the libraries' reproducibility before torch
     try:
-        return int(args.fn(args) or 0)
+        code = int(args.fn(args) or 0)
+        sys.stdout.flush()  # here, not at exit: a reader gone away is one of the cases below
+        return code
+    except BrokenPipeError:  # the reader of the output went away (`distilkit sweep --plan ... | head`): stop quietly
+        _drop_stdout()
+        return 1  # as rich's console does when its own write meets the closed pipe
     except KeyboardInterrupt:
         print("stopped; finished stages and the last checkpoint are kept (run the same command again to resume)",
               file=sys.stderr)
@@ -52,6 +57,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: {exc.filename}: {exc.strerror or exc}{hint}", file=sys.stderr)
             return 2
         raise
+
+
+def _drop_stdout() -> None:
+    """Point standard output at /dev/null, so the interpreter's flush at exit does not fail a second time."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
 
 
 __all__ = ["BENCH_NAMES", "EXAMPLES", "build_parser", "main"]

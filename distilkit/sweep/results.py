@@ -26,21 +26,46 @@ class RunRecord:
     upstream: bool = False
 
 
-def sweep_rows(records: list[RunRecord], baseline: str | None, order: list[str]) -> list[dict[str, Any]]:
-    """Rows of :func:`~distilkit.report.seeds.seed_rows` in ``order`` (variants first, then upstream stages)."""
+def sweep_rows(records: list[RunRecord], baseline: str | None,
+               order: list[str]) -> tuple[list[dict[str, Any]], list[str]]:
+    """Rows of :func:`~distilkit.report.seeds.seed_rows` in ``order`` (variants first, then upstream stages), and
+    a note for each upstream stage scored by another metric than the variants (a query-proposal stage's IoU and
+    precision): such a stage is left out of the table, whose columns name the variants' metric. An upstream stage
+    is trained once and not compared: its row has no Δ to the baseline."""
     by_seed: dict[int, list[RunRecord]] = {}
     for r in records:
         by_seed.setdefault(r.seed, []).append(r)
     rows = {row["stage"]: row for row in seed_rows(by_seed, baseline)}
     upstream = {r.name for r in records if r.upstream}
-    out = []
+    variant_view = next((rows[n]["view"] for n in order if n in rows and n not in upstream), None)
+    out, notes = [], []
     for name in order:
-        if name in rows:
-            row = rows[name]
-            if name in upstream:
-                row["label"] = f"*{row['label']}* (upstream)"
-            out.append(row)
-    return out
+        if name not in rows:
+            continue
+        row = rows[name]
+        if name in upstream:
+            if variant_view is not None and row["view"] != variant_view:
+                notes.append(_own_metric_note(row))
+                continue
+            row["label"] = f"*{row['label']}* (upstream)"
+            row.update(delta=[], delta_mean=math.nan, delta_std=math.nan, delta_ci=(math.nan, math.nan))
+        out.append(row)
+    return out, notes
+
+
+def _own_metric_note(row: dict[str, Any]) -> str:
+    """One line for an upstream stage with a metric of its own: its scores at the best-validation checkpoint."""
+    view = row["view"]
+    cols = [c for c in (view.main, view.second) if c is not None]
+    scores = ", ".join(f"{header} {_mean(row[key]) * scale:.2f}"
+                       for (_, header, scale), key in zip(cols, ("main", "second")))
+    seeds = ", ".join(map(str, row["seeds"]))
+    return (f"Upstream *{row['label']}* (seed {seeds}) is scored by its own metric, not in the table: "
+            f"{row['split']} {scores} (best validation {view.main[1]} {_mean(row['val']) * view.main[2]:.2f}).")
+
+
+def _mean(values: list[float]) -> float:
+    return sum(values) / len(values)
 
 
 def results_csv(records: list[RunRecord]) -> str:
@@ -72,12 +97,14 @@ def results_csv(records: list[RunRecord]) -> str:
 def write_results(root: Path, name: str, records: list[RunRecord], baseline: str | None, order: list[str],
                   console: Any, missing: list[str]) -> Path:
     """Print the table; write results.md, results.csv and results.png under ``root``."""
-    rows = sweep_rows(records, baseline, order)
+    rows, own_metric = sweep_rows(records, baseline, order)
     atomic_write_text(root / "results.csv", results_csv(records))
-    notes = [f"Runs not finished (not in the table): {', '.join(missing)}." if missing else "",
+    notes = [f"Runs not finished (not in the table): {', '.join(missing)}." if missing else "", *own_metric,
              "One line per run, with every score and its folder: results.csv."]
     path = write_seeds_report(root, rows, baseline, console, stem="results", title=f"sweep {name}",
                               first="variant", notes=[n for n in notes if n])
+    for note in own_metric:
+        console.print(note)
     return path
 
 

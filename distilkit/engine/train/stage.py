@@ -35,6 +35,7 @@ from distilkit.engine.store.checkpoints import Checkpoints
 from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop, ProgressHook
 from distilkit.engine.train.randomness import seed_everything
 from distilkit.files import atomic_write_json, atomic_write_text
+from distilkit.repro import processor
 from distilkit.engine.train.loader import BatchPlan, eval_batches, resolve_workers, train_batches
 from distilkit.engine.assemble.runs import load_run
 from distilkit.engine.train.auxiliary import with_aux_inputs
@@ -401,7 +402,7 @@ class StageRun:
                                               if stage.spec.teacher else None),
             "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": self.seed,
             "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them
-            "deterministic": torch.are_deterministic_algorithms_enabled(),
+            "deterministic": torch.are_deterministic_algorithms_enabled(), "cpu": processor(),
             "classes": {"names": list(self.info.classes.names),
                         "colours": [list(c) for c in self.info.classes.colours]},
             "steps": loop.step, "train_seconds": round(loop.seconds, 2),
