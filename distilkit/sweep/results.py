@@ -35,8 +35,9 @@ def sweep_rows(records: list[RunRecord], baseline: str | None,
     by_seed: dict[int, list[RunRecord]] = {}
     for r in records:
         by_seed.setdefault(r.seed, []).append(r)
-    rows = {row["stage"]: row for row in seed_rows(by_seed, baseline)}
     upstream = {r.name for r in records if r.upstream}
+    # an upstream stage is its own reference: seed_rows compares it with nothing
+    rows = {row["stage"]: row for row in seed_rows(by_seed, baseline, {name: name for name in upstream})}
     variant_view = next((rows[n]["view"] for n in order if n in rows and n not in upstream), None)
     out, notes = [], []
     for name in order:
@@ -48,7 +49,6 @@ def sweep_rows(records: list[RunRecord], baseline: str | None,
                 notes.append(_own_metric_note(row))
                 continue
             row["label"] = f"*{row['label']}* (upstream)"
-            row.update(delta=[], delta_mean=math.nan, delta_std=math.nan, delta_ci=(math.nan, math.nan))
         out.append(row)
     return out, notes
 
@@ -56,16 +56,11 @@ def sweep_rows(records: list[RunRecord], baseline: str | None,
 def _own_metric_note(row: dict[str, Any]) -> str:
     """One line for an upstream stage with a metric of its own: its scores at the best-validation checkpoint."""
     view = row["view"]
-    cols = [c for c in (view.main, view.second) if c is not None]
-    scores = ", ".join(f"{header} {_mean(row[key]) * scale:.2f}"
-                       for (_, header, scale), key in zip(cols, ("main", "second")))
+    scores = ", ".join(f"{col[1]} {view.fmt(col, row[f'{key}_mean'])}"
+                       for col, key in ((view.main, "main"), (view.second, "second")) if col is not None)
     seeds = ", ".join(map(str, row["seeds"]))
     return (f"Upstream *{row['label']}* (seed {seeds}) is scored by its own metric, not in the table: "
-            f"{row['split']} {scores} (best validation {view.main[1]} {_mean(row['val']) * view.main[2]:.2f}).")
-
-
-def _mean(values: list[float]) -> float:
-    return sum(values) / len(values)
+            f"{row['split']} {scores} (best validation {view.main[1]} {view.fmt(view.main, row['val_mean'])}).")
 
 
 def results_csv(records: list[RunRecord]) -> str:
