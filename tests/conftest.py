@@ -39,6 +39,38 @@ def device(request: pytest.FixtureRequest) -> "torch.device":
     import torch
 
     return torch.device(request.config.getoption("--device"))
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest's own -m selection reads the markers
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark ``device`` every test that takes the ``device`` fixture, so that the GPU check runs just those
+    (``pytest -m "device and not slow" --device cuda``) — but not a test marked ``gpus(n)`` under ``--device cuda``
+    on a machine with fewer GPUs: it computes on the CPU there (the two-process tests on one GPU)."""
+    cuda = config.getoption("--device") == "cuda"
+    gpus = None
+    for item in items:
+        if "device" not in getattr(item, "fixturenames", ()):
+            continue
+        needs = item.get_closest_marker("gpus")
+        if cuda and needs is not None:
+            if gpus is None:
+                import torch
+
+                gpus = torch.cuda.device_count()
+            if gpus < needs.args[0]:
+                continue
+        item.add_marker(pytest.mark.device)
+
+
+def on(device, gpus: int = 1) -> str:
+    """The device a test's recipe trains on: ``device`` (the fixture's) where the machine has ``gpus`` GPUs for
+    it, else the CPU (a run of two processes takes a GPU each: on one GPU they train on the CPU)."""
+    import torch
+
+    device = str(device)
+    return device if device == "cpu" or torch.cuda.device_count() >= gpus else "cpu"
+
+
 FIXTURES = Path(__file__).resolve().parent / "fixtures"  # copied in; tests never read outside the repo
 
 EXPORT_SET = ["beams=16", "azimuth_steps=256", "gt_frames=5", "seed=3"]  # a small exported SemanticKITTI folder
@@ -83,10 +115,15 @@ def _render_plots_only_where_looked_at(request: pytest.FixtureRequest, monkeypat
     monkeypatch.setattr(plots, "save", close_only)
 
 
-def tiny_recipe(name: str = "tiny", steps: int = 2, distill: bool = True, adapter: str = "scpnet") -> dict:
+def tiny_recipe(name: str = "tiny", steps: int = 2, distill: bool = True, adapter: str = "scpnet",
+                device="cpu") -> dict:
+    """A teacher and (``distill``) a DSKD student on the tiny synthetic scenes, both training on ``device``
+    (``train.device``, never ``auto``: a test about what is computed passes the ``device`` fixture; the default keeps
+    a test of files, text or options on the CPU whatever ``--device`` says)."""
     params = {"channels": 4, "point_mlp": [8], "seg_channels": 4} if adapter == "scpnet" else \
         {"seg_channels": 4, "embed": 4, "ssc_channels": 4, "pvi_hidden": 4, "knn": 4}
-    train = {"steps": steps, "batch_size": 1, "eval_every": steps, "log_every": 1, "checkpoint_every": 1}
+    train = {"steps": steps, "batch_size": 1, "eval_every": steps, "log_every": 1, "checkpoint_every": 1,
+             "device": str(device)}
     stages = {
         "teacher": {"model": {"adapter": adapter, "params": {**params, "frames": 2}}, "train": train},
     }
@@ -100,19 +137,21 @@ def tiny_recipe(name: str = "tiny", steps: int = 2, distill: bool = True, adapte
 
 def folder_recipe(root, name: str = "kitti", dataset: str = "semantickitti", frames: int = 1, steps: int = 1,
                   batch_size: int = 1, eval_every: int | None = None, stage: str = "scpnet", publish=(),
-                  **data) -> dict:
+                  device="cpu", **data) -> dict:
     """A one-stage recipe: a tiny SCPNet on a SemanticKITTI-format folder at ``root`` (``data``: the dataset's
-    other parameters, e.g. ``train=["00"], val=["08"], scale=4``)."""
+    other parameters, e.g. ``train=["00"], val=["08"], scale=4``) training on ``device`` (as :func:`tiny_recipe`)."""
     params = {"channels": 4, "point_mlp": [8], "seg_channels": 4, "frames": frames}
     spec = {"model": {"adapter": "scpnet", "params": params}, **({"publish": list(publish)} if publish else {}),
-            "train": {"steps": steps, "batch_size": batch_size, "eval_every": eval_every or steps}}
+            "train": {"steps": steps, "batch_size": batch_size, "eval_every": eval_every or steps,
+                      "device": str(device)}}
     return {"schema_version": 1, "name": name, "seed": 0,
             "data": {"dataset": dataset, "params": {"root": str(root), **data}}, "stages": {stage: spec}}
 
 
 def make_trainer(pipe, stage_name: str, teacher=None, world=None, device=None):
     """The :class:`~distilkit.engine.train.trainer.Trainer` of a pipeline's stage at its seed, on ``device`` (the
-    CPU unless given), without a run."""
+    CPU unless given: a test of what the trainer is built from; one of what it computes passes the ``device``
+    fixture), without a run."""
     import torch
 
     from distilkit.engine.train.distributed import SINGLE

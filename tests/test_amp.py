@@ -63,7 +63,7 @@ FAMILIES = [("scpnet", "student_dskd"), ("js3cnet", "student_dskd"), ("scorelida
 
 
 @pytest.mark.parametrize("name, stage", FAMILIES, ids=[f"{n}-{s}" for n, s in FAMILIES])
-def test_one_bf16_step_of_each_paper_network_is_float32_within_a_percent(name, stage, folder) -> None:
+def test_one_bf16_step_of_each_paper_network_is_float32_within_a_percent(name, stage, folder, device) -> None:
     from distilkit.data.probe import _one_scene
     from distilkit.engine.assemble.resolve import resolve
     from distilkit.engine.memory.probe import probe_trainer
@@ -72,7 +72,7 @@ def test_one_bf16_step_of_each_paper_network_is_float32_within_a_percent(name, s
     path = ROOT / "recipes" / "paper" / f"{name}.yaml"
     loss = {}
     for precision in ("fp32", "bf16"):
-        sets = overrides(name, folder, small=True) + ["stages.*.train.batch_size=1",
+        sets = overrides(name, folder, small=True, device=device.type) + ["stages.*.train.batch_size=1",
                                                       f"stages.{stage}.train.precision={precision}"]
         if name == "scribble2scene":
             sets.append("stages.student.model.params.geometry=ground-truth")

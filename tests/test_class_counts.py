@@ -40,6 +40,7 @@ def stage_trainer(pipe: Pipeline, name: str) -> Trainer:
     train_set = run.split("train")
     stage = pipe.resolved.stages[name]
     plan = BatchPlan(len(train_set), stage.spec.train.batch_size, 0, SINGLE)
+    # the CPU whatever --device says: these tests read the class weights a trainer is built with, not a computation
     return Trainer(stage, pipe.resolved.data_info, train_set, plan, torch.device("cpu"), collate=pipe.collate), \
         train_set
 

@@ -43,7 +43,9 @@ def test_a_trained_lidiff_completes_a_real_scan_from_the_command_line(tmp_path, 
     recipe = {"schema_version": 1, "name": "c", "seed": 0, "data": {"dataset": "synthetic-scenes", "params": data},
               "stages": {"teacher": {"model": {"adapter": "lidiff", "params": {"channels": 8, "blocks": 1,
                                                                                 "duplicate": 4, "sample_steps": 2}},
-                                     "train": {"steps": 1, "batch_size": 2, "eval_every": 1, "metric": "cd"}}}}
+                                     # about `distilkit complete` (which runs on the CPU), not training: the CPU
+                                     "train": {"steps": 1, "batch_size": 2, "eval_every": 1, "metric": "cd",
+                                               "device": "cpu"}}}}
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     out = tmp_path / "scene.ply"
     assert main(["complete", str(result.run_dir), str(SCAN), "--out", str(out), "--steps", "3"]) == 0
@@ -76,7 +78,8 @@ def test_complete_refine_on_a_kitti_format_scan_of_125k_points(tmp_path, capsys)
     (time and memory of LiDiff's sizes: `distilkit bench complete`)."""
     data = {"num_train": 2, "num_val": 1, "num_test": 1, "scan_points": 32, "scene_points": 128, "frames": 3,
             "beams": 8, "azimuth_steps": 128}
-    train = {"steps": 1, "batch_size": 2, "eval_every": 1, "metric": "cd"}
+    # about `distilkit complete --refine` (which runs on the CPU), not training: the stages train on the CPU
+    train = {"steps": 1, "batch_size": 2, "eval_every": 1, "metric": "cd", "device": "cpu"}
     recipe = {"schema_version": 1, "name": "r", "seed": 0, "data": {"dataset": "synthetic-scenes", "params": data},
               "stages": {"teacher": {"model": {"adapter": "lidiff", "params": {"channels": 8, "blocks": 1,
                                                                                 "duplicate": 4, "sample_steps": 2}},

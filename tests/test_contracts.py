@@ -117,16 +117,18 @@ def validate_fails(recipe: dict[str, Any], tmp_path, capsys) -> str:
     return captured.out + captured.err
 
 
-def camera_recipe(adapter: str = "tiny-camera") -> dict[str, Any]:
-    train = {"steps": 3, "batch_size": 2, "eval_every": 3}
+def camera_recipe(adapter: str = "tiny-camera", device: Any = "cpu") -> dict[str, Any]:
+    """Teacher and KD student of the camera-style toy, training on ``device`` (the CPU unless a test about the
+    computation passes the ``device`` fixture)."""
+    train = {"steps": 3, "batch_size": 2, "eval_every": 3, "device": str(device)}
     return {"schema_version": 1, "name": "camera", "seed": 0, "data": {"dataset": "tiny-camera-data", "params": {}},
             "stages": {"teacher": {"model": {"adapter": adapter, "params": {"channels": 6}}, "train": train},
                        "student": {"model": {"adapter": "tiny-camera", "params": {}}, "teacher": {"from": "teacher"},
                                    "distill": [{"name": "kd", "weight": 1.0}], "train": train}}}
 
 
-def test_camera_style_adapter_trains_distils_and_is_scored(tmp_path) -> None:
-    results = Pipeline(recipe_from_dict(camera_recipe()), tmp_path / "runs", quiet=True).run()
+def test_camera_style_adapter_trains_distils_and_is_scored(tmp_path, device) -> None:
+    results = Pipeline(recipe_from_dict(camera_recipe(device=device)), tmp_path / "runs", quiet=True).run()
     assert [r.name for r in results] == ["teacher", "student"]
     student = results[1].summary
     assert 0.0 <= student["test"]["best"]["miou"] <= 1.0 and len(student["test"]["best"]["class_iou"]) == 2
@@ -284,15 +286,16 @@ def point_components() -> Iterator[None]:
         registry.remove(name)
 
 
-def point_recipe(metric: str = "chamfer") -> dict[str, Any]:
+def point_recipe(metric: str = "chamfer", device: Any = "cpu") -> dict[str, Any]:
     return {"schema_version": 1, "name": "points", "seed": 0, "data": {"dataset": "tiny-points-data", "params": {}},
             "stages": {"completion": {"model": {"adapter": "tiny-points"}, "optimizer": {"lr": 0.05},
-                                      "train": {"steps": 6, "batch_size": 2, "eval_every": 2, "metric": metric}}}}
+                                      "train": {"steps": 6, "batch_size": 2, "eval_every": 2, "metric": metric,
+                                                "device": str(device)}}}}
 
 
 @pytest.mark.plots
-def test_point_cloud_adapter_trains_and_is_scored_by_its_metric(tmp_path) -> None:
-    (result,) = Pipeline(recipe_from_dict(point_recipe()), tmp_path / "runs", quiet=True).run()
+def test_point_cloud_adapter_trains_and_is_scored_by_its_metric(tmp_path, device) -> None:
+    (result,) = Pipeline(recipe_from_dict(point_recipe(device=device)), tmp_path / "runs", quiet=True).run()
     evals = [json.loads(line)["eval"] for line in (result.run_dir / "metrics.jsonl").read_text().splitlines()
              if "eval" in line]
     assert len(evals) == 3 and all(set(e) == {"chamfer", "seconds_per_sample"} for e in evals)

@@ -17,7 +17,7 @@ import torch
 import torch.multiprocessing as mp
 import yaml
 
-from conftest import make_trainer, tiny_recipe
+from conftest import make_trainer, on, tiny_recipe
 from distilkit.engine.train.distributed import World, leave
 from distilkit.engine.assemble.runs import build_model, freeze
 from distilkit.engine.train.pipeline import Pipeline
@@ -108,8 +108,12 @@ def test_a_global_batch_that_does_not_split_is_refused(tmp_path: Path) -> None:
         one_step(World(0, 3), tmp_path)  # refused before any collective operation
 
 
-def test_distilkit_run_with_two_processes_trains_with_one_writer(tmp_path: Path) -> None:
-    recipe: dict[str, Any] = tiny_recipe(steps=3)
+@pytest.mark.gpus(2)
+def test_distilkit_run_with_two_processes_trains_with_one_writer(tmp_path: Path, device) -> None:
+    """On the device of ``--device`` where each process has one of its own: under ``--device cuda`` on a machine with
+    fewer than two GPUs the recipe says ``device: cpu`` (two processes on one GPU are refused; on the CPU they
+    reduce with gloo over the host whatever GPUs the machine has), and the test is not marked ``device`` there."""
+    recipe: dict[str, Any] = tiny_recipe(steps=3, device=on(device, gpus=2))
     for stage in recipe["stages"].values():
         stage["train"].update(batch_size=2, eval_every=3)
     path = tmp_path / "r.yaml"
@@ -126,10 +130,13 @@ def test_distilkit_run_with_two_processes_trains_with_one_writer(tmp_path: Path)
         assert steps == [1, 2, 3]  # each step logged once: one writer
 
 
-def test_two_slurm_tasks_train_as_torchrun_would_start_them(tmp_path: Path) -> None:
+@pytest.mark.gpus(2)
+def test_two_slurm_tasks_train_as_torchrun_would_start_them(tmp_path: Path, device) -> None:
     """`srun -n 2 distilkit run ...`: two processes with Slurm's task variables (as srun sets them in a step) and no
-    torchrun train one run together, and its weights equal torchrun's two processes' bit for bit."""
-    recipe: dict[str, Any] = tiny_recipe(steps=3, distill=False)
+    torchrun train one run together, and its weights equal torchrun's two processes' bit for bit. On the device of
+    ``--device`` where each task has a GPU of its own; on a machine with fewer than two GPUs the recipe says
+    ``device: cpu`` (gloo over the host; not marked ``device`` under ``--device cuda`` there)."""
+    recipe: dict[str, Any] = tiny_recipe(steps=3, distill=False, device=on(device, gpus=2))
     recipe["stages"]["teacher"]["train"].update(batch_size=2, eval_every=3)
     path = tmp_path / "r.yaml"
     path.write_text(yaml.safe_dump(recipe))
@@ -205,3 +212,93 @@ def test_two_processes_evaluate_each_scene_once_and_their_merged_confusion_is_on
     assert single["confusion"].sum() > 0
     for out in outs:
         assert torch.equal(out["confusion"], single["confusion"])
+
+
+def _two_processes_here(monkeypatch, gpus: int, local_rank: int = 1) -> list[tuple[str, Any]]:
+    """This process as one of two that torchrun started on a node with ``gpus`` GPUs (CUDA faked on the CPU); the
+    calls world_from_env makes to set a GPU and start the process group, recorded instead of made."""
+    calls: list[tuple[str, Any]] = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: gpus > 0)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: gpus)
+    monkeypatch.setattr(torch.cuda, "set_device", lambda d: calls.append(("set_device", d)))
+    monkeypatch.setattr(torch.distributed, "is_initialized", lambda: False)
+    monkeypatch.setattr(torch.distributed, "init_process_group", lambda backend, **kw: calls.append(("group", backend)))
+    for key in [k for k in os.environ if k.startswith("SLURM_")] + ["MASTER_ADDR", "MASTER_PORT"]:
+        monkeypatch.setenv(key, "")
+        monkeypatch.delenv(key)  # as before the test afterwards, also what from_slurm writes
+    for key, value in {"WORLD_SIZE": "2", "RANK": str(local_rank), "LOCAL_RANK": str(local_rank),
+                       "LOCAL_WORLD_SIZE": "2"}.items():
+        monkeypatch.setenv(key, value)
+    return calls
+
+
+def test_more_processes_than_gpus_for_a_cuda_stage_is_refused_naming_both(monkeypatch) -> None:
+    """Two processes on a one-GPU node and a stage on CUDA: both processes (rank 0 too, which has a GPU: it would
+    otherwise wait for the other in the process group) stop before the group starts, naming the processes and the
+    GPU count; nothing is put on a GPU that does not exist (``set_device(1)``: invalid device ordinal)."""
+    from distilkit.engine.train.distributed import world_from_env
+
+    for rank in (1, 0):
+        calls = _two_processes_here(monkeypatch, gpus=1, local_rank=rank)
+        with pytest.raises(DistilkitError) as err:
+            world_from_env({"teacher": torch.device("cuda"), "student": torch.device("cpu")})
+        assert str(err.value) == (
+            f"2 processes on this node (torchrun's --nproc-per-node 2; this one LOCAL_RANK {rank}) and stage teacher "
+            "trains on cuda, one GPU per process: this node has 1 GPU (torch.cuda.device_count()); start at most 1 "
+            "per node, or train on the CPU with --set 'stages.*.train.device=cpu' (gloo over the host)")
+        assert calls == []
+    # Slurm's tasks (no torchrun): the same, from its tasks per node
+    calls = _two_processes_here(monkeypatch, gpus=1)
+    for key in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE"):
+        monkeypatch.delenv(key)
+    for key, value in {"SLURM_STEP_ID": "0", "SLURM_NTASKS": "2", "SLURM_PROCID": "0", "SLURM_LOCALID": "0",
+                       "SLURM_STEP_TASKS_PER_NODE": "2", "SLURM_STEP_NODELIST": "localhost"}.items():
+        monkeypatch.setenv(key, value)
+    monkeypatch.setenv("PATH", "")  # no scontrol
+    with pytest.raises(DistilkitError, match=r"^2 processes on this node \(Slurm's SLURM_STEP_TASKS_PER_NODE=2; "
+                                             r"this one SLURM_LOCALID 0\) and stage teacher trains on cuda, one GPU "
+                                             r"per process: this node has 1 GPU"):
+        world_from_env({"teacher": torch.device("cuda")})
+    assert calls == []
+
+
+def test_processes_whose_stages_train_on_the_cpu_use_gloo_and_no_gpu_whatever_the_machine_has(monkeypatch) -> None:
+    from distilkit.engine.train.distributed import world_from_env
+
+    calls = _two_processes_here(monkeypatch, gpus=1)
+    world = world_from_env({"teacher": torch.device("cpu"), "student": torch.device("cpu")})
+    assert (world.rank, world.size, world.local_rank) == (1, 2, 1)
+    assert calls == [("group", "gloo")]  # no set_device, no NCCL
+    calls = _two_processes_here(monkeypatch, gpus=2)  # a GPU each: the stage on CUDA gets this process's
+    world_from_env({"teacher": torch.device("cuda")})
+    assert calls == [("set_device", 1), ("group", "cpu:gloo,cuda:nccl")]
+    calls = _two_processes_here(monkeypatch, gpus=1)  # stages not given: as `auto` would pick (a GPU: CUDA)
+    with pytest.raises(DistilkitError, match=r"and the stages \(train.device auto, a GPU available\) train on cuda"):
+        world_from_env()
+
+
+@pytest.mark.parametrize("where", ["cuda", "auto", "cpu"])
+def test_distilkit_run_refuses_more_processes_than_gpus_before_starting_torchrun(tmp_path: Path, monkeypatch,
+                                                                                 capsys, where) -> None:
+    """`distilkit run --nproc-per-node 2` on a one-GPU machine: with a stage on CUDA (or on `auto`, which picks the
+    GPU) one line and status 2, torchrun not started; with the stages on the CPU (here by --set) torchrun starts."""
+    import distilkit.engine.train.launch as launch
+    from distilkit.cli import main
+
+    _two_processes_here(monkeypatch, gpus=1)
+    for key in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE"):  # the launcher, not one of its processes
+        monkeypatch.delenv(key)
+    started: list[int] = []
+    monkeypatch.setattr(launch, "launch", lambda args, nproc, *rest: started.append(nproc) or 0)
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(tiny_recipe(steps=1, distill=False, device="cuda")))
+    code = main(["run", str(path), "-o", str(tmp_path / "runs"), "--nproc-per-node", "2",
+                 *([] if where == "cuda" else ["--set", f"stages.*.train.device={where}"])])
+    err = capsys.readouterr().err
+    if where == "cpu":
+        assert code == 0 and started == [2] and err == ""
+        return
+    assert code == 2 and started == [] and err == (
+        "error: 2 processes on this node (--nproc-per-node 2) and stage teacher trains on cuda, one GPU per process: "
+        "this node has 1 GPU (torch.cuda.device_count()); start at most 1 per node, or train on the CPU with "
+        "--set 'stages.*.train.device=cpu' (gloo over the host)\n")

@@ -233,7 +233,7 @@ def test_a_hidden_test_split_is_predicted_never_scored(exported, tmp_path) -> No
     assert len(list((result.run_dir / "predictions" / "test").glob("*"))) > 0
 
 
-def test_class_weighted_losses_follow_semanticposs_twelve_classes(exported, tmp_path) -> None:
+def test_class_weighted_losses_follow_semanticposs_twelve_classes(exported, tmp_path, device) -> None:
     """JS3C-Net's weighted uncertainty loss and VoxFormer's weighted CE size their class weights by the data's class
     table (they were SemanticKITTI's 20 whatever the data): both train on a semanticposs-ssc folder (12 classes)."""
     from distilkit.engine.train.pipeline import Pipeline
@@ -244,12 +244,13 @@ def test_class_weighted_losses_follow_semanticposs_twelve_classes(exported, tmp_
               "data": {"dataset": "semanticposs-ssc",
                        "params": {"root": str(exported), "train": ["00"], "val": ["08"], "scale": 4}},
               "stages": {"js3cnet": {"model": {"adapter": "js3cnet", "params": small},
-                                     "train": {"steps": 1, "batch_size": 1, "eval_every": 1}},
+                                     "train": {"steps": 1, "batch_size": 1, "eval_every": 1, "device": device.type}},
                          "weighted": {"model": {"adapter": "scpnet", "params": {"channels": 4, "point_mlp": [8],
                                                                               "seg_channels": 4}},
                                       "task_losses": [{"name": "weighted_ce"}, {"name": "geo_scal"},
                                                       {"name": "sem_scal"}],
-                                      "train": {"steps": 1, "batch_size": 1, "eval_every": 1}}}}
+                                      "train": {"steps": 1, "batch_size": 1, "eval_every": 1,
+                                                "device": device.type}}}}
     results = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     for result in results:
         assert len(result.summary["classes"]["names"]) == 12 and 0 <= result.summary["test"]["best"]["miou"] <= 1

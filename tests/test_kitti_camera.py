@@ -123,7 +123,7 @@ def test_missing_and_corrupt_images_are_named(exported, tmp_path) -> None:
         SemanticKittiDataset(params, "train")[2]
 
 
-def test_a_camera_model_trains_on_the_folder(exported, tmp_path) -> None:
+def test_a_camera_model_trains_on_the_folder(exported, tmp_path, device) -> None:
     from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
@@ -132,9 +132,10 @@ def test_a_camera_model_trains_on_the_folder(exported, tmp_path) -> None:
                        "params": {"root": str(exported), "train": ["00"], "val": ["08"], "scale": 4,
                                   "camera": {"height": 24, "width": 80}}},
               "stages": {"proposal": {"model": {"adapter": "voxformer-proposal"},
-                                      "train": {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "iou"}},
+                                      "train": {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "iou",
+                                                "device": device.type}},
                          "camera": {"model": {"adapter": "voxformer"}, "aux": {"proposal": {"from": "proposal"}},
-                                    "train": {"steps": 2, "batch_size": 2, "eval_every": 2}}}}
+                                    "train": {"steps": 2, "batch_size": 2, "eval_every": 2, "device": device.type}}}}
     proposal, camera = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     assert 0 <= camera.summary["test"]["best"]["miou"] <= 1 and camera.summary["report_split"] == "val"
     assert np.isfinite(proposal.summary["test"]["best"]["iou"])

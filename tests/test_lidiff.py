@@ -254,11 +254,12 @@ def test_classifier_free_guidance_extrapolates_from_the_unconditional_prediction
     assert torch.allclose(m.predict_noise(x, t, c, guidance=3.5), torch.full((1, 4, 3), eps_u + 3.5 * (eps_c - eps_u)))
 
 
-def test_a_lidiff_teacher_trains_and_is_scored_by_the_completion_metric(tmp_path) -> None:
+def test_a_lidiff_teacher_trains_and_is_scored_by_the_completion_metric(tmp_path, device) -> None:
     recipe = {"schema_version": 1, "name": "lidiff", "seed": 0,
               "data": {"dataset": "synthetic-scenes", "params": DATA},
               "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL},
-                                     "train": {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd"}}}}
+                                     "train": {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd",
+                                               "device": device.type}}}}
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     scores = result.summary["test"]["best"]
     assert scores["cd"] > 0 and 0 < scores["jsd"] <= np.sqrt(np.log(2)) + 1e-9
@@ -282,11 +283,11 @@ def test_a_lidiff_stage_without_a_metric_is_selected_by_chamfer_and_a_named_miou
         resolve(recipe_from_dict(recipe))
 
 
-def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -> None:
+def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path, device) -> None:
     """Teacher pre-training, then a 1-step student initialised from it: VSD (LoRA aux, own SGD) + structural."""
     from distilkit.weights import load_checkpoint
 
-    train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd"}
+    train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd", "device": device.type}
     recipe = {"schema_version": 1, "name": "scorelidar", "seed": 0,
               "data": {"dataset": "synthetic-scenes", "params": DATA},
               "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL}, "train": train},
@@ -333,7 +334,8 @@ def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path) -
 
 
 def test_an_evaluate_only_stage_scores_a_trained_model_at_other_sampler_steps(tmp_path) -> None:
-    train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd"}
+    # what an evaluate-only stage reads and scores, not what a device computes: on the CPU whatever --device says
+    train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd", "device": "cpu"}
     recipe = {"schema_version": 1, "name": "steps", "seed": 0,
               "data": {"dataset": "synthetic-scenes", "params": DATA},
               "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL}, "train": train},

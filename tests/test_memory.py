@@ -21,6 +21,8 @@ GIB = 1024**3
 
 
 def test_the_estimate_counts_weights_once_and_the_rest_per_sample() -> None:
+    # on the CPU whatever --device says (tiny_recipe's default): the phases are compared in exact bytes, as the CPU
+    # profiler's allocation events give them (the CUDA allocator rounds each block up)
     one, two = tiny_recipe(steps=1), tiny_recipe(steps=1)
     two["stages"]["teacher"]["train"]["batch_size"] = 2
     first = memory.estimate_stage(resolve(recipe_from_dict(one), "one"), "teacher")
@@ -57,7 +59,7 @@ def test_a_step_is_split_into_the_model_phase_and_the_optimizer_step() -> None:
         loss.backward()
         opt.step()
 
-    first = memory.step_peaks(step, torch.device("cpu"))
+    first = memory.step_peaks(step, torch.device("cpu"))  # the CPU profiler's phases, whatever --device says
     assert len(first.optimizer) == 1
     held, peak = first.optimizer[0]
     assert held >= weights  # the gradients, at least
@@ -97,18 +99,20 @@ def test_the_bounds_hold_for_any_mix_of_dense_sparse_and_fixed_parts() -> None:
     assert memory._bounds([(s2, 5.0)], s2) == (5.0, 5.0)
 
 
-def test_validate_prints_the_estimate_and_warns_when_the_step_does_not_fit(tmp_path: Path, capsys,
-                                                                         monkeypatch) -> None:
+def test_validate_prints_the_estimate_and_warns_when_the_step_does_not_fit(tmp_path: Path, capsys, monkeypatch,
+                                                                         device) -> None:
+    """Measured on the device the stages train on (the CPU profiler's allocations, or CUDA's allocator)."""
     path = tmp_path / "r.yaml"
-    path.write_text(yaml.safe_dump(tiny_recipe(steps=1)))
+    path.write_text(yaml.safe_dump(tiny_recipe(steps=1, device=device)))
     assert main(["validate", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "stage teacher: about" in out and "per training step on the cpu (batch 1, a 32x32x4 grid; measured)" in out
+    assert "stage teacher: about" in out and \
+        f"per training step on the {device.type} (batch 1, a 32x32x4 grid; measured)" in out
     assert "warning" not in out
     monkeypatch.setattr(memory, "available_memory", lambda device: 1024**2)  # a machine with 1 MiB free
     assert main(["validate", str(path)]) == 0  # advice, not an error
     out = capsys.readouterr().out
-    assert "warning: stage teacher needs at least" in out and "more than the 0.0 GiB free on the cpu" in out
+    assert "warning: stage teacher needs at least" in out and f"more than the 0.0 GiB free on the {device.type}" in out
     assert "lower train.batch_size (now 1), the grid (data.params.scale) or the size of scpnet's model" in out
     assert main(["validate", str(path), "--no-memory"]) == 0
     assert "per training step" not in capsys.readouterr().out

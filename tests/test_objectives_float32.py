@@ -73,10 +73,11 @@ def test_a_voxel_objective_reduces_in_float32_under_bf16(name, voxel_terms) -> N
 
 
 @pytest.mark.parametrize("name", sorted(POINT_STAGES))
-def test_a_point_cloud_objective_reduces_in_float32_under_bf16(name) -> None:
+def test_a_point_cloud_objective_reduces_in_float32_under_bf16(name, device) -> None:
     from distilkit.engine.assemble.resolve import resolve
     from distilkit.recipe import load_recipe, parse_overrides
 
     path = ROOT / "recipes" / "scorelidar.yaml"
-    res = resolve(load_recipe(path, parse_overrides(POINT_SETS)), str(path))
+    sets = POINT_SETS + [f"stages.*.train.device={device.type}"]  # autocast on the device of --device
+    res = resolve(load_recipe(path, parse_overrides(sets)), str(path))
     check({p: terms_at(res, POINT_STAGES[name], res.data_params, p) for p in ("fp32", "bf16")}, name)

@@ -25,8 +25,14 @@ NETWORKS = {
 }
 
 
-def overrides(name: str, root: Path, small: bool = False) -> list[str]:
-    """--set values that point a paper recipe at the test's data (small: a reduced size for a two-step run)."""
+def overrides(name: str, root: Path, small: bool = False, device=None) -> list[str]:
+    """--set values that point a paper recipe at the test's data (small: a reduced size for a two-step run; device:
+    the stages train there instead of on the recipe's `auto`, which is the GPU wherever there is one)."""
+    on = [f"stages.*.train.device={device}"] if device is not None else []
+    return _overrides(name, root, small) + on
+
+
+def _overrides(name: str, root: Path, small: bool) -> list[str]:
     if name == "scorelidar":
         sizes = ["data.params.scan_points=400", "data.params.scene_points=4000", "data.params.num_train=1",
                  "data.params.num_val=1", "data.params.num_test=1", "data.params.beams=16",
@@ -61,13 +67,13 @@ def test_every_paper_recipe_validates_and_says_which_networks_it_builds(folder, 
 @pytest.mark.slow
 @pytest.mark.parametrize("path", PAPER, ids=[p.stem for p in PAPER])
 def test_a_paper_recipe_validates_with_its_memory_estimate_and_runs_two_steps_at_a_reduced_size(
-        path, folder, tmp_path, capsys) -> None:
-    sets = overrides(path.stem, folder, small=True) + ["stages.*.train.steps=2", "stages.*.train.epochs=null",
-                                                        "stages.*.train.batch_size=1"]
+        path, folder, tmp_path, capsys, device) -> None:
+    sets = overrides(path.stem, folder, small=True, device=device.type) + [
+        "stages.*.train.steps=2", "stages.*.train.epochs=null", "stages.*.train.batch_size=1"]
     assert main(["validate", str(path), "--set", *sets]) == 0
     out = capsys.readouterr().out
     estimated = {line.split(":")[0].strip() for line in out.splitlines()
-                 if "per training step on the cpu (batch 1" in line and "; measured)" in line}
+                 if f"per training step on the {device.type} (batch 1" in line and "; measured)" in line}
     stages = load_recipe(path, parse_overrides(sets)).stages
     assert estimated == {f"stage {name}" for name in stages}, out  # each one, measured at a reduced size
     assert main(["run", str(path), "-q", "-o", str(tmp_path), "--set", *sets]) == 0

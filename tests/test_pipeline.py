@@ -94,8 +94,9 @@ def test_teacher_is_frozen_and_unchanged_by_a_step(tmp_path, device) -> None:
     assert not teacher.training
 
 
-def test_resume_after_interruption(tmp_path) -> None:
-    recipe = tiny_recipe(steps=4, distill=False)
+def test_resume_after_interruption(tmp_path, device) -> None:
+    """On the device of --device: what a checkpoint holds (weights, optimizer, the RNG states) resumes there."""
+    recipe = tiny_recipe(steps=4, distill=False, device=device)
     recipe["stages"]["teacher"]["train"]["eval_every"] = 4
     pipeline(tmp_path, recipe).run(stop_after=2)
     pipe = pipeline(tmp_path, recipe)

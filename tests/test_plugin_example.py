@@ -25,8 +25,10 @@ def test_entry_point_plugin_runs_its_recipe(tmp_path, monkeypatch) -> None:
     assert "tiny-ssc" not in registry.ADAPTERS._entries
     registry.load_plugins(force=True)
     assert "tiny-ssc" in registry.ADAPTERS
-    recipe = recipe_from_dict(yaml.safe_load((EXAMPLE / "recipe.yaml").read_text()))
-    results = Pipeline(recipe, tmp_path / "runs", quiet=True).run()
+    recipe = yaml.safe_load((EXAMPLE / "recipe.yaml").read_text())
+    for stage in recipe["stages"].values():  # about loading a plugin: the CPU, not the recipe's auto (a GPU)
+        stage.setdefault("train", {})["device"] = "cpu"
+    results = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     mine = results[-1]
     assert mine.summary["adapter"] == "tiny-ssc" and mine.summary["objectives"] == ["dskd×100"]
     assert "tiny_adapter" in sys.modules
@@ -169,7 +171,7 @@ def test_the_plugin_guide_runs_as_written(tmp_path, monkeypatch) -> None:
         module.register()
         assert registry.ADAPTERS.get("tiny-ssc") is module.TinySSC
         for stage in recipe["stages"].values():
-            stage["train"]["steps"] = 1
+            stage["train"].update(steps=1, device="cpu")  # the guide's code runs; on the CPU, not auto's GPU
         results = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
         assert results[-1].summary["adapter"] == "tiny-ssc" and results[-1].summary["status"] == "finished"
     finally:

@@ -20,14 +20,15 @@ TINY = {"scale": 8, "num_train": 2, "num_val": 1, "num_test": 1, "input_frames":
         "azimuth_steps": 256}
 
 
-def shipped(name: str, steps: int = 2, **camera: object) -> dict:
-    """A shipped recipe with every stage at ``steps`` steps (batch 2) on a tiny copy of its data."""
+def shipped(name: str, steps: int = 2, device: object = "cpu", **camera: object) -> dict:
+    """A shipped recipe with every stage at ``steps`` steps (batch 2) on a tiny copy of its data, training on
+    ``device`` (the CPU unless a test of the computation passes the ``device`` fixture; not the recipe's auto)."""
     recipe = yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text())
     data = recipe["data"]["params"]
     recipe["data"]["params"] = {**TINY, "input_frames": data.get("input_frames", 1),
                                 "camera": {**data.get("camera", {}), "height": 24, "width": 80, **camera}}
     for stage in recipe["stages"].values():
-        stage["train"].update(steps=steps, batch_size=2, eval_every=steps)
+        stage["train"].update(steps=steps, batch_size=2, eval_every=steps, device=str(device))
     return recipe
 
 
@@ -70,8 +71,8 @@ def test_the_cross_modal_recipe_validates_and_a_camera_tap_across_frames_is_refu
         and "frames 0, -3" in str(err.value)
 
 
-def test_the_cross_modal_pairs_train(tmp_path: Path) -> None:
-    recipe = shipped("cross_modal", steps=1)
+def test_the_cross_modal_pairs_train(tmp_path: Path, device) -> None:
+    recipe = shipped("cross_modal", steps=1, device=device)
     keep = ("lidar_teacher", "camera_teacher", "proposal", "camera_dskd", "camera_rgo2d", "lidar_from_camera")
     recipe["stages"] = {k: v for k, v in recipe["stages"].items() if k in keep}
     results = {r.name: r for r in Pipeline(recipe_from_dict(recipe), tmp_path, quiet=True).run()}

@@ -42,10 +42,13 @@ echo "JobId=$3 JobState=FAILED Reason=NonZeroExitCode"
 
 @pytest.fixture
 def slurm_bin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    """A folder first on PATH with the recording sbatch (and squeue / scontrol answering from its records)."""
+    """A folder first on PATH with the recording sbatch (and squeue / scontrol answering from its records), and an
+    ``srun`` that fails if run: submitit's executor looks for it on PATH before it submits anything (a machine
+    without Slurm has none; one where .ci/slurm-up ran earlier has the real one), and a submission never runs it."""
     folder = tmp_path / "bin"
     folder.mkdir()
-    for name, text in (("sbatch", SBATCH), ("squeue", SQUEUE), ("scontrol", SCONTROL)):
+    srun = "#!/bin/sh\necho 'srun: not expected at submission' >&2\nexit 1\n"
+    for name, text in (("sbatch", SBATCH), ("squeue", SQUEUE), ("scontrol", SCONTROL), ("srun", srun)):
         (folder / name).write_text(text)
         (folder / name).chmod(0o755)
     monkeypatch.setenv("PATH", f"{folder}{os.pathsep}{os.environ['PATH']}")

@@ -65,7 +65,7 @@ def test_an_explicit_backend_that_does_not_import_is_an_error_never_a_fallback()
             "os.environ['DISTILKIT_SPARSE'] = 'auto'; print('AUTO', backend.choose('cuda'))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "ERR sparse backend spconv (DISTILKIT_SPARSE) on the cuda: spconv does not import" in out, out
-    assert "pip install spconv-cu120" in out and "AUTO torch" in out, out
+    assert "pip install spconv-cu126" in out and "AUTO torch" in out, out
 
 
 def network(semantics: str = "spconv2") -> torch.nn.Module:

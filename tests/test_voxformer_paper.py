@@ -159,8 +159,9 @@ def test_proposals_are_read_from_a_folder_and_a_voxformer_stage_uses_them(folder
               "data": {"dataset": "semantickitti-ssc",
                        "params": {"root": str(folder), "train": ["00"], "val": ["08"], "scale": 4,
                                   "proposals": "proposals", "camera": {"height": 24, "width": 80}}},
+              # about reading proposals from a folder, not a device's computation: the CPU whatever --device says
               "stages": {"camera": {"model": {"adapter": "voxformer"},
-                                    "train": {"steps": 1, "batch_size": 2, "eval_every": 1}}}}
+                                    "train": {"steps": 1, "batch_size": 2, "eval_every": 1, "device": "cpu"}}}}
     (camera,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     assert 0 <= camera.summary["test"]["best"]["miou"] <= 1
 

@@ -52,10 +52,14 @@ def run(args: argparse.Namespace) -> int:
 
     stop.install()  # SIGTERM (or the death of the sweep that started it) stops after a step, its checkpoint written
     if args.nproc_per_node is not None and "LOCAL_RANK" not in os.environ:
+        from distilkit.engine.train.distributed import refuse_more_processes_than_gpus
         from distilkit.engine.train.launch import launch
 
+        # before torchrun starts anything: N processes need N GPUs where a stage trains on CUDA
+        refuse_more_processes_than_gpus(args.nproc_per_node, _devices(args), f"--nproc-per-node {args.nproc_per_node}")
         return launch(_forwarded(args), args.nproc_per_node, args.nnodes, args.node_rank, args.master_addr,
                       args.master_port)
+    _start_world(args)
     if args.seed is not None and len(args.seed) > 1:
         from distilkit.engine.train.seeds import run_seeds
 
@@ -72,6 +76,29 @@ def run(args: argparse.Namespace) -> int:
                     overrides=overrides(args))
     pipe.run(stop_after=args.stop_after, rerun=args.rerun, only=args.stage, wait=not args.no_wait)
     return _finished()
+
+
+def _devices(args: argparse.Namespace) -> dict[str, Any]:
+    """The device each stage this run trains on (``--stage``: those and the stages they need), read off the
+    recipe with its ``--set`` overrides."""
+    from distilkit.engine.assemble.devices import stage_devices
+    from distilkit.recipe import load_recipe
+
+    return stage_devices(load_recipe(args.recipe, overrides(args)), args.stage)
+
+
+def _start_world(args: argparse.Namespace) -> None:
+    """In a process of a multi-process run (torchrun's, or a Slurm step's tasks): its process group, started for
+    the devices its stages train on — NCCL and a GPU per process where one trains on CUDA (more processes on the
+    node than GPUs is refused, naming both), gloo over the host where all train on the CPU
+    (:func:`~distilkit.engine.train.distributed.world_from_env`). A single process: nothing."""
+    import os
+
+    from distilkit.engine.train.distributed import from_slurm, world_from_env
+
+    from_slurm()
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        world_from_env(_devices(args))
 
 
 def _forwarded(args: argparse.Namespace) -> list[str]:

@@ -25,11 +25,14 @@ outside.
 
 from __future__ import annotations
 
+import itertools
 from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from distilkit.losses.ce import deterministic_form_needed, weighted_cross_entropy
 
 IGNORE = 255
 
@@ -62,18 +65,59 @@ def geometry_weighted_ce(logits: Tensor, labels: Tensor, class_weights: Tensor |
     if not bool(valid.any()):
         return logits.sum() * 0.0
     weight = class_weights.to(logits.dtype) if class_weights is not None else None
-    ce = F.cross_entropy(logits, labels.long().masked_fill(~valid, 0), weight=weight, reduction="none")
+    ce = weighted_cross_entropy(logits, labels.long().masked_fill(~valid, 0), weight, reduction="none")
     return (ce * (1.0 + lga.to(ce.dtype)))[valid].mean()
 
 
-def voxel_sample(volume: Tensor, coords: Tensor, mode: str = "bilinear") -> Tensor:
+def voxel_sample(volume: Tensor, coords: Tensor, mode: str = "bilinear", deterministic: bool | None = None) -> Tensor:
     """(B, C, N) values of a (B, C, X, Y, Z) volume at (B, N, 3) positions in [0, 1)³ (``mode``: ``bilinear`` =
-    trilinear, or ``nearest``)."""
+    trilinear, or ``nearest``).
+
+    ``deterministic`` (default: off the CPU under deterministic algorithms,
+    :func:`~distilkit.losses.ce.deterministic_form_needed`): the same values read with ``gather`` from the 8 corners
+    (``bilinear``) or the nearest voxel, instead of ``F.grid_sample``, whose CUDA backward PyTorch flags
+    (``grid_sampler_3d_backward_cuda does not have a deterministic implementation``); ``gather``'s backward is
+    deterministic under that setting. The same as ``grid_sample`` up to the rounding of its weights (float64: 1e-15)."""
     if volume.dim() != 5 or coords.dim() != 3 or coords.shape[-1] != 3 or coords.shape[0] != volume.shape[0]:
         raise ValueError(f"voxel_sample: volume {tuple(volume.shape)} must be (B, C, X, Y, Z) and positions "
                          f"{tuple(coords.shape)} (B, N, 3)")
+    if mode not in ("bilinear", "nearest"):
+        raise ValueError(f"voxel_sample: mode must be 'bilinear' or 'nearest', got {mode!r}")
+    if deterministic if deterministic is not None else deterministic_form_needed(volume):
+        return _gather_sample(volume, coords, mode)
     grid = (2.0 * coords.flip(-1) - 1.0).to(volume.dtype)[:, :, None, None, :]  # grid_sample's order is (z, y, x)
     return F.grid_sample(volume, grid, mode=mode, align_corners=False)[:, :, :, 0, 0]
+
+
+def _gather_sample(volume: Tensor, coords: Tensor, mode: str) -> Tensor:
+    """:func:`voxel_sample` by ``gather``: a position c lies at index c·size − ½ along each axis; trilinear weights
+    over the 8 surrounding voxels, or the nearest one (rounded half to even, as ``grid_sample``); zeros outside.
+    Positions, weights and sums in float32 at least (a bfloat16 volume under autocast too), the result in the
+    volume's dtype."""
+    b, c = volume.shape[:2]
+    work = torch.promote_types(volume.dtype, torch.float32)
+    sizes = torch.tensor(volume.shape[2:], device=volume.device)
+    flat = volume.reshape(b, c, -1)
+    at = coords.to(work) * sizes.to(work) - 0.5  # (B, N, 3)
+
+    def read(index: Tensor) -> tuple[Tensor, Tensor]:  # (B, C, N) values at integer (B, N, 3) indices, and inside
+        inside = ((index >= 0) & (index < sizes)).all(-1)
+        index = torch.minimum(index.clamp_min(0), sizes - 1)
+        linear = (index[..., 0] * sizes[1] + index[..., 1]) * sizes[2] + index[..., 2]
+        return flat.gather(2, linear[:, None, :].expand(b, c, -1)), inside
+
+    if mode == "nearest":
+        values, inside = read(torch.round(at).long())
+        return values * inside[:, None, :].to(values.dtype)
+    low = at.floor()
+    frac = at - low
+    low = low.long()
+    out = torch.zeros(b, c, coords.shape[1], dtype=work, device=volume.device)
+    for step in torch.tensor(list(itertools.product((0, 1), repeat=3)), device=volume.device):
+        weight = torch.where(step.bool(), frac, 1.0 - frac).prod(-1)  # (B, N)
+        values, inside = read(low + step)
+        out = out + values.to(work) * (weight * inside.to(work))[:, None, :]
+    return out.to(volume.dtype)
 
 
 @torch.no_grad()
@@ -113,7 +157,7 @@ def hard_voxel_ce(logits: Tensor, labels: Tensor, lga: Tensor, class_weights: Te
     if not bool(valid.any()):
         return logits.sum() * 0.0
     target = labels.long().masked_fill(~valid, 0)
-    ce = F.cross_entropy(logits, target, reduction="none")
+    ce = weighted_cross_entropy(logits, target, reduction="none")
     num = (ce * (alpha + beta * lga.to(ce.dtype)))[valid].sum()
     return num / class_weights.to(ce.dtype)[target[valid]].sum()
 

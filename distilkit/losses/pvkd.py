@@ -28,6 +28,12 @@ def supervoxel_ids(coords: Tensor, shape: tuple[int, int, int], radial_bins: int
     return coords[:, 0] * (radial_bins * angular_bins * height_bins) + cell, r_bin
 
 
+def supervoxel_radial_bin(ids: Tensor, radial_bins: int = 8, angular_bins: int = 8, height_bins: int = 2) -> Tensor:
+    """The radial bin of each supervoxel id of :func:`supervoxel_ids` (made with the same bin counts), read from the
+    id itself: every voxel of a supervoxel shares its cell, hence its radial bin."""
+    return ids % (radial_bins * angular_bins * height_bins) // (angular_bins * height_bins)
+
+
 def pvkd_affinity(student: Tensor, teacher: Tensor, groups: Tensor, chosen: Tensor | None = None) -> Tensor:
     """Mean over supervoxels of DSKD's relation gap inside each: mean_g ‖Â_g Â_gᵀ − B̂_g B̂_gᵀ‖² / n_g²
     (exact, by the Gram identity, no n_g × n_g matrix).

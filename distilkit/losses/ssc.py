@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from distilkit.data.classes import IGNORE_INDEX
+from distilkit.losses.ce import weighted_cross_entropy
 
 
 def _bce_one(x: Tensor) -> Tensor:
@@ -26,7 +27,7 @@ def weighted_ce(logits: Tensor, target: Tensor, weight: Tensor | None = None,
     """Class-weighted voxel cross entropy: Σ_v w_{y_v} ℓ_v over the valid voxels, divided by their number
     (``normalize="valid"``, VoxelFormer's ``reduction='none'`` then the mean over valid voxels) or by Σ_v w_{y_v}
     (``"weight"``, MonoScene's ``reduction='mean'``). 0 (with a gradient) where no voxel is valid."""
-    per_voxel = F.cross_entropy(logits, target.long(), weight=weight, ignore_index=ignore_index, reduction="none")
+    per_voxel = weighted_cross_entropy(logits, target.long(), weight, ignore_index, reduction="none")
     valid = target != ignore_index
     if normalize == "valid":
         return per_voxel.sum() / valid.sum().clamp_min(1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from typing import Literal
 
 import torch
@@ -11,6 +12,8 @@ from torch import Tensor
 from distilkit.data.classes import IGNORE_INDEX
 from distilkit.errors import GridMismatchError
 from distilkit.geometry.voxel import align_across_grids
+from distilkit.losses.ce import deterministic_form_needed
+from distilkit.losses.proposal import linear_resize_matrix
 from distilkit.structures import SparseVoxels
 
 MaskName = Literal["all", "valid", "occupied"]
@@ -48,11 +51,45 @@ def aligned_pairs(student: SparseVoxels, teacher: SparseVoxels) -> tuple[Tensor,
     return student.feats, t, found
 
 
-def match_spatial(x: Tensor, shape: tuple[int, ...]) -> Tensor:
-    """Resample a (B, C, *S) map to spatial ``shape`` (adaptive average pooling down, trilinear/bilinear up)."""
+def adaptive_pool_matrix(n_in: int, n_out: int, dtype: torch.dtype = torch.float64,
+                         device: torch.device | str | None = None) -> Tensor:
+    """(n_out, n_in): adaptive average pooling along one axis as PyTorch does it (output i averages the inputs
+    floor(i n_in / n_out) .. ceil((i + 1) n_in / n_out) - 1), as a matrix."""
+    i = torch.arange(n_out, dtype=torch.float64)
+    start = torch.floor(i * n_in / n_out).long()
+    end = torch.ceil((i + 1) * n_in / n_out).long()
+    j = torch.arange(n_in)
+    inside = (j[None, :] >= start[:, None]) & (j[None, :] < end[:, None])
+    m = inside.double() / (end - start).double()[:, None]
+    return m.to(dtype=dtype, device=device)
+
+
+def _separable(x: Tensor, matrices: list[Tensor]) -> Tensor:
+    """``x`` (B, C, *S) with each spatial axis multiplied by its (S'_d, S_d) matrix."""
+    for d, m in enumerate(matrices):
+        axis = 2 + d
+        x = (x.movedim(axis, -1) @ m.t()).movedim(-1, axis)
+    return x
+
+
+def match_spatial(x: Tensor, shape: tuple[int, ...], deterministic: bool | None = None) -> Tensor:
+    """Resample a (B, C, *S) map to spatial ``shape`` (adaptive average pooling down, trilinear/bilinear up).
+
+    ``deterministic`` (default: off the CPU under deterministic algorithms,
+    :func:`~distilkit.losses.ce.deterministic_form_needed`): as one product per axis with the pooling or linear
+    interpolation matrix (both are separable), instead of PyTorch's kernels, whose CUDA backward PyTorch flags
+    (``adaptive_avg_pool3d_backward_cuda``, ``upsample_trilinear3d_backward_out_cuda`` "does not have a deterministic
+    implementation"). The same up to the rounding of the weights; the products in float32 at least."""
     if tuple(x.shape[2:]) == tuple(shape):
         return x
-    if all(a >= b for a, b in zip(x.shape[2:], shape)):
+    down = all(a >= b for a, b in zip(x.shape[2:], shape))
+    if deterministic if deterministic is not None else deterministic_form_needed(x):
+        work = torch.promote_types(x.dtype, torch.float32)
+        make = adaptive_pool_matrix if down else linear_resize_matrix
+        matrices = [make(int(a), int(b), work, x.device) for a, b in zip(x.shape[2:], shape)]
+        with torch.autocast(x.device.type, enabled=False) if x.is_cuda else contextlib.nullcontext():
+            return _separable(x.to(work), matrices).to(x.dtype)
+    if down:
         pool = F.adaptive_avg_pool3d if x.dim() == 5 else F.adaptive_avg_pool2d
         return pool(x, shape)
     return F.interpolate(x, size=shape, mode="trilinear" if x.dim() == 5 else "bilinear", align_corners=False)

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from distilkit.data.batch import Batch
 from distilkit.losses.feature import pkt
-from distilkit.losses.pvkd import pvkd, supervoxel_ids
+from distilkit.losses.pvkd import pvkd, supervoxel_ids, supervoxel_radial_bin
 from distilkit.objectives.base import MultiTapObjective, Objective, register_objective
 from distilkit.objectives.common import MaskName, aligned_pairs, voxel_mask
 from distilkit.structures import SparseVoxels
@@ -51,6 +51,17 @@ class PKT(Objective):
         return torch.stack(losses).mean() if losses else fs.sum() * 0.0
 
 
+def supervoxel_draw_weight(ids: Tensor, radial_bins: int, angular_bins: int, height_bins: int) -> Tensor:
+    """PVKD's difficulty-aware draw: each distinct supervoxel id's weight, its radial bin + 1 (far cells drawn more
+    often), in the default float dtype.
+
+    Read from the ids (:func:`~distilkit.losses.pvkd.supervoxel_radial_bin`), which gives bitwise the value of the
+    earlier per-voxel maximum ``zeros(n).index_reduce_(0, inv, r_bin + 1, "amax", include_self=False)``: the voxels of a
+    supervoxel share its radial bin. ``Tensor.index_reduce_`` has no deterministic CUDA implementation
+    (``index_reduce_cuda`` is flagged whatever the reduction), and this needs no scatter at all."""
+    return (supervoxel_radial_bin(ids, radial_bins, angular_bins, height_bins) + 1).to(torch.get_default_dtype())
+
+
 class PVKDParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     temperature: float = Field(1.0, gt=0)
@@ -87,14 +98,13 @@ class PVKD(MultiTapObjective):
         p = self.params
         student: SparseVoxels = taps["student"]
         fs, ft, _ = aligned_pairs(student, taps["teacher"])
-        groups, r_bin = supervoxel_ids(student.coords, student.spatial_shape, p.radial_bins, p.angular_bins,
-                                       p.height_bins)
+        groups, _ = supervoxel_ids(student.coords, student.spatial_shape, p.radial_bins, p.angular_bins,
+                                   p.height_bins)
         chosen = None
         if p.num_supervoxels is not None:  # difficulty-aware: far cells are drawn more often
-            ids, inv = torch.unique(groups, return_inverse=True)
+            ids = torch.unique(groups)
             if ids.numel() > p.num_supervoxels:
-                weight = torch.zeros(ids.numel(), device=ids.device).index_reduce_(0, inv, r_bin.float() + 1, "amax",
-                                                                                    include_self=False)
+                weight = supervoxel_draw_weight(ids, p.radial_bins, p.angular_bins, p.height_bins)
                 chosen = torch.multinomial(weight, p.num_supervoxels, replacement=False)
         return pvkd(fs, ft, groups, taps["student_logits"], taps["teacher_logits"], p.temperature,
                     voxel_mask(taps["target"], p.voxels, self.ignore_index), p.output_weight, p.affinity_weight, chosen)

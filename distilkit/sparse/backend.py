@@ -11,7 +11,18 @@ spconv-triton`` (``auto`` when unset), or :func:`using` in code, which wins over
   1; the same on distilkit's maps), so distilkit runs it with one thread.
 * ``spconv-triton`` — spconv-Triton's ``indice_conv``, the same functions in Triton (NVIDIA and AMD GPUs; not on
   the CPU).
-* ``auto`` — on CUDA the first of spconv (a CUDA build), spconv-triton, torch that imports; elsewhere torch.
+* ``auto`` — per call, the first of spconv (a CUDA build), spconv-triton and torch that can take it: on CUDA a
+  float32 or float16 call (or one under float16 autocast) goes to a library, a float64 or bfloat16 one to torch;
+  elsewhere torch.
+
+What each library computes is stated in :data:`CAPABILITIES` (device, dtypes, autocast, gradients), read from
+spconv 2.3.8's source (the GEMM kernel lists in ``spconv/core.py``: float32 and float16 only; its tuner stops with
+"can't find suitable algorithm" for any other dtype, ``csrc/sparse/convops.py``) and spconv-Triton 1.0.0's wheel
+(the same dtypes as spconv's, float16 accumulated in float16 for short reductions as spconv does). A call a library cannot take runs on the torch path under
+``auto`` (the summary's ``sparse_backend`` then names both); under an explicit ``DISTILKIT_SPARSE=spconv`` it is an
+error naming the reason. A neighbour map with no pair never reaches a library (spconv's CUDA code asserts "this
+shouldn't happen" on an all-zero map that is not submanifold, forward and backward): its output is zeros (plus the
+layer's bias) and its gradients zeros, on the torch path, whatever the backend.
 
 The maps (which input row feeds which output row, per kernel offset) are distilkit's in every backend — only the
 products and sums move — so the output rows, their order and the weights' layout (out, k0, k1, k2, in) are the same,
@@ -20,8 +31,15 @@ on every backend as what it is: a convolution of kernel K' whose weight is the f
 
 An explicitly requested backend that cannot run here is an error naming what is missing; it never falls back.
 Under CUDA autocast spconv and spconv-Triton cast their inputs to float16 whatever autocast's dtype
-(``custom_fwd(cast_inputs=torch.float16)`` in their ``functional.py``); the torch backend computes in autocast's
-dtype and sums in float32. :func:`record` collects which backends ran (a stage's summary names them).
+(``custom_fwd(cast_inputs=torch.float16)`` in their ``functional.py``): so they take float16 autocast only, and
+bfloat16 autocast runs on the torch path (under ``auto``), which computes in autocast's dtype and sums in float32.
+:func:`record` collects which backends ran (a stage's summary names them).
+
+Determinism: spconv's tuner picks a kernel by timing the candidates in each process and its weight-gradient split-k
+changes the order of the sums, so two processes can round differently: while PyTorch's deterministic algorithms
+are on (``DISTILKIT_DETERMINISTIC``) ``auto`` uses the torch path on CUDA too, whose sums are in a fixed order
+(stated in the stage's summary as the backend that ran); an explicit library backend is honoured and the GPU
+check's determinism section says whether its bits held.
 """
 
 from __future__ import annotations
@@ -29,6 +47,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import os
+from dataclasses import dataclass
 from functools import cache
 from typing import Any, Iterator
 
@@ -40,13 +59,61 @@ from distilkit.errors import DistilkitError
 ENV = "DISTILKIT_SPARSE"
 CHOICES = ("auto", "torch", "spconv", "spconv-triton")
 LIBRARIES = {"spconv": "spconv", "spconv-triton": "spconv_triton"}  # backend -> the module it imports
-INSTALL = {"spconv": "pip install spconv-cu120 (a CUDA build; pip install spconv is the CPU build: forward only)",
+INSTALL = {"spconv": "pip install spconv-cu126 (or spconv-cu121, -cu124: spconv 2.3.8's CUDA builds, one to match "
+                     "your CUDA; pip install spconv is the CPU build: forward only)",
            "spconv-triton": "pip install spconv-triton"}
 
 
 class SparseBackendError(DistilkitError):
-    """A requested sparse backend cannot run here (not installed, not for this device, no backward)."""
+    """A requested sparse backend cannot run here (not installed, not for this device, no backward), or cannot take
+    a call (its dtype, autocast's dtype, gradients)."""
 
+
+@dataclass(frozen=True)
+class Capability:
+    """What a library backend computes on one device type: the features' dtypes outside autocast, autocast's dtypes
+    it takes part in (the dtype it casts to), whether it has a backward there, and where that was read."""
+
+    dtypes: tuple[torch.dtype, ...]
+    autocast: tuple[torch.dtype, ...]
+    gradients: bool
+    source: str
+
+
+_HALF_CUDA = Capability((torch.float32, torch.float16), (torch.float16,), True,
+                        "spconv/core.py's GEMM kernels: float32 and float16")
+# (backend, device type) -> what it computes there; a pair not listed does not run at all. spconv's CPU build
+# (cppconstants.CPU_ONLY_BUILD) has no CUDA row and no CPU backward: :func:`capability` says so.
+CAPABILITIES: dict[tuple[str, str], Capability] = {
+    ("spconv", "cuda"): _HALF_CUDA,
+    ("spconv", "cpu"): Capability((torch.float32, torch.float64), (), True,
+                                  "spconv's CPU gather-GEMM-scatter: torch.mm on its gathers"),
+    ("spconv-triton", "cuda"): Capability((torch.float32, torch.float16), (torch.float16,), True,
+                                          "spconv-Triton's Triton kernels: float32 and float16, as spconv's"),
+}
+
+
+@dataclass(frozen=True)
+class Call:
+    """One convolution as a backend sees it: the device type, the dtype the products run in (autocast's where it is
+    on), whether autocast is on, whether a gradient is wanted, and the map's number of pairs."""
+
+    device: str
+    dtype: torch.dtype
+    autocast: bool = False
+    gradients: bool = False
+    pairs: int = 1
+
+    @classmethod
+    def of(cls, features: Tensor, weight: Tensor, pairs: int) -> "Call":
+        device = features.device.type
+        auto = torch.is_autocast_enabled(device)
+        dtype = torch.get_autocast_dtype(device) if auto else features.dtype
+        grads = torch.is_grad_enabled() and (features.requires_grad or weight.requires_grad)
+        return cls(device, dtype, auto, grads, pairs)
+
+
+AUTO_DEVICES = ("cuda",)  # device types where ``auto`` offers a call to the libraries first
 
 _override: list[str] = []  # :func:`using`'s choices, innermost last
 _ran: list[set[str]] = []  # :func:`record`'s open collections
@@ -104,35 +171,85 @@ def _library(name: str) -> tuple[Any, Any, bool] | str:
     return functional, algo, cuda
 
 
+def capability(name: str, device_type: str) -> Capability | None:
+    """What library backend ``name`` (installed) computes on ``device_type``; None where it does not run there."""
+    cap = CAPABILITIES.get((name, device_type))
+    lib = _library(name)
+    if cap is None or isinstance(lib, str):
+        return cap
+    if name == "spconv" and not lib[2]:  # the CPU build: no CUDA, and its backward asks for CUDA
+        if device_type == "cuda":
+            return None
+        return Capability(cap.dtypes, cap.autocast, False, cap.source + " (the CPU build: forward only)")
+    return cap
+
+
 def problem(name: str, device_type: str) -> str | None:
-    """Why backend ``name`` cannot compute on ``device_type`` here (None: it can)."""
+    """Why backend ``name`` cannot compute on ``device_type`` here at all (None: it can take some calls)."""
     if name == "torch":
         return None
     lib = _library(name)
     if isinstance(lib, str):
         return lib
-    if device_type == "cuda" and not lib[2]:
-        return f"the installed spconv is its CPU build (forward only, no CUDA); {INSTALL[name]}"
-    if device_type != "cuda" and name == "spconv-triton":
-        return f"spconv-triton computes on GPUs only, not on the {device_type}"
-    if device_type not in ("cuda", "cpu"):
+    if capability(name, device_type) is None:
+        if name == "spconv" and device_type == "cuda":
+            return f"the installed spconv is its CPU build (forward only, no CUDA); {INSTALL[name]}"
+        if name == "spconv-triton":
+            return f"spconv-triton computes on GPUs only, not on the {device_type}"
         return f"{name} computes on CUDA (and spconv's forward on the CPU), not on the {device_type}"
     return None
 
 
-def choose(device_type: str) -> str:
-    """The backend that computes a convolution on ``device_type`` now (an error where the requested one cannot)."""
+def _dtype(dtype: torch.dtype) -> str:
+    return str(dtype).removeprefix("torch.")
+
+
+def refusal(name: str, call: Call) -> str | None:
+    """Why library backend ``name`` cannot take ``call`` (None: it can)."""
+    why = problem(name, call.device)
+    if why:
+        return why
+    cap = capability(name, call.device)
+    assert cap is not None
+    if call.pairs == 0:
+        return "a neighbour map with no pair (spconv's CUDA code asserts on it)"
+    if call.autocast and call.dtype not in cap.autocast:
+        takes = f"it casts autocast's inputs to {', '.join(map(_dtype, cap.autocast))}" if cap.autocast else \
+            "it does not take part in autocast there"
+        return f"{_dtype(call.dtype)} autocast on the {call.device}: {takes}"
+    if not call.autocast and call.dtype not in cap.dtypes:
+        return (f"{_dtype(call.dtype)} features: {name} computes {' and '.join(map(_dtype, cap.dtypes))} only on "
+                f"the {call.device} ({cap.source})")
+    if call.gradients and not cap.gradients:
+        return (f"spconv's CPU build computes the forward only (its backward needs CUDA); compute gradients here "
+                f"with {ENV}=torch, or run without gradients (torch.no_grad()) for inference")
+    return None
+
+
+def _deterministic() -> bool:
+    return torch.are_deterministic_algorithms_enabled()
+
+
+def choose(device_type: str, call: Call | None = None) -> str:
+    """The backend that computes ``call`` (a float32 call on ``device_type`` when not given) now: under ``auto`` the
+    first library that can take it (on CUDA, and not while PyTorch's deterministic algorithms are on), else torch;
+    an explicit backend that cannot take it is an error naming the reason."""
+    call = call or Call(device_type, torch.float32)
     want = requested()
     if want == "auto":
-        if device_type == "cuda":
+        if device_type in AUTO_DEVICES and not _deterministic():
             for name in ("spconv", "spconv-triton"):
-                if problem(name, device_type) is None:
+                if refusal(name, call) is None:
                     return name
         return "torch"
-    why = problem(want, device_type)
+    if want == "torch":
+        return want
+    why = refusal(want, call)
     if why:
         source = "using()" if _override else ENV
-        raise SparseBackendError(f"sparse backend {want} ({source}) on the {device_type}: {why}")
+        raise SparseBackendError(f"sparse backend {want} ({source}) on the {device_type}: {why}"
+                                 + ("" if problem(want, device_type) else
+                                    f"; {ENV}=auto runs such calls on the torch path"))
     return want
 
 
@@ -144,22 +261,25 @@ def describe(device_type: str) -> str:
     except SparseBackendError as exc:
         return f"sparse convolutions: cannot run — {exc}"
     how = f"{ENV}={want}" if not _override else f"using({want!r})"
-    return f"sparse convolutions on the {device_type}: {name} ({how})"
+    where = "" if name == "torch" or device_type != "cuda" else \
+        " (float64 and bfloat16 calls, and every call under the deterministic settings, on torch)"
+    return f"sparse convolutions on the {device_type}: {name} ({how}){where}"
 
 
 def _pairs(book: Any) -> tuple[Tensor, Tensor]:
     """spconv's form of a map, kept on it: (2, K, max pairs) int32 (input rows, output rows; -1 past each offset's
-    count) and the counts (K,) int32."""
+    count) and the counts (K,) int32. Built from the map's host-side bounds: no read back from the device."""
     if "spconv" in book.cache:
         return book.cache["spconv"]
     device = book.in_idx.device
-    bounds = torch.tensor(book.bounds, device=device)
-    counts = bounds[1:] - bounds[:-1]
-    volume = len(book.bounds) - 1
-    width = int(counts.max()) if volume else 0
+    counts_host = [e - s for s, e in zip(book.bounds[:-1], book.bounds[1:])]
+    volume = len(counts_host)
+    width = max(counts_host, default=0)
+    counts = torch.tensor(counts_host, dtype=torch.int64, device=device)
+    starts = torch.tensor(book.bounds[:-1], dtype=torch.int64, device=device)
     pairs = torch.full((2, volume, max(width, 1)), -1, dtype=torch.int32, device=device)
-    offset = torch.repeat_interleave(torch.arange(volume, device=device), counts)
-    slot = torch.arange(book.in_idx.numel(), device=device) - bounds[:-1][offset]
+    offset = torch.repeat_interleave(torch.arange(volume, device=device), counts, output_size=book.in_idx.numel())
+    slot = torch.arange(book.in_idx.numel(), device=device) - starts[offset]
     pairs[0, offset, slot] = book.in_idx.int()
     pairs[1, offset, slot] = book.out_idx.int()
     book.cache["spconv"] = pairs, counts.int()
@@ -167,14 +287,9 @@ def _pairs(book: Any) -> tuple[Tensor, Tensor]:
 
 
 def library_conv(name: str, features: Tensor, weight: Tensor, book: Any, rows_out: int) -> Tensor:
-    """The convolution on ``book`` computed by library backend ``name``; ``weight`` (K, in, out) as the torch path
-    takes it (passed on as spconv's (out, K, in))."""
+    """The convolution on ``book`` computed by library backend ``name`` (which :func:`choose` found able to take
+    it); ``weight`` (K, in, out) as the torch path takes it (passed on as spconv's (out, K, in), contiguous)."""
     functional, algo, _ = _library(name)  # type: ignore[misc]
-    if features.device.type != "cuda" and torch.is_grad_enabled() and (features.requires_grad or
-                                                                         weight.requires_grad):
-        raise SparseBackendError(f"sparse backend {name} on the {features.device.type}: spconv's CPU build computes "
-                                 "the forward only (its backward needs CUDA); compute gradients here with "
-                                 f"{ENV}=torch, or run without gradients (torch.no_grad()) for inference")
     pairs, counts = _pairs(book)
     filters = weight.permute(2, 0, 1).contiguous()
     if features.device.type != "cpu":
@@ -193,5 +308,5 @@ def ran(name: str) -> None:
         seen.add(name)
 
 
-__all__ = ["CHOICES", "ENV", "SparseBackendError", "choose", "describe", "library_conv", "problem", "ran", "record",
-           "requested", "using"]
+__all__ = ["CAPABILITIES", "CHOICES", "ENV", "Call", "Capability", "SparseBackendError", "capability", "choose",
+           "describe", "library_conv", "problem", "ran", "record", "refusal", "requested", "using"]

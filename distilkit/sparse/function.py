@@ -8,8 +8,9 @@ Deterministic on every device by construction: within one kernel offset no two p
 input row), so each scatter-add (``index_add_``) writes distinct rows — one addition per row per offset, the
 offsets in their fixed order — and the order its threads run in (atomics on CUDA) cannot change a bit; the maps
 themselves come from sorts and searches, deterministic too. Under ``DISTILKIT_DETERMINISTIC`` PyTorch still routes
-CUDA's ``index_add_`` through its sorted deterministic path (no warning, slower; ``scripts/gpu-check`` measures the
-cost). The CPU tests run this same code (``tests/test_sparse.py``: shuffling an offset's pairs changes no bit). Under autocast (``train.precision: bf16 | fp16``) the products run in autocast's dtype and the sums in
+CUDA's ``index_add_`` through ``index_put_(accumulate=True)``'s sorted path (slower, and reading the index's range
+to the host in some versions): since each of these scatter-adds writes distinct rows, they run with PyTorch's flag
+lowered for that call alone (:func:`_scatter_add`), the order fixed by the offsets' loop either way. The CPU tests run this same code (``tests/test_sparse.py``: shuffling an offset's pairs changes no bit). Under autocast (``train.precision: bf16 | fp16``) the products run in autocast's dtype and the sums in
 float32 (as spconv accumulates half-precision products); the output has autocast's dtype.
 """
 
@@ -21,8 +22,25 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from distilkit.sparse.backend import choose, library_conv, ran
+from distilkit.sparse.backend import Call, choose, library_conv, ran
 from distilkit.sparse.rulebook import Rulebook
+
+
+def _scatter_add(out: Tensor, index: Tensor, values: Tensor) -> None:
+    """``out.index_add_(0, index, values)`` for an ``index`` without repeats (one kernel offset's output rows, or its
+    input rows in the backward): one addition per row, so the same bits whatever order the threads run in. On CUDA
+    under PyTorch's deterministic algorithms the plain kernel is used all the same (the flag lowered for this call,
+    restored after): the deterministic routing through ``index_put_`` sorts the index and syncs with the host for
+    nothing here."""
+    if out.device.type == "cuda" and torch.are_deterministic_algorithms_enabled():
+        warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+        torch.use_deterministic_algorithms(False)
+        try:
+            out.index_add_(0, index, values)
+        finally:
+            torch.use_deterministic_algorithms(True, warn_only=warn_only)
+        return
+    out.index_add_(0, index, values)
 
 
 def _compute_dtypes(features: Tensor) -> tuple[torch.dtype, torch.dtype]:
@@ -52,7 +70,7 @@ def _function(device_type: str) -> type[torch.autograd.Function]:
             for k in range(weight.shape[0]):
                 s, e = bounds[k], bounds[k + 1]
                 if e > s:
-                    out.index_add_(0, out_idx[s:e], torch.mm(f.index_select(0, in_idx[s:e]), w[k]).to(acc))
+                    _scatter_add(out, out_idx[s:e], torch.mm(f.index_select(0, in_idx[s:e]), w[k]).to(acc))
             ctx.save_for_backward(f, w, in_idx, out_idx)
             ctx.bounds, ctx.dtypes = bounds, (features.dtype, weight.dtype, acc)
             return out.to(dtype)
@@ -75,7 +93,7 @@ def _function(device_type: str) -> type[torch.autograd.Function]:
                 if grad_w is not None:
                     grad_w[k] = torch.mm(f.index_select(0, in_idx[s:e]).t(), g).to(acc)
                 if grad_f is not None:
-                    grad_f.index_add_(0, in_idx[s:e], torch.mm(g, w[k].t()).to(acc))
+                    _scatter_add(grad_f, in_idx[s:e], torch.mm(g, w[k].t()).to(acc))
             return (grad_f.to(features_dtype) if grad_f is not None else None,
                     grad_w.to(weight_dtype) if grad_w is not None else None, None, None, None, None)
 
@@ -88,7 +106,11 @@ def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: in
     if weight.shape[0] != len(book.bounds) - 1:
         raise ValueError(f"sparse convolution: {weight.shape[0]} kernel offsets in the weight, "
                          f"{len(book.bounds) - 1} in the neighbour map")
-    backend = choose(features.device.type)
+    pairs = book.pairs_host
+    if pairs == 0:  # nothing to multiply: zeros (gradients zeros) on the torch path, never a library's (spconv asserts)
+        return _function(features.device.type).apply(features, weight, book.in_idx, book.out_idx, book.bounds,
+                                                      rows_out)
+    backend = choose(features.device.type, Call.of(features, weight, pairs))
     ran(backend)
     if backend != "torch":
         return library_conv(backend, features, weight, book, rows_out)

@@ -46,6 +46,11 @@ class Rulebook:
         return int(self.in_idx.numel())
 
     @property
+    def pairs_host(self) -> int:
+        """The number of pairs, read from the host-side bounds (no device sync)."""
+        return self.bounds[-1] - self.bounds[0]
+
+    @property
     def volume(self) -> int:
         """The number of kernel offsets the map holds."""
         return len(self.bounds) - 1
@@ -83,44 +88,63 @@ def _offsets(kernel: Triple) -> list[Triple]:
     return list(product(range(kernel[0]), range(kernel[1]), range(kernel[2])))
 
 
-def _assemble(ins: list[Tensor], outs: list[Tensor]) -> tuple[Tensor, Tensor, list[int]]:
-    bounds = [0]
-    for t in ins:
-        bounds.append(bounds[-1] + int(t.numel()))
-    return torch.cat(ins), torch.cat(outs), bounds
-
-
 def sort_keys(indices: Tensor, shape: Sequence[int]) -> tuple[Tensor, Tensor]:
     """(sorted keys, the stable sort's permutation) of (N, 4) indices inside the grid ``shape``."""
     return torch.sort(keys(indices, shape), stable=True)
 
 
+CHUNK = 1 << 21  # (kernel offsets x sites) looked up at once: a few tens of MB of int64, two host syncs a chunk
+
+
+def _chunks(volume: int, sites: int) -> list[range]:
+    """Kernel offsets in groups of about :data:`CHUNK` (offset, site) pairs each."""
+    step = max(1, CHUNK // max(sites, 1))
+    return [range(s, min(s + step, volume)) for s in range(0, volume, step)]
+
+
+def _bounds(counts: list[Tensor]) -> list[int]:
+    """Boundaries of the offsets' pairs from their counts, read to the host once."""
+    bounds = [0]
+    for c in torch.cat(counts).tolist() if counts else []:
+        bounds.append(bounds[-1] + int(c))
+    return bounds
+
+
 def submanifold(indices: Tensor, shape: Sequence[int], kernel: Triple, dilation: Triple,
                 sorted_keys: tuple[Tensor, Tensor] | None = None) -> Rulebook:
     """Submanifold convolution's map: outputs at the inputs' sites, each reading its neighbours at the kernel's
-    offsets about the centre (odd kernels). ``sorted_keys``: :func:`sort_keys` of ``indices``, when known."""
+    offsets about the centre (odd kernels). ``sorted_keys``: :func:`sort_keys` of ``indices``, when known.
+
+    All offsets of a chunk are looked up at once, so a map costs two host syncs a chunk (the found pairs' positions
+    and, at the end, the counts), not a few per offset; the pairs come out in the same order (offset, then site)."""
     if any(k % 2 == 0 for k in kernel):
         raise ValueError(f"a submanifold convolution needs an odd kernel (centred on each site), got {kernel}")
     device = indices.device
     shape = tuple(int(s) for s in shape)
     sorted_keys, order = sorted_keys if sorted_keys is not None else sort_keys(indices, shape)
     coords = indices.long()
-    rows = torch.arange(coords.shape[0], device=device)
-    ins, outs = [], []
+    n_sites = coords.shape[0]
+    rows = torch.arange(n_sites, device=device)
+    deltas = [tuple((o - (k - 1) // 2) * d for o, k, d in zip(off, kernel, dilation)) for off in _offsets(kernel)]
     size = torch.tensor(shape, device=device)
-    for off in _offsets(kernel):
-        delta = torch.tensor([(o - (k - 1) // 2) * d for o, k, d in zip(off, kernel, dilation)], device=device)
-        if not bool(delta.any()):  # the centre: every site with itself
-            ins.append(rows)
-            outs.append(rows)
-            continue
-        n = coords[:, 1:] + delta
-        inside = ((n >= 0) & (n < size)).all(dim=1)
-        query = ((coords[inside, 0] * shape[0] + n[inside, 0]) * shape[1] + n[inside, 1]) * shape[2] + n[inside, 2]
-        src, found = _lookup(sorted_keys, order, query)
-        ins.append(src[found])
-        outs.append(rows[inside][found])
-    in_idx, out_idx, bounds = _assemble(ins, outs)
+    ins, outs, counts = [], [], []
+    for chunk in _chunks(len(deltas), n_sites):
+        delta = torch.tensor([deltas[i] for i in chunk], device=device, dtype=torch.int64)
+        n = coords[None, :, 1:] + delta[:, None, :]  # (c, N, 3) the neighbours' coordinates
+        inside = ((n >= 0) & (n < size)).all(dim=2)
+        query = ((coords[None, :, 0] * shape[0] + n[..., 0]) * shape[1] + n[..., 1]) * shape[2] + n[..., 2]
+        src, found = _lookup(sorted_keys, order, query.reshape(-1))
+        src, valid = src.view(len(chunk), n_sites), (found.view(len(chunk), n_sites) & inside)
+        for j, i in enumerate(chunk):
+            if not any(deltas[i]):  # the centre: every site with itself (duplicates included)
+                src[j], valid[j] = rows, True
+        kk, rr = valid.nonzero(as_tuple=True)
+        ins.append(src[kk, rr])
+        outs.append(rr)
+        counts.append(valid.sum(dim=1))
+    bounds = _bounds(counts)
+    in_idx = torch.cat(ins) if ins else rows[:0]
+    out_idx = torch.cat(outs) if outs else rows[:0]
     return Rulebook(in_idx, out_idx, bounds, indices, shape, indices, shape, kernel, dilation,  # type: ignore[arg-type]
                     subm=True)
 
@@ -137,28 +161,33 @@ def output_shape(shape: Sequence[int], kernel: Triple, stride: Triple, padding: 
 def strided(indices: Tensor, shape: Sequence[int], kernel: Triple, stride: Triple, padding: Triple,
             dilation: Triple) -> Rulebook:
     """A regular (strided) convolution's map: every output site some active input reaches (o s = n + p - i d), its
-    rows ordered by (batch, x, y, z)."""
+    rows ordered by (batch, x, y, z). The offsets of a chunk at once (as :func:`submanifold`)."""
     device = indices.device
     shape = tuple(int(s) for s in shape)
     out_shape = output_shape(shape, kernel, stride, padding, dilation)
     coords = indices.long()
-    rows = torch.arange(coords.shape[0], device=device)
+    n_sites = coords.shape[0]
+    rows = torch.arange(n_sites, device=device)
     s, p, d = (torch.tensor(v, device=device) for v in (stride, padding, dilation))
     size = torch.tensor(out_shape, device=device)
-    cand: list[tuple[Tensor, Tensor]] = []  # per kernel index: (input rows, output coordinates)
-    for off in _offsets(kernel):
-        num = coords[:, 1:] + p - torch.tensor(off, device=device) * d
+    offsets = _offsets(kernel)
+    src_rows, out_coords, counts = [], [], []
+    for chunk in _chunks(len(offsets), n_sites):
+        off = torch.tensor([offsets[i] for i in chunk], device=device, dtype=torch.int64)
+        num = coords[None, :, 1:] + p - off[:, None, :] * d  # (c, N, 3)
         o = torch.div(num, s, rounding_mode="floor")
-        ok = ((num % s) == 0).all(dim=1) & ((o >= 0) & (o < size)).all(dim=1)
-        cand.append((rows[ok], torch.cat([coords[ok, :1], o[ok]], dim=1)))
-    all_out = torch.cat([c for _, c in cand]) if cand else coords.new_zeros((0, 4))
-    out_keys = torch.unique(keys(all_out, out_shape)) if all_out.numel() else all_out.new_zeros((0,))
+        ok = ((num % s) == 0).all(dim=2) & ((o >= 0) & (o < size)).all(dim=2)
+        kk, rr = ok.nonzero(as_tuple=True)
+        src_rows.append(rr)
+        out_coords.append(torch.cat([coords[rr, :1], o[kk, rr]], dim=1))
+        counts.append(ok.sum(dim=1))
+    bounds = _bounds(counts)
+    all_out = torch.cat(out_coords) if out_coords else coords.new_zeros((0, 4))
+    all_keys = keys(all_out, out_shape)
+    out_keys = torch.unique(all_keys) if all_out.numel() else all_out.new_zeros((0,))
     out_indices = _from_keys(out_keys, out_shape)
-    ins, outs = [], []
-    for src, oc in cand:
-        ins.append(src)
-        outs.append(torch.searchsorted(out_keys, keys(oc, out_shape)))
-    in_idx, out_idx, bounds = _assemble(ins, outs) if ins else (rows[:0], rows[:0], [0])
+    in_idx = torch.cat(src_rows) if src_rows else rows[:0]
+    out_idx = torch.searchsorted(out_keys, all_keys)
     return Rulebook(in_idx, out_idx, bounds, out_indices, out_shape, indices, shape, kernel,  # type: ignore[arg-type]
                     dilation)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any, Iterable
+
 import torch
 
 
@@ -12,4 +14,19 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-__all__ = ["pick_device"]
+def stage_devices(recipe: Any, only: Iterable[str] | None = None) -> dict[str, torch.device]:
+    """The device each stage of a validated recipe (:class:`~distilkit.recipe.schema.Recipe`) trains on, by stage
+    name, in the recipe's order; ``only``: just these stages and the stages they need (``--stage``; names the recipe
+    does not have are left to the run to refuse)."""
+    names = list(recipe.stages)
+    if only:
+        from distilkit.recipe.graph import needed_stages
+
+        known = {n for n in only if n in recipe.stages}
+        if known:
+            keep = needed_stages(recipe, known)
+            names = [n for n in names if n in keep]
+    return {n: pick_device(recipe.stages[n].train.device) for n in names}
+
+
+__all__ = ["pick_device", "stage_devices"]

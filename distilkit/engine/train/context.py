@@ -21,6 +21,9 @@ class RecipeRun:
 
     def __init__(self, recipe: Recipe | str | Path, output: str | Path = "runs", console: Any = None,
                  quiet: bool = False, seed: int | None = None, overrides: dict[str, Any] | None = None) -> None:
+        from distilkit.sparse.backend import requested
+
+        requested()  # DISTILKIT_SPARSE names a backend that exists: checked before any stage starts
         self.source = str(recipe) if not isinstance(recipe, Recipe) else "recipe"
         if overrides and isinstance(recipe, Recipe):
             raise ValueError("overrides apply to a recipe file; change a Recipe object with model_copy")

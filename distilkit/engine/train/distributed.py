@@ -21,7 +21,7 @@ import datetime
 import os
 import sys
 from dataclasses import dataclass
-from typing import Iterable
+from typing import Iterable, Mapping
 
 import torch
 from torch import nn
@@ -133,18 +133,80 @@ def from_slurm() -> None:
     env.setdefault("MASTER_PORT", str(20000 + int(env.get("SLURM_JOB_ID", "0")) % 20000))
 
 
-def world_from_env() -> World:
+AUTO = "*"  # the stages of a run whose devices world_from_env was not given: as ``auto`` would pick
+
+
+def cuda_stages(devices: Mapping[str, torch.device] | None) -> list[str]:
+    """The stages of ``devices`` (stage name -> the device it trains on) that train on CUDA."""
+    return [name for name, device in (devices or {}).items() if torch.device(device).type == "cuda"]
+
+
+def refuse_more_processes_than_gpus(processes: int, devices: Mapping[str, torch.device], how: str) -> None:
+    """A :class:`~distilkit.errors.DistilkitError` when ``processes`` processes on this node (``how``: who starts
+    them, e.g. ``--nproc-per-node 2``) would train stages on CUDA and the node has fewer GPUs
+    (``torch.cuda.device_count()``): each process of a run trains on a GPU of its own
+    (``torch.cuda.set_device(LOCAL_RANK)``; NCCL refuses two ranks on one GPU). Stages that all train on the CPU need
+    no GPU: nothing is refused."""
+    on_cuda = cuda_stages(devices)
+    if not on_cuda or processes <= 1:
+        return
+    count = torch.cuda.device_count()
+    if processes <= count:
+        return
+    from distilkit.errors import DistilkitError
+
+    stages = (f"the stages (train.device auto, a GPU available) train" if on_cuda == [AUTO] else
+              f"stages {', '.join(on_cuda)} train" if len(on_cuda) > 1 else f"stage {on_cuda[0]} trains")
+    fewer = f"start at most {count} per node, or " if count else ""
+    raise DistilkitError(f"{processes} processes on this node ({how}) and {stages} on cuda, one GPU per process: this "
+                         f"node has {count} GPU{'' if count == 1 else 's'} (torch.cuda.device_count()); {fewer}train "
+                         "on the CPU with --set 'stages.*.train.device=cpu' (gloo over the host)")
+
+
+def _node_processes(local: int) -> tuple[int, str]:
+    """How many processes of the run this node holds, at least, and who said so: torchrun's ``LOCAL_WORLD_SIZE``
+    (``--nproc-per-node``), Slurm's tasks per node (the most on any node of the step: a run one node cannot hold
+    stops everywhere), else ``LOCAL_RANK + 1``."""
+    env = os.environ
+    if "LOCAL_WORLD_SIZE" in env:
+        return int(env["LOCAL_WORLD_SIZE"]), (f"torchrun's --nproc-per-node {env['LOCAL_WORLD_SIZE']}; this one "
+                                             f"LOCAL_RANK {local}")
+    import re
+
+    for key in ("SLURM_STEP_TASKS_PER_NODE", "SLURM_TASKS_PER_NODE", "SLURM_NTASKS_PER_NODE"):
+        counts = [int(n) for n in re.findall(r"(\d+)(?:\(x\d+\))?", env.get(key, ""))]
+        if counts and "SLURM_LOCALID" in env:
+            return max(max(counts), local + 1), f"Slurm's {key}={env[key]}; this one SLURM_LOCALID {local}"
+    if "SLURM_LOCALID" in env and "TORCHELASTIC_RUN_ID" not in env:
+        return local + 1, f"Slurm's SLURM_LOCALID {local}"
+    return local + 1, f"LOCAL_RANK {local}"
+
+
+def world_from_env(devices: Mapping[str, torch.device] | None = None) -> World:
     """The world ``torchrun`` describes in the environment (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``; or Slurm's
-    tasks of an ``srun`` step, :func:`from_slurm`), its process group started (gloo for CPU tensors, NCCL for CUDA
-    ones); a single process without them."""
+    tasks of an ``srun`` step, :func:`from_slurm`), its process group started; a single process without them.
+
+    ``devices``: the device each stage of the run trains on (stage name -> device,
+    :func:`~distilkit.engine.assemble.devices.stage_devices`). Where a stage trains on CUDA, each process takes the GPU
+    of its ``LOCAL_RANK`` (``torch.cuda.set_device``) and CUDA tensors are reduced by NCCL (CPU ones by gloo); more
+    processes on the node than GPUs is then an error naming both (:func:`refuse_more_processes_than_gpus`; ``distilkit
+    run --nproc-per-node N`` refuses it before starting torchrun, this in each process for torchrun or Slurm started
+    directly) — two processes are not put on one GPU. Where every stage trains on the CPU, the processes need the
+    host only: gloo, no ``set_device``, whatever GPUs the machine has (so two processes on a one-GPU machine run
+    there). ``None`` (the stages are not known: the library's own callers pass them): CUDA where a GPU is available,
+    as a stage on ``auto`` would train. The first call of a process starts the group; later ones read it."""
     from_slurm()
     size = int(os.environ.get("WORLD_SIZE", "1"))
     if size <= 1:
         return SINGLE
     rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
     if not torch.distributed.is_initialized():
+        if devices is None:
+            devices = {AUTO: torch.device("cuda" if torch.cuda.is_available() else "cpu")}
         backend = "gloo"
-        if torch.cuda.is_available():
+        if cuda_stages(devices):
+            processes, how = _node_processes(local)
+            refuse_more_processes_than_gpus(processes, devices, how)
             torch.cuda.set_device(local)
             backend = "cpu:gloo,cuda:nccl"
         torch.distributed.init_process_group(backend, timeout=datetime.timedelta(hours=2))
@@ -158,4 +220,5 @@ def sync_batchnorm(model: nn.Module, world: World, device: torch.device) -> nn.M
     return model
 
 
-__all__ = ["SINGLE", "World", "first_host", "from_slurm", "leave", "sync_batchnorm", "world_from_env"]
+__all__ = ["SINGLE", "World", "cuda_stages", "first_host", "from_slurm", "leave", "refuse_more_processes_than_gpus",
+           "sync_batchnorm", "world_from_env"]

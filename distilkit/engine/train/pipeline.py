@@ -70,11 +70,12 @@ class Pipeline(RecipeRun):
         ``only``: just these stages and the stages they need (then no recipe report is written: it would
         describe part of the recipe). A stage another process is training is waited for and then reused
         (``wait=False``: :class:`~distilkit.errors.RunLockedError` instead)."""
+        from distilkit.engine.assemble.devices import stage_devices
         from distilkit.engine.train.distributed import world_from_env
 
         if only:
             self.check_stages("--stage", only)
-        self.world = world_from_env()
+        self.world = world_from_env(stage_devices(self.recipe, only))
         if not self.world.main:  # one process prints and writes
             from distilkit.console import make_console
 

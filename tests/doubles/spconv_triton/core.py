@@ -1,0 +1,1 @@
+from spconv_cuda_contract import ConvAlgo  # noqa: F401
