@@ -15,18 +15,114 @@ import torch
 from distilkit.errors import DataError
 
 
-def _reason(exc: Exception) -> str:
-    """What torch says is wrong with a file, without its advice to load it with ``weights_only=False`` (which would
-    run code from an untrusted file)."""
+_ZIP = b"PK\x03\x04"  # torch.save's format since 1.6: a zip archive, its directory at the end
+_LEGACY = b"\x80\x02\x8a\x0a\x6c\xfc\x9c\x46\xf9\x20\x6a\xa8\x50\x19"  # the legacy format's pickled magic number
+
+
+def _cut_short(path: Path, exc: Exception) -> str | None:
+    """"it is not a complete PyTorch file (N bytes): ..." where that is what is wrong with ``path`` (torch failed
+    reading it with ``exc``): empty, a zip archive without its end (the directory a zip keeps there), the legacy
+    format ending before its data does, or the first bytes of either; None for any other file."""
+    import zipfile
+
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(len(_LEGACY))
+    text = str(exc).lower()
+    if size == 0:
+        why = "the file is empty"
+    elif size < len(_LEGACY) and (_ZIP.startswith(head) or _LEGACY.startswith(head) or head.startswith(_ZIP)):
+        why = "it ends within the first bytes of one"
+    elif head.startswith(_ZIP) and not zipfile.is_zipfile(path):
+        why = "the end of its zip archive is missing"
+    elif head.startswith(_LEGACY) and (isinstance(exc, EOFError) or type(exc).__name__ == "error"  # struct.error
+                                       or "eof" in text or "truncated" in text):
+        why = "it ends before its data does"
+    else:
+        return None
+    return f"it is not a complete PyTorch file ({size} bytes): {why} (copied or downloaded only in part?)"
+
+
+def _globals_in(path: Path) -> list[str]:
+    """The Python names (module.qualname) the pickle of a torch.save zip file refers to beyond torch's own and the
+    builtin containers, in order, once each ([] where it cannot be read). Read from the pickle's opcodes, not run:
+    ``GLOBAL`` (protocol 2, torch's), ``STACK_GLOBAL`` (protocol 4) and protocol 2's spelling of a nested class,
+    ``getattr(module.Outer, "Inner")``, which torch's message names only as ``getattr``."""
+    import pickletools
+    import zipfile
+
+    plain = ("torch.", "collections.OrderedDict", "builtins.", "_codecs.", "__builtin__.")
+    try:
+        with zipfile.ZipFile(path) as z:
+            data = z.read(next(n for n in z.namelist() if n.endswith("data.pkl")))
+        names: list[str] = []
+        pushed: list[str | None] = []  # what the latest opcodes pushed: a string or name, else None
+        memo: dict[int, str | None] = {}
+        for op, arg, _ in pickletools.genops(data):
+            if op.name == "GLOBAL":
+                pushed.append(str(arg).replace(" ", "."))
+                names.append(str(pushed[-1]))
+            elif op.name == "STACK_GLOBAL" and len(pushed) >= 2 and None not in pushed[-2:]:
+                pushed[-2:] = [f"{pushed[-2]}.{pushed[-1]}"]
+                names.append(str(pushed[-1]))
+            elif isinstance(arg, str) and ("UNICODE" in op.name or "STRING" in op.name):
+                pushed.append(arg)
+            elif op.name == "MEMOIZE":
+                memo[len(memo)] = pushed[-1] if pushed else None
+            elif op.name in ("PUT", "BINPUT", "LONG_BINPUT"):
+                memo[int(arg)] = pushed[-1] if pushed else None
+            elif op.name in ("GET", "BINGET", "LONG_BINGET"):
+                pushed.append(memo.get(int(arg)))
+            elif op.name == "TUPLE2" and len(pushed) >= 3 and None not in pushed[-2:] \
+                    and pushed[-3] in ("builtins.getattr", "__builtin__.getattr"):
+                if names and names[-1] == pushed[-2]:  # Outer named as getattr's argument: Outer.Inner instead
+                    names.pop()
+                names.append(f"{pushed[-2]}.{pushed[-1]}")  # getattr(Outer, "Inner")
+                pushed.append(None)
+            else:
+                pushed.append(None)
+            pushed = pushed[-3:]
+    except Exception:
+        return []
+    return list(dict.fromkeys(n for n in names if not n.startswith(plain)))
+
+
+def _reason(exc: Exception, path: Path) -> str:
+    """What is wrong with a file torch could not read as plain weights, in one line: the Python names it holds that
+    only running code from it could rebuild (module.qualname, without torch's advice to load it with
+    ``weights_only=False``, which would run that code), or that it is not a complete PyTorch file (empty, or cut
+    short: its size), or torch's own first sentence."""
+    import re
+
+    short = _cut_short(path, exc)
+    if short is not None:
+        return short
     text = str(exc)
     if text.startswith("Weights only load failed"):
+        names = _globals_in(path) or list(dict.fromkeys(re.findall(r"GLOBAL ([A-Za-z_][\w.]*)", text)))
+        if names:
+            if len(names) > 4:
+                names = [*names[:3], f"{len(names) - 3} more"]
+            held = ", ".join(names[:-1]) + " and " + names[-1] if len(names) > 1 else names[0]
+            return (f"it holds {held}, which plain weights (tensors, numbers, strings, lists, dicts) never do and "
+                    "only code from the file could rebuild; distilkit never runs code from a file (if you trust "
+                    "this one, load it in Python and torch.save its state dict alone)")
         paragraphs = [p.strip() for p in text.split("\n\n") if p.strip()]
         detail = next((p for p in paragraphs[1:] if "weights_only" not in p and not p.startswith("Check the")), "")
         detail = detail.replace("WeightsUnpickler error:", "").strip()
-        return (f"not loadable as plain weights{f': {detail[:300]}' if detail else ''}; distilkit reads weights "
-                "only and never runs code from a file")
-    first = text.strip().split("\n")[0]
-    return f"{type(exc).__name__}: {first[:300]}"
+        return (f"not loadable as plain weights{f': {_sentence(detail)}' if detail else ''}; distilkit reads "
+                "weights only and never runs code from a file")
+    return f"{type(exc).__name__}: {_sentence(text) or 'no message'}"
+
+
+def _sentence(text: str, limit: int = 300) -> str:
+    """The first sentence of ``text``'s first line, cut at a word (with "...") where it runs past ``limit``."""
+    first = text.strip().split("\n")[0].strip()
+    end = first.find(". ")
+    first = first[:end + 1] if end >= 0 else first
+    if len(first) <= limit:
+        return first
+    return first[:limit].rsplit(" ", 1)[0] + " ..."
 
 
 def _load_safely(path: Path) -> Any:
@@ -40,7 +136,7 @@ def _load_safely(path: Path) -> Any:
                 raise
             return torch.load(path, map_location="cpu", weights_only=True)  # the legacy (non-zip) format
     except Exception as exc:
-        raise DataError(f"{path}: not a readable checkpoint ({_reason(exc)})") from None
+        raise DataError(f"{path}: not a readable checkpoint: {_reason(exc, path)}") from None
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -178,17 +274,23 @@ def load_weights(model: torch.nn.Module, weights: dict[str, Any], strict: bool, 
 
 
 def not_finite(weights: dict[str, Any], only: Any = None) -> str | None:
-    """The first floating-point tensor of ``weights`` (of the keys in ``only``, if given) holding NaN or infinite
-    values, named (as the file spells it too) with how many; None where every value is finite."""
+    """The first tensor of ``weights`` (of the keys in ``only``, if given) holding values no trained model has,
+    named (as the file spells it too) with how many: a floating-point tensor with NaN or infinite values, or a
+    BatchNorm ``running_var`` with negative ones (a variance is never negative; one of 0 is a channel that was
+    constant in training, e.g. a dead one, and is kept); None where every value is as it can be."""
     spell = spelling(weights)
     for key, value in weights.items():
         if only is not None and key not in only:
             continue
         if isinstance(value, torch.Tensor) and value.is_floating_point():
+            where = f"{key}{in_the_file(key, tuple(value.shape), spell)}"
             finite = torch.isfinite(value)
             if not bool(finite.all()):
-                return (f"{key}{in_the_file(key, tuple(value.shape), spell)} holds {int((~finite).sum()):,} NaN or "
-                        f"infinite values of {value.numel():,}")
+                return f"{where} holds {int((~finite).sum()):,} NaN or infinite values of {value.numel():,}"
+            if key.endswith("running_var") and bool((value < 0).any()):
+                return (f"{where} (a BatchNorm running variance) holds {int((value < 0).sum()):,} negative values "
+                        f"of {value.numel():,} (the lowest {float(value.min()):.4g}): not the statistics of a trained "
+                        "model")
     return None
 
 

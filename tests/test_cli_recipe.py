@@ -24,7 +24,8 @@ def write(tmp_path: Path, data, name: str = "r.yaml") -> Path:
 
 
 def validate(path: Path, capsys) -> tuple[int, str]:
-    code = main(["validate", str(path), "--no-memory"])  # the memory estimate: tests/test_memory.py
+    code = main(["validate", str(path), "--static"])  # the memory estimate: tests/test_memory.py; the terms' dry
+    # step: tests/test_validate_first_step.py
     captured = capsys.readouterr()
     return code, captured.out + captured.err
 
@@ -46,7 +47,7 @@ def test_shipped_recipes_validate(recipe: Path, capsys, folder) -> None:
     if "root" in data.get("params", {}):  # a real-data recipe: pointed at a folder, as its header says
         extra = ["--set", f"data.params.root={folder}", 'data.params.train=["00"]', 'data.params.val=["08"]',
                  *(["data.params.scribbles=scribblesc"] if "scribbles" in data["params"] else [])]
-        code = main(["validate", str(recipe), "--no-memory", *extra])
+        code = main(["validate", str(recipe), "--static", *extra])  # the paper networks' dry steps take minutes here
         captured = capsys.readouterr()
         code, out = code, captured.out + captured.err
     else:

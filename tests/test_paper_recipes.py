@@ -56,7 +56,7 @@ def test_every_paper_recipe_validates_and_says_which_networks_it_builds(folder, 
     assert {p.stem for p in PAPER} == set(NETWORKS)  # a new paper recipe gets its line here
     for path in PAPER:
         sets = overrides(path.stem, folder)
-        assert main(["validate", "--no-memory", str(path), *(["--set", *sets] if sets else [])]) == 0, path
+        assert main(["validate", "--static", str(path), *(["--set", *sets] if sets else [])]) == 0, path
         out = capsys.readouterr().out
         for line in NETWORKS[path.stem]:
             assert line in out, (path.stem, line, out)

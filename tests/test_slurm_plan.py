@@ -10,7 +10,9 @@ import os
 import re
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -38,6 +40,12 @@ done
 SCONTROL = r"""#!/usr/bin/env bash
 echo "JobId=$3 JobState=FAILED Reason=NonZeroExitCode"
 """
+NEVER = r"""#!/bin/sh
+# a Slurm command a plan must not call: leaves a mark (shell builtins only: PATH may hold nothing else) and fails
+: > "${0%/*}/called-${0##*/}"
+exit 1
+"""
+SLURM_COMMANDS = ("sbatch", "srun", "squeue", "scontrol", "scancel")
 
 
 @pytest.fixture
@@ -97,6 +105,137 @@ def test_the_plan_queues_upstream_first_then_arrays_that_wait_on_it(tmp_path, sl
     assert len(lines) == 5 and all(line.startswith("pending") for line in lines), lines
     assert main(["sweep", str(path), "-o", str(out), "--launcher", "slurm"]) == 0
     assert len(list(slurm_bin.glob("sbatch-*.sh"))) == 3
+
+
+def never_called_bin(folder: Path, names: tuple[str, ...] = SLURM_COMMANDS) -> Path:
+    """``folder`` with a stand-in for each Slurm command in ``names`` that leaves ``called-NAME`` beside it if run."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        (folder / name).write_text(NEVER)
+        (folder / name).chmod(0o755)
+    return folder
+
+
+def called(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.glob("called-*"))
+
+
+def files_under(folder: Path) -> set[str]:
+    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
+
+
+class NoProcess:
+    """subprocess.Popen for a test in which nothing may start a process: records the attempt and refuses."""
+
+    attempts: list[Any] = []
+
+    def __init__(self, args: Any, *rest: Any, **kwargs: Any) -> None:
+        NoProcess.attempts.append(args)
+        raise AssertionError(f"a process was started: {args}")
+
+
+@pytest.fixture
+def no_slurm(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Stand-ins for sbatch/srun/squeue/scontrol/scancel first on PATH that mark themselves if called, no process
+    may start (subprocess.Popen refuses), and the working folder is an empty one (to see that nothing is written)."""
+    folder = never_called_bin(tmp_path / "bin")
+    monkeypatch.setenv("PATH", f"{folder}{os.pathsep}{os.environ['PATH']}")
+    NoProcess.attempts = []
+    monkeypatch.setattr(subprocess, "Popen", NoProcess)
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")
+    return folder
+
+
+def test_the_slurm_plan_prints_jobs_arrays_afterok_and_scripts_and_calls_and_writes_nothing(
+        tmp_path, no_slurm, capsys) -> None:
+    path = write_sweep(tmp_path, upstream="shared", launcher={"mem": "3G", "slurm": {"account": "lab"}})
+    before = files_under(tmp_path)
+    out = tmp_path / "runs"
+    for extra in ([], ["--wait"]):  # --wait with --plan: nothing submitted, nothing waited for
+        assert main(["sweep", str(path), "-o", str(out), "--launcher", "slurm", "--plan", "--cpus-per-run", "2",
+                     *extra]) == 0
+        captured = capsys.readouterr()
+        assert "Traceback" not in captured.err
+        text = captured.out
+        assert called(no_slurm) == [] and NoProcess.attempts == []
+        assert files_under(tmp_path) == before and not out.exists()  # nothing written, anywhere
+        assert "Slurm plan for sweep sw: nothing submitted, nothing written, no Slurm command run." in text
+        assert "queues 3 job(s) for 4 of the sweep's 4 runs (0 finished; each 2 CPU(s), 0 GPU(s), 240 min)" in text
+        graph = text.split("Dependency graph")[1].split("Commands")[0]
+        assert re.search(r"job-1  distilkit-sw  1 task  waits on nothing\n +job-1 +teacher \(for dskd\), seed 0\n",
+                         graph), graph
+        assert re.search(r"job-2  distilkit-sw  array of 2 tasks \(0-1, 2 at a time\)  waits on nothing\n"
+                         r" +job-2_0 +none, seed 0\n +job-2_1 +none, seed 1\n", graph), graph
+        assert re.search(r"job-3  distilkit-sw  array of 2 tasks \(0-1, 2 at a time\)  afterok:job-1\n"
+                         r" +job-3_0 +dskd, seed 0\n +job-3_1 +dskd, seed 1\n", graph), graph
+        recipe = (out / "sw" / "recipes" / "dskd.yaml").resolve()
+        assert f"  job-3_1  distilkit run {recipe} --seed 1 --output {out.resolve()} --stage dskd --quiet\n" in text
+        scripts = {m.group(1): options(textwrap.dedent(m.group(2))) for m in
+                   re.finditer(r"sbatch script of (job-\d):\n(.*?)(?=\n\nsbatch script|\Z)", text, flags=re.S)}
+        assert sorted(scripts) == ["job-1", "job-2", "job-3"]
+        assert "dependency" not in scripts["job-1"] and "array" not in scripts["job-1"]
+        assert "dependency" not in scripts["job-2"] and scripts["job-2"]["array"] == "0-1%2"
+        assert scripts["job-3"]["dependency"] == "afterok:job-1" and scripts["job-3"]["array"] == "0-1%2"
+        assert all(o["cpus-per-task"] == "2" and o["mem"] == "3G" and o["account"] == "lab" for o in scripts.values())
+    assert main(["sweep", str(path), "-o", str(out), "--plan", "--status"]) == 2  # --status would ask squeue
+    err = capsys.readouterr().err
+    assert "--plan and --status: give one" in err and len(err.strip().splitlines()) == 1
+    assert called(no_slurm) == [] and files_under(tmp_path) == before
+
+
+def test_the_local_plan_starts_nothing_and_writes_only_the_recipes_it_names(tmp_path, no_slurm, capsys) -> None:
+    path = write_sweep(tmp_path, seeds=[0])
+    out = tmp_path / "runs"
+    for extra in (["--jobs", "2"], ["--wait"]):
+        assert main(["sweep", str(path), "-o", str(out), "--plan", *extra]) == 0
+        captured = capsys.readouterr()
+        assert len(captured.out.strip().splitlines()) == 3 and "Traceback" not in captured.err
+        assert f"recipes they run were written to {out / 'sw' / 'recipes'}" in captured.err
+        assert called(no_slurm) == [] and NoProcess.attempts == []
+        assert files_under(out) == {"sw", "sw/recipes", "sw/recipes/none.yaml", "sw/recipes/dskd.yaml"}
+        assert not list((tmp_path / "cwd").iterdir())
+
+
+def test_the_slurm_plan_runs_without_srun_on_path(tmp_path) -> None:
+    """A machine with submitit and no Slurm: PATH holds only stand-ins of the other Slurm commands (no srun), the
+    venv's Python run by its absolute path."""
+    folder = never_called_bin(tmp_path / "bin", ("sbatch", "squeue", "scontrol", "scancel"))
+    path = write_sweep(tmp_path)
+    before = files_under(tmp_path)
+    out = tmp_path / "runs"
+    done = subprocess.run([sys.executable, "-m", "distilkit", "sweep", str(path), "-o", str(out), "--launcher",
+                           "slurm", "--plan"], capture_output=True, text=True, cwd=tmp_path,
+                          env={**os.environ, "PATH": str(folder)})
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr and "srun" not in done.stderr
+    assert "Slurm plan for sweep sw" in done.stdout and "#SBATCH --dependency=afterok:job-1" in done.stdout
+    assert called(folder) == [] and files_under(tmp_path) == before
+
+
+def test_the_plan_shows_the_scripts_a_submission_then_queues(tmp_path, slurm_bin, capsys, monkeypatch) -> None:
+    """The plan's sbatch scripts are those sbatch gets at the submission, once job-N is read as Slurm's id; a plan
+    after a submission asks squeue nothing and says that queued jobs are not queued again."""
+    path = write_sweep(tmp_path, upstream="per_seed", launcher={"gpus_per_run": 2, "partition": "gpu"})
+    out = tmp_path / "runs"
+    argv = ["sweep", str(path), "-o", str(out), "--launcher", "slurm", "--time", "90"]
+    assert main([*argv, "--plan"]) == 0
+    text = capsys.readouterr().out
+    assert not list(slurm_bin.glob("sbatch-*.sh"))
+    planned = {int(m.group(1)) + 100: textwrap.dedent(m.group(2)).strip() for m in
+               re.finditer(r"sbatch script of job-(\d+):\n(.*?)(?=\n\nsbatch script|\Z)", text, flags=re.S)}
+    assert main(argv) == 0
+    capsys.readouterr()
+    sent = {int(p.stem.split("-")[1]): p.read_text().strip() for p in slurm_bin.glob("sbatch-*.sh")}
+    # a teacher per seed, the array of `none` (waits on nothing), a `dskd` job per seed after its seed's teacher
+    assert sorted(planned) == sorted(sent) == [101, 102, 103, 104, 105]
+    assert "job-4  distilkit-sw  1 task  afterok:job-1" in text and "job-5  distilkit-sw  1 task  afterok:job-2" in text
+    for n, script in planned.items():
+        assert re.sub(r"afterok:job-(\d+)", lambda m: f"afterok:{int(m.group(1)) + 100}", script) == sent[n]
+    assert "--nproc-per-node 2" in text
+    never_called_bin(slurm_bin, ("squeue", "scontrol"))  # from now on, asking Slurm leaves a mark
+    assert main([*argv, "--plan"]) == 0
+    assert "Jobs were submitted before" in capsys.readouterr().out and called(slurm_bin) == []
 
 
 def test_a_job_that_left_the_queue_without_its_run_is_failed_with_its_logs_last_line(tmp_path, slurm_bin,

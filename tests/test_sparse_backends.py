@@ -169,7 +169,7 @@ def test_the_stage_summary_and_validate_name_the_backend(tmp_path, capsys) -> No
 
     sets = overrides("scpnet", folder, small=True) + ["stages.*.train.steps=1", "stages.*.train.epochs=null",
                                                        "stages.*.train.batch_size=1", "stages.*.train.device=cpu"]
-    assert main(["validate", "--no-memory", str(path), "--set", *sets]) == 0
+    assert main(["validate", "--static", str(path), "--set", *sets]) == 0
     out = capsys.readouterr().out
     assert "sparse convolutions on the cpu: torch (DISTILKIT_SPARSE=auto) — stages teacher" in out, out
     assert main(["run", str(path), "-q", "-o", str(tmp_path / "runs"), "--set", *sets, "--stage", "teacher"]) == 0

@@ -177,3 +177,29 @@ def test_keywords_and_a_dtype_mismatch_names_the_layer() -> None:
                                          r"torch.float64 features against torch.float32 weights"):
         net[1](cloud())
     assert SubMConv3d(3, 3, 3, name="mine").describe().startswith("mine: ")
+
+
+def test_spconv1_shares_the_callers_dictionary_and_fresh_starts_a_new_one() -> None:
+    """spconv 1.x's dictionary is the input tensor's own: model A writes its map into ``x.indice_dict`` and model B,
+    run on ``x`` afterwards, reuses it under the same key whatever its own kernel. ``x.fresh()`` gives B what a newly
+    built tensor would; ``replace_feature`` keeps the dictionary, ``fresh`` does not (the same features, though)."""
+    torch.manual_seed(0)
+    model_a = torch.nn.Sequential(SubMConv3d(3, 3, (1, 3, 3), indice_key="k", semantics="spconv1")).double()
+    model_b = torch.nn.Sequential(SubMConv3d(3, 2, 3, indice_key="k", semantics="spconv1")).double()
+    x = cloud()
+    rebuilt = SparseConvTensor(x.features, x.indices, x.spatial_shape, x.batch_size)
+    want = model_b(rebuilt).features
+    model_a(x)
+    assert x.indice_dict["k"].kernel == (1, 3, 3)  # A's map, in the caller's tensor
+    shared = model_b(x).features  # on A's 1x3x3 map: B's first 9 kernel slices only
+    assert not torch.allclose(shared, want)
+    fresh = x.fresh()
+    assert fresh.indice_dict == {} and fresh.indice_dict is not x.indice_dict
+    assert fresh.features is x.features and fresh.indices is x.indices
+    assert (fresh.spatial_shape, fresh.batch_size) == (x.spatial_shape, x.batch_size)
+    assert torch.equal(model_b(fresh).features, want)
+    assert "k" in x.indice_dict and x.replace_feature(x.features * 2).indice_dict is x.indice_dict
+    # spconv 2.x's semantics never write into the input's dictionary: nothing to start afresh
+    y = cloud()
+    SubMConv3d(3, 3, (1, 3, 3), indice_key="k").double()(y)
+    assert y.indice_dict == {}

@@ -98,6 +98,22 @@ def test_planned_commands_run_the_same_stages_and_sweep_then_only_collects(tmp_p
     assert summaries(out / "sw") == runs and (out / "sw" / "results.md").is_file()
 
 
+@pytest.mark.parametrize("value", ["slurm", ["slurm"]])
+def test_a_launcher_name_in_the_sweep_file_says_where_the_launcher_is_chosen(tmp_path: Path, capsys,
+                                                                          value: object) -> None:
+    from distilkit.sweep.spec import LauncherSpec
+
+    path = write_sweep(tmp_path, launcher=value)
+    assert main(["sweep", str(path), "-o", str(tmp_path / "runs"), "--plan"]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and not captured.out, err
+    assert err.startswith(f"error: {path}: launcher: ") and "valid dictionary" not in err
+    assert "chosen on the command line (`distilkit sweep FILE --launcher slurm`)" in err
+    assert all(key in err for key in LauncherSpec.model_fields), err  # what the block holds
+    assert not (tmp_path / "runs").exists()
+
+
 def test_jobs_run_in_parallel_processes(tmp_path: Path) -> None:
     path = write_sweep(tmp_path, seeds=[0])
     out = tmp_path / "runs"

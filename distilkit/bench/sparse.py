@@ -103,7 +103,7 @@ def sparse_cases(device: torch.device, quick: bool) -> list[Case]:
             dense_flops = 6 * shape[0] * shape[1] * shape[2] * 27 * channels * channels
             dense_rate = (f"; dense conv3d: {dense_flops / 1e9:,.0f} GFLOP in {row['naive_ms'] / 1000:.2f} s = "
                           f"{dense_flops / (row['naive_ms'] / 1000) / 1e9:.1f} GFLOP/s, the sparse layer "
-                          f"{row['naive_ms'] / row['fast_ms']:.1f}x faster")
+                          f"{compared(row['fast_ms'], row['naive_ms'])} than dense conv3d")
         return (f"sparse: {len(indices):,} active voxels, {pairs:,} neighbour pairs ({pairs / len(indices):.1f} a "
                 f"voxel; the neighbour map hashed once in {hashing * 1000:.0f} ms, shared by the layers of a network; "
                 f"checking the indices when the tensor is built {checking * 1000:.1f} ms, "
@@ -119,6 +119,14 @@ def sparse_cases(device: torch.device, quick: bool) -> list[Case]:
         cases.append(Case(f"sparse: {name} vs torch backend", size, on(name, sparse), on("torch", sparse),
                           [feats, weight], note=lambda row, name=name: f"{name}: " + note(row).split("; dense")[0]))
     return cases
+
+
+def compared(ms: float, other_ms: float) -> str:
+    """How a time of ``ms`` compares with ``other_ms``: the ratio of the longer to the shorter (1 or more) and its
+    direction in words, "2.5x faster" where ``ms`` is the shorter, "2.5x slower" where it is the longer."""
+    if ms <= other_ms:
+        return f"{other_ms / max(ms, 1e-12):.1f}x faster"
+    return f"{ms / max(other_ms, 1e-12):.1f}x slower"
 
 
 def library_backends(device: torch.device) -> list[str]:
@@ -140,4 +148,4 @@ def on(name: str, fn: Any) -> Any:
     return run
 
 
-__all__ = ["library_backends", "on", "scan_occupancy", "sgemm_gflops", "sparse_cases"]
+__all__ = ["compared", "library_backends", "on", "scan_occupancy", "sgemm_gflops", "sparse_cases"]

@@ -39,7 +39,10 @@ def add(sub: Any) -> None:
     names = "benchmarks:\n" + "\n".join(f"  {n:<12} {d}" for n, d in BENCH_NAMES.items())
     b = command(sub, "bench", "time objectives forward+backward at realistic sizes", EXAMPLES["bench"], before=names)
     b.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (listed below; default: all)")
-    b.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    b.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                   help="where both forms are timed: cpu (default; peak memory is the process's resident size) or cuda "
+                        "(the current GPU; peak memory is torch's allocations on it, and the sparse bench also times "
+                        "each sparse library present)")
     b.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
     b.set_defaults(fn=bench)
 

@@ -55,28 +55,56 @@ def list_components(args: argparse.Namespace) -> int:
         if kind == "adapters" and console.width < 120:  # six columns do not read at 80: one block per adapter
             _adapter_blocks(console, reg)
             continue
-        table = Table(title=kind, title_justify="left")
-        table.add_column("name", style="bold")
-        table.add_column("description")
-        table.add_column("paper")
-        table.add_column(COLUMN[kind])
-        if kind == "adapters":
-            table.add_column("parameters (default)")
-            table.add_column("network (by size)")
-        for e in reg:
-            also = reg.aliases_of(e.name)
-            extra = [params_cell(e.obj.Params), networks_cell(e.obj)] if kind == "adapters" else []
-            table.add_row(e.name + (f" (also {', '.join(also)})" if also else ""), e.description, e.paper,
-                          list_cell(kind, e), *extra)
+        table = _kind_table(console, kind, reg)
         console.print(table)
     for msg in plugin_errors:
         console.print(f"[yellow]warning:[/] {msg}")
     return 0
 
 
+def _kind_table(console: Any, kind: str, reg: Any) -> Any:
+    """One kind's components as a table that fits the console: every column wraps (a word longer than its column
+    is folded onto the next line, never cut with an ellipsis); under 120 columns the paper is a dim line of the
+    description's cell instead of a column of its own, so that the description keeps a readable width."""
+    from rich.measure import Measurement
+    from rich.table import Table
+    from rich.text import Text
+
+    narrow = console.width < 120
+    table = Table(title=kind, title_justify="left")
+    longest = max((len(_name_cell(reg, e)) for e in reg), default=4)
+    table.add_column("name", style="bold", overflow="fold", min_width=min(longest, 22))
+    table.add_column("description (paper)" if narrow else "description", overflow="fold", ratio=2)
+    if not narrow:
+        table.add_column("paper", overflow="fold", ratio=1)
+    table.add_column(COLUMN[kind], overflow="fold", ratio=1)
+    if kind == "adapters":
+        table.add_column("parameters (default)", overflow="fold", ratio=1)
+        table.add_column("network (by size)", overflow="fold", ratio=1)
+    for e in reg:
+        extra = [params_cell(e.obj.Params), networks_cell(e.obj)] if kind == "adapters" else []
+        if narrow:
+            about = Text(e.description)
+            if e.paper and e.paper != "—":
+                about.append("\n" + e.paper, style="dim")
+            cells = [about]
+        else:
+            cells = [Text(e.description), Text(e.paper)]
+        table.add_row(Text(_name_cell(reg, e)), *cells, Text(list_cell(kind, e)), *map(Text, extra))
+    # as wide as its text, up to the console's width (measured to at most that; there the columns share it by ratio)
+    table.expand = Measurement.get(console, console.options, table).maximum >= console.width
+    return table
+
+
+def _name_cell(reg: Any, e: Any) -> str:
+    also = reg.aliases_of(e.name)
+    return e.name + (f" (also {', '.join(also)})" if also else "")
+
+
 def _adapter_blocks(console: Any, reg: Any) -> None:
     """``distilkit list adapters`` on a narrow console: each adapter's fields as a two-column table."""
     from rich.table import Table
+    from rich.text import Text
 
     console.print("adapters")
     for e in reg:
@@ -84,12 +112,12 @@ def _adapter_blocks(console: Any, reg: Any) -> None:
         block = Table(title=e.name + (f" (also {', '.join(also)})" if also else ""), title_justify="left",
                       title_style="bold", show_header=False, expand=True)
         block.add_column("field", style="dim", no_wrap=True)
-        block.add_column("value", ratio=1)
+        block.add_column("value", ratio=1, overflow="fold")
         for field, value in (("description", e.description), ("paper", e.paper),
                              (COLUMN["adapters"], list_cell("adapters", e)),
                              ("parameters", params_cell(e.obj.Params).replace("\n", ", ")),
                              ("network", networks_cell(e.obj))):
-            block.add_row(field, value)
+            block.add_row(field, Text(value))
         console.print(block)
 
 

@@ -13,6 +13,7 @@ EXAMPLES = {
               "distilkit sweep recipes/sweeps/scpnet_table4.yaml --plan             # commands for a cluster",
               "distilkit sweep recipes/sweeps/quickstart_methods.yaml --launcher slurm --partition gpu --gpus-per-run 1 "
               "--time 8:00:00 --slurm account=mylab",
+              "distilkit sweep recipes/sweeps/hassc.yaml --launcher slurm --plan   # what it would queue",
               "distilkit sweep recipes/sweeps/quickstart_methods.yaml --status"],
 }
 
@@ -25,8 +26,10 @@ def add(sub: Any) -> None:
     w.add_argument("--seeds", type=int, nargs="+", default=None, metavar="N", help="override the sweep's seeds")
     w.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
                    help="runs in N parallel processes, the CPU's threads split between them (default: 1)")
-    w.add_argument("--plan", action="store_true", help="print one `distilkit run` command per run (upstream "
-                   "stages first) for a cluster scheduler, run nothing; `distilkit sweep` afterwards collects")
+    w.add_argument("--plan", action="store_true", help="run, submit and wait for nothing: print one `distilkit run` "
+                   "command per run (upstream stages first; their recipes written to OUTPUT/SWEEP/recipes) for a "
+                   "cluster scheduler, or with --launcher slurm the jobs, arrays, afterok dependencies and sbatch "
+                   "scripts a submission would queue (nothing written); `distilkit sweep` afterwards collects")
     w.add_argument("--collect", action="store_true", help="train nothing: the table of the runs finished so far")
     w.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
     s = w.add_argument_group("on a Slurm cluster (pip install 'distilkit[slurm]'; the sweep file's launcher: block "

@@ -11,9 +11,12 @@ spconv-triton`` (``auto`` when unset), or :func:`using` in code, which wins over
   1; the same on distilkit's maps), so distilkit runs it with one thread.
 * ``spconv-triton`` — spconv-Triton's ``indice_conv``, the same functions in Triton (NVIDIA and AMD GPUs; not on
   the CPU).
-* ``auto`` — per call, the first of spconv (a CUDA build), spconv-triton and torch that can take it: on CUDA a
-  float32 or float16 call (or one under float16 autocast) goes to a library, a float64 or bfloat16 one to torch;
-  elsewhere torch.
+* ``auto`` — per call, spconv (a CUDA build) where it can take the call, else torch: on CUDA a float32 or float16
+  call (or one under float16 autocast) goes to spconv, a float64 or bfloat16 one to torch; elsewhere torch.
+  spconv-Triton is used only when named: it compiles and autotunes its Triton kernels for each new problem size, so
+  the first steps of a network cost minutes (on an NVIDIA H200 with spconv-triton 1.0.0 and Triton 3.6 under an
+  ``auto`` that tried it, the test of one fp32 and one bf16 step of the SCPNet, JS3C-Net and LiDiff paper networks
+  ran past its 74 s limit, each).
 
 What each library computes is stated in :data:`CAPABILITIES` (device, dtypes, autocast, gradients), read from
 spconv 2.3.8's source (the GEMM kernel lists in ``spconv/core.py``: float32 and float16 only; its tuner stops with
@@ -114,6 +117,7 @@ class Call:
 
 
 AUTO_DEVICES = ("cuda",)  # device types where ``auto`` offers a call to the libraries first
+AUTO_LIBRARIES = ("spconv",)  # the libraries ``auto`` offers a call to, in order (spconv-triton: only when named)
 
 _override: list[str] = []  # :func:`using`'s choices, innermost last
 _ran: list[set[str]] = []  # :func:`record`'s open collections
@@ -232,13 +236,14 @@ def _deterministic() -> bool:
 
 def choose(device_type: str, call: Call | None = None) -> str:
     """The backend that computes ``call`` (a float32 call on ``device_type`` when not given) now: under ``auto`` the
-    first library that can take it (on CUDA, and not while PyTorch's deterministic algorithms are on), else torch;
+    first of :data:`AUTO_LIBRARIES` that can take it (on CUDA, and not while PyTorch's deterministic algorithms are
+    on), else torch;
     an explicit backend that cannot take it is an error naming the reason."""
     call = call or Call(device_type, torch.float32)
     want = requested()
     if want == "auto":
         if device_type in AUTO_DEVICES and not _deterministic():
-            for name in ("spconv", "spconv-triton"):
+            for name in AUTO_LIBRARIES:
                 if refusal(name, call) is None:
                     return name
         return "torch"

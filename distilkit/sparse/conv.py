@@ -20,9 +20,22 @@ neighbour map kept on the tensor; what a key that already exists means depends o
   padding ignores dilation, so a dilated convolution is refused in this mode. Cylinder3D / SCPNet were trained this
   way (one key for the four convolutions of a block).
 
+  The shared dictionary is the *input's*: a convolution writes its map into the ``indice_dict`` of the tensor it
+  was given, which is the caller's. So a second model run on a tensor that a first model ran on finds the first
+  one's maps under its keys and reuses them (outputs that differ from the second model's on a new tensor, with no
+  error), as in spconv 1.x. Give each model its own dictionary: ``model_b(x.fresh())`` (the same voxels and
+  features, an empty dictionary; ``x.replace_feature`` keeps the dictionary), or a newly built tensor.
+
 ``SparseInverseConv3d(indice_key=K)`` inverts the strided ``SparseConv3d(indice_key=K)`` that produced its input's
 ancestors, back onto that convolution's input sites (spconv's decoder pattern). A 1x1x1 convolution (stride 1) is a
 matrix product on the features in both versions: no map, no key.
+
+The arguments are checked when a layer is built, as ``torch.nn.Conv3d``'s are by ``F.conv3d``: ``in_channels``
+and ``out_channels`` positive integers; ``kernel_size``, ``stride`` and ``dilation`` positive integers and
+``padding`` one >= 0, each an integer or three of them (a tuple or list, as spconv takes them); an integer may be a
+numpy integer, never a bool or a float. A ``TypeError`` (not an integer) or ``ValueError`` (out of range) names the
+layer, the argument and the value; a ``SubMConv3d``'s kernel must be odd. (Unchecked, a dilation of 0 summed every
+kernel slice at the centre, a negative one flipped the kernel and a negative padding cropped the grid.)
 
 spconv's keywords that only tune speed (``algo``, ``fp32_accum``, ``large_kernel_fast_algo``,
 ``record_voxel_count``, ``use_hash``, ``fused_bn``) are accepted and ignored, ``name`` names the layer in errors;
@@ -42,7 +55,7 @@ from torch import Tensor, nn
 
 from distilkit.sparse.function import rulebook_conv
 from distilkit.sparse.rulebook import Rulebook, output_shape, strided, submanifold, triple
-from distilkit.sparse.tensor import SparseConvTensor
+from distilkit.sparse.tensor import SparseConvTensor, as_int
 
 Semantics = Literal["spconv1", "spconv2"]
 SEMANTICS = ("spconv1", "spconv2")
@@ -68,16 +81,19 @@ class _SparseConvolution(nn.Module):
                  padding: int | Sequence[int], dilation: int | Sequence[int], bias: bool,
                  indice_key: str | None, semantics: str, options: dict[str, Any]) -> None:
         super().__init__()
-        self.layer_name = _options(type(self).__name__, options)
+        kind = type(self).__name__
+        self.layer_name = _options(kind, options)
         if semantics not in SEMANTICS:
-            raise ValueError(f"{type(self).__name__}: semantics must be one of {', '.join(SEMANTICS)}, got "
-                             f"{semantics!r}")
+            raise ValueError(f"{kind}: semantics must be one of {', '.join(SEMANTICS)}, got {semantics!r}")
         self.semantics = semantics
-        self.in_channels, self.out_channels = int(in_channels), int(out_channels)
-        self.kernel_size = triple(kernel_size, "kernel_size")
-        self.stride, self.padding = triple(stride, "stride"), triple(padding, "padding")
-        self.dilation = triple(dilation, "dilation")
         self.indice_key = indice_key
+        who = f"{self.layer_name}: {kind}" if self.layer_name else kind
+        self.in_channels = as_int(in_channels, "in_channels", 1, who)
+        self.out_channels = as_int(out_channels, "out_channels", 1, who)
+        self.kernel_size = triple(kernel_size, "kernel_size", 1, who)
+        who = self.describe()
+        self.stride, self.padding = triple(stride, "stride", 1, who), triple(padding, "padding", 0, who)
+        self.dilation = triple(dilation, "dilation", 1, who)
         self.weight = nn.Parameter(torch.empty(self.out_channels, *self.kernel_size, self.in_channels))
         self.bias = nn.Parameter(torch.empty(self.out_channels)) if bias else None
         self.reset_parameters()
@@ -106,6 +122,9 @@ class _SparseConvolution(nn.Module):
         return f"{self.layer_name}: {what}" if self.layer_name else what
 
     def _check_input(self, x: SparseConvTensor) -> None:
+        if not x.features.is_floating_point():
+            raise TypeError(f"{self.describe()}: features must be floating, got {x.features.dtype} (convert them: "
+                            "features.float())")
         if x.features.shape[1] != self.in_channels:
             raise ValueError(f"{self.describe()}: {x.features.shape[1]} input channels, expected {self.in_channels}")
         if x.features.dtype != self.weight.dtype and not torch.is_autocast_enabled(x.features.device.type):
@@ -150,7 +169,11 @@ class _SparseConvolution(nn.Module):
 
 class SubMConv3d(_SparseConvolution):
     """Submanifold convolution: outputs at the input's sites only (odd kernels, e.g. Cylinder3D's 1x3x3, 3x1x3,
-    3x3x1 and 3x3x3)."""
+    3x3x1 and 3x3x3). ``stride`` and ``padding`` are checked and otherwise ignored, as in spconv.
+
+    With ``semantics="spconv1"`` its map is written into the input tensor's own ``indice_dict`` and reused by any
+    later convolution with its key that sees that dictionary — a second model run on the same tensor included; give
+    that model ``x.fresh()`` (module docstring)."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Sequence[int] = 3, stride: int = 1,
                  padding: int | Sequence[int] = 0, dilation: int | Sequence[int] = 1, groups: int = 1,
@@ -160,6 +183,9 @@ class SubMConv3d(_SparseConvolution):
             raise ValueError("SubMConv3d: groups other than 1 are not supported")
         super().__init__(in_channels, out_channels, kernel_size, stride, padding, dilation, bias, indice_key,
                          semantics, options)
+        if any(k % 2 == 0 for k in self.kernel_size):
+            raise ValueError(f"{self.describe()}: a submanifold convolution needs an odd kernel (centred on each "
+                             f"site), got kernel_size {kernel_size!r}")
         if semantics == "spconv1" and self.dilation != (1, 1, 1):
             raise ValueError(f"{self.describe()}: spconv 1.x's submanifold padding ignores dilation "
                              f"{self.dilation}; that convolution is not reproduced (use semantics='spconv2')")
@@ -209,7 +235,11 @@ class SubMConv3d(_SparseConvolution):
 
 
 class SparseConv3d(_SparseConvolution):
-    """A regular sparse convolution (strided, padded, dilated): active outputs wherever an active input reaches."""
+    """A regular sparse convolution (strided, padded, dilated): active outputs wherever an active input reaches.
+
+    With ``semantics="spconv1"`` its map is written into the input tensor's own ``indice_dict`` (the tensor the
+    caller passed), where a second model run on that tensor finds it under the same key; give that model
+    ``x.fresh()`` (module docstring)."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Sequence[int] = 3,
                  stride: int | Sequence[int] = 1, padding: int | Sequence[int] = 0, dilation: int | Sequence[int] = 1,
@@ -247,7 +277,9 @@ class SparseConv3d(_SparseConvolution):
 
 class SparseInverseConv3d(_SparseConvolution):
     """The transpose of the ``SparseConv3d`` with the same ``indice_key``: back onto that convolution's input
-    sites and grid (conv_transpose3d there)."""
+    sites and grid (conv_transpose3d there). With ``semantics="spconv1"`` the map it inverts is looked up in the
+    dictionary shared with the caller's tensor, so it may be one a convolution of another model stored there (module
+    docstring: ``x.fresh()``)."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Sequence[int], indice_key: str,
                  bias: bool = True, semantics: Semantics = "spconv2", **options: Any) -> None:

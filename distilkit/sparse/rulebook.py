@@ -63,10 +63,40 @@ class Rulebook:
         return self.cache["inverse"]
 
 
-def triple(v: int | Sequence[int], name: str) -> Triple:
-    t = (v, v, v) if isinstance(v, int) else tuple(int(x) for x in v)
-    if len(t) != 3:
-        raise ValueError(f"{name} must be an int or three ints, got {v}")
+def triple(v: int | Sequence[int], name: str, minimum: int | None = None, who: str = "") -> Triple:
+    """Three ints from ``v``, an integer for all three axes or a sequence of three (spconv's ``kernel_size``,
+    ``stride``, ``padding``, ``dilation``). An integer is a Python int, a numpy integer or a 0-d integer tensor; a
+    bool, a float or a string is a ``TypeError``, a length other than 3 or (with ``minimum``) a value below
+    ``minimum`` a ``ValueError``, each naming ``name`` and the value, after ``who`` (the caller, e.g. the layer)."""
+    import operator
+
+    def integer(x: object) -> int | None:
+        if isinstance(x, bool) or (isinstance(x, Tensor) and (x.dim() != 0 or x.dtype == torch.bool)):
+            return None
+        try:
+            return operator.index(x)  # type: ignore[arg-type]
+        except TypeError:
+            return None
+
+    what = ("an integer" if minimum is None else "a positive integer" if minimum == 1 else
+            f"an integer >= {minimum}")
+    expected = f"{who + ': ' if who else ''}{name} must be {what} or three of them (a tuple or list)"
+    one = integer(v)
+    if one is not None:
+        t: tuple[int, ...] = (one, one, one)
+    else:
+        if isinstance(v, (str, bytes)) or (isinstance(v, Tensor) and v.dim() == 0) or not hasattr(v, "__iter__"):
+            raise TypeError(f"{expected}, got {v!r} ({type(v).__name__})")
+        items = list(v)  # type: ignore[call-overload]
+        if len(items) != 3:
+            raise ValueError(f"{expected}, got {len(items)} values: {v!r}")
+        ints = [integer(x) for x in items]
+        bad = [x for x, i in zip(items, ints) if i is None]
+        if bad:
+            raise TypeError(f"{expected}, got {v!r} ({bad[0]!r} is a {type(bad[0]).__name__}, not an integer)")
+        t = tuple(ints)  # type: ignore[arg-type]
+    if minimum is not None and min(t) < minimum:
+        raise ValueError(f"{expected}, got {v!r}")
     return t  # type: ignore[return-value]
 
 
@@ -102,6 +132,13 @@ def _chunks(volume: int, sites: int) -> list[range]:
     return [range(s, min(s + step, volume)) for s in range(0, volume, step)]
 
 
+def _offset_rows(kernel: Triple, chunk: range, device: torch.device) -> Tensor:
+    """(len(chunk), 3) int64: the kernel indices (i0, i1, i2) of offsets ``chunk`` in C order, made on ``device`` (no
+    host-to-device copy, which CUDA counts as a sync)."""
+    i = torch.arange(chunk.start, chunk.stop, device=device)
+    return torch.stack([i // (kernel[1] * kernel[2]), (i // kernel[2]) % kernel[1], i % kernel[2]], dim=1)
+
+
 def _bounds(counts: list[Tensor]) -> list[int]:
     """Boundaries of the offsets' pairs from their counts, read to the host once."""
     bounds = [0]
@@ -125,13 +162,14 @@ def submanifold(indices: Tensor, shape: Sequence[int], kernel: Triple, dilation:
     coords = indices.long()
     n_sites = coords.shape[0]
     rows = torch.arange(n_sites, device=device)
-    deltas = [tuple((o - (k - 1) // 2) * d for o, k, d in zip(off, kernel, dilation)) for off in _offsets(kernel)]
-    size = torch.tensor(shape, device=device)
+    offsets = _offsets(kernel)
+    deltas = [tuple((o - (k - 1) // 2) * d for o, k, d in zip(off, kernel, dilation)) for off in offsets]
     ins, outs, counts = [], [], []
     for chunk in _chunks(len(deltas), n_sites):
-        delta = torch.tensor([deltas[i] for i in chunk], device=device, dtype=torch.int64)
+        o = _offset_rows(kernel, chunk, device)
+        delta = torch.stack([(o[:, a] - (kernel[a] - 1) // 2) * dilation[a] for a in range(3)], dim=1)
         n = coords[None, :, 1:] + delta[:, None, :]  # (c, N, 3) the neighbours' coordinates
-        inside = ((n >= 0) & (n < size)).all(dim=2)
+        inside = (n >= 0).all(dim=2) & (n[..., 0] < shape[0]) & (n[..., 1] < shape[1]) & (n[..., 2] < shape[2])
         query = ((coords[None, :, 0] * shape[0] + n[..., 0]) * shape[1] + n[..., 1]) * shape[2] + n[..., 2]
         src, found = _lookup(sorted_keys, order, query.reshape(-1))
         src, valid = src.view(len(chunk), n_sites), (found.view(len(chunk), n_sites) & inside)
@@ -168,15 +206,18 @@ def strided(indices: Tensor, shape: Sequence[int], kernel: Triple, stride: Tripl
     coords = indices.long()
     n_sites = coords.shape[0]
     rows = torch.arange(n_sites, device=device)
-    s, p, d = (torch.tensor(v, device=device) for v in (stride, padding, dilation))
-    size = torch.tensor(out_shape, device=device)
     offsets = _offsets(kernel)
     src_rows, out_coords, counts = [], [], []
     for chunk in _chunks(len(offsets), n_sites):
-        off = torch.tensor([offsets[i] for i in chunk], device=device, dtype=torch.int64)
-        num = coords[None, :, 1:] + p - off[:, None, :] * d  # (c, N, 3)
-        o = torch.div(num, s, rounding_mode="floor")
-        ok = ((num % s) == 0).all(dim=2) & ((o >= 0) & (o < size)).all(dim=2)
+        off = _offset_rows(kernel, chunk, device)
+        axes, ok = [], None
+        for a in range(3):  # per axis, with Python numbers: no small tensors copied to the device
+            num = coords[None, :, 1 + a] + padding[a] - off[:, a, None] * dilation[a]  # (c, N)
+            o_a = torch.div(num, stride[a], rounding_mode="floor")
+            fits = ((num % stride[a]) == 0) & (o_a >= 0) & (o_a < out_shape[a])
+            ok = fits if ok is None else ok & fits
+            axes.append(o_a)
+        o = torch.stack(axes, dim=2)
         kk, rr = ok.nonzero(as_tuple=True)
         src_rows.append(rr)
         out_coords.append(torch.cat([coords[rr, :1], o[kk, rr]], dim=1))

@@ -4,6 +4,16 @@
 ``indice_dict`` keeps the neighbour maps (rulebooks) of the convolutions that ran on it by their ``indice_key``, so a
 later submanifold convolution with the same key, or the inverse of a strided one, reuses them instead of hashing
 again (spconv's contract: a tensor and the ones derived from it by ``replace_feature`` share the dictionary).
+With ``semantics="spconv1"`` a convolution also *writes* its maps into the dictionary of the tensor it was given, so
+a second model run on the same tensor reuses the first one's maps (as spconv 1.x does): give it ``x.fresh()``, the
+same voxels and features with an empty dictionary.
+
+The arguments are checked when the tensor is built, as ``torch.nn.Conv3d`` checks its own: floating ``features``, a
+torch integer (int32 or int64) tensor of ``indices`` (a numpy array or a list is a ``TypeError`` naming its type:
+they are not converted, so the caller chooses the device and no copy is shared with an array changed later), three
+positive integer sizes of ``spatial_shape`` (a float is refused, not truncated) and an integer ``batch_size`` >= 0 (0:
+an empty batch, as ``from_dense`` makes of a (0, C, X, Y, Z) grid and ``torch.nn.Conv3d`` takes; it can hold no
+voxel). Integers may be numpy integers or 0-d integer tensors; a bool is not an integer.
 
 A tensor built from outside (not derived by a convolution or ``replace_feature``) has its indices checked, O(N) and
 one sort: every batch index in [0, batch_size), every coordinate in [0, spatial_shape), no voxel twice. spconv
@@ -14,6 +24,7 @@ tensor, which would sort the same keys.
 
 from __future__ import annotations
 
+import operator
 from typing import Any
 
 import torch
@@ -27,20 +38,29 @@ class SparseConvTensor:
 
     def __init__(self, features: Tensor, indices: Tensor, spatial_shape: Any, batch_size: int,
                  indice_dict: dict[str, Any] | None = None, *, _checked: bool = False) -> None:
-        shape = tuple(int(s) for s in spatial_shape)
-        if len(shape) != 3:
-            raise ValueError(f"SparseConvTensor: spatial_shape must have 3 sizes (X, Y, Z), got {shape}")
+        shape = _spatial_shape(spatial_shape)
+        batch = as_int(batch_size, "batch_size", 0, "SparseConvTensor")
+        if not isinstance(features, Tensor):
+            raise TypeError(f"SparseConvTensor: features must be a floating torch tensor (N, C), got "
+                            f"{_type_name(features)}{_numpy_hint(features, 'torch.from_numpy(features).float()')}")
+        if not features.is_floating_point():
+            raise TypeError(f"SparseConvTensor: features must be floating (float32, float64, float16 or bfloat16), "
+                            f"got {features.dtype} (convert them: features.float())")
+        if not isinstance(indices, Tensor):
+            hint = _numpy_hint(indices, "torch.from_numpy(indices).int(), on the features' device")
+            raise TypeError(f"SparseConvTensor: indices must be a torch integer tensor (N, 4) = (batch, x, y, z), "
+                            f"got {_type_name(indices)}{hint}")
+        if indices.dtype not in (torch.int32, torch.int64):
+            raise TypeError(f"SparseConvTensor: indices must be an int32 (or int64) tensor, got {indices.dtype}")
         if features.dim() != 2:
             raise ValueError(f"SparseConvTensor: features must be (N, C), got {tuple(features.shape)}")
         if indices.dim() != 2 or indices.shape[1] != 4 or indices.shape[0] != features.shape[0]:
             raise ValueError(f"SparseConvTensor: indices must be (N, 4) = (batch, x, y, z) for N = "
                              f"{features.shape[0]} features, got {tuple(indices.shape)}")
-        if indices.dtype not in (torch.int32, torch.int64):
-            raise ValueError(f"SparseConvTensor: indices must be integers (int32), got {indices.dtype}")
         self.features = features
         self.indices = indices
         self.spatial_shape = list(shape)
-        self.batch_size = int(batch_size)
+        self.batch_size = batch
         self.indice_dict: dict[str, Any] = {} if indice_dict is None else indice_dict
         # (sorted keys, permutation) of the indices, when the check below sorted them
         self.sorted_keys: tuple[Tensor, Tensor] | None = None if _checked else check_indices(indices, shape,
@@ -58,10 +78,21 @@ class SparseConvTensor:
         return out
 
     def replace_feature(self, features: Tensor) -> "SparseConvTensor":
-        """The same voxels (and neighbour maps) with other features, e.g. after a BatchNorm or an activation."""
+        """The same voxels with other features, e.g. after a BatchNorm or an activation. The result shares this
+        tensor's ``indice_dict`` (spconv's contract), so the neighbour maps built so far are reused downstream; see
+        :meth:`fresh` for a copy without them."""
         if features.shape[0] != self.features.shape[0]:
             raise ValueError(f"replace_feature: {features.shape[0]} rows for {self.features.shape[0]} voxels")
         return self.derived(features)
+
+    def fresh(self) -> "SparseConvTensor":
+        """The same voxels and features (the same tensors, so gradients still flow to them) with a new, empty
+        ``indice_dict``: what a second model should be given when the first ran on this tensor with
+        ``semantics="spconv1"``. spconv 1.x's convolutions write their neighbour maps into the dictionary they were
+        given, which is this tensor's own, and a later convolution with the same ``indice_key`` reuses the stored map
+        whatever its own kernel — so model B run on a tensor model A ran on computes on A's maps. (With the default
+        ``semantics="spconv2"`` a convolution adds its maps to a copy and the input's dictionary never changes.)"""
+        return self.derived(self.features, indice_dict={})
 
     @property
     def shape(self) -> list[int]:
@@ -92,6 +123,57 @@ class SparseConvTensor:
                 f"spatial_shape={self.spatial_shape}, batch_size={self.batch_size})")
 
 
+def integer(value: Any) -> int | None:
+    """``value`` as an int when it is an integer (a Python int, a numpy integer, a 0-d integer tensor), else None (a
+    bool, a float, a string, anything else)."""
+    if isinstance(value, bool) or (isinstance(value, Tensor) and (value.dim() != 0 or value.dtype == torch.bool)):
+        return None
+    try:
+        return operator.index(value)
+    except TypeError:
+        return None
+
+
+def as_int(value: Any, name: str, minimum: int, who: str) -> int:
+    """``value`` as an int >= ``minimum``: a ``TypeError`` (not an integer: a bool, a float) or ``ValueError`` (too
+    small) naming ``who``, ``name`` and the value otherwise."""
+    i = integer(value)
+    what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+    if i is None:
+        raise TypeError(f"{who}: {name} must be {what}, got {value!r} ({_type_name(value)})")
+    if i < minimum:
+        raise ValueError(f"{who}: {name} must be {what}, got {i}")
+    return i
+
+
+def _spatial_shape(value: Any) -> tuple[int, int, int]:
+    """(X, Y, Z) from three positive integers (a tuple, list, ``torch.Size``, array or 1-d tensor), else a
+    ``TypeError``/``ValueError`` naming the value: a float is not truncated, a size <= 0 is refused."""
+    what = "SparseConvTensor: spatial_shape must be three positive integers (X, Y, Z)"
+    if (integer(value) is not None or isinstance(value, (str, bytes, bool)) or not hasattr(value, "__iter__")
+            or (isinstance(value, Tensor) and value.dim() != 1)):
+        raise TypeError(f"{what}, got {value!r} ({_type_name(value)})")
+    items = list(value)
+    if len(items) != 3:
+        raise ValueError(f"{what}, got {len(items)} sizes: {value!r}")
+    sizes = [integer(v) for v in items]
+    for v, i in zip(items, sizes):
+        if i is None:
+            raise TypeError(f"{what}, got {value!r} ({v!r} is a {_type_name(v)}, not an integer)")
+    if min(sizes) < 1:  # type: ignore[type-var]
+        raise ValueError(f"{what}, got {value!r}")
+    return tuple(sizes)  # type: ignore[return-value]
+
+
+def _type_name(value: Any) -> str:
+    t = type(value)
+    return t.__qualname__ if t.__module__ == "builtins" else f"{t.__module__}.{t.__qualname__}"
+
+
+def _numpy_hint(value: Any, conversion: str) -> str:
+    return f" (convert it: {conversion})" if type(value).__module__ == "numpy" else ""
+
+
 def check_indices(indices: Tensor, shape: tuple[int, ...], batch_size: int) -> tuple[Tensor, Tensor]:
     """Raise a ``ValueError`` naming the first row of (N, 4) ``indices`` outside [0, batch_size) x [0, shape), or
     the first that repeats an earlier row; return the keys' sort (:func:`distilkit.sparse.rulebook.sort_keys`)."""
@@ -118,4 +200,4 @@ def check_indices(indices: Tensor, shape: tuple[int, ...], batch_size: int) -> t
     return sorted_keys, order
 
 
-__all__ = ["SparseConvTensor", "check_indices"]
+__all__ = ["SparseConvTensor", "as_int", "check_indices", "integer"]

@@ -298,19 +298,23 @@ def run_sweep(path: str | Path, output: str | Path = "runs", seeds: list[int] | 
               cluster: dict[str, Any] | None = None, status: bool = False, wait: bool = False) -> Path | None:
     """``distilkit sweep``: run (or plan, or only collect) a sweep file and write its results; with ``launcher``
     ``slurm``, queue its runs on Slurm (:mod:`distilkit.sweep.slurm`); ``status``: their states; ``wait``: until
-    the queued runs have ended, then collect."""
+    the queued runs have ended, then collect. ``plan`` runs, submits and waits for nothing, with either launcher."""
     if jobs < 1:
         raise DistilkitError(f"--jobs must be at least 1, got {jobs}")
+    if plan and status:
+        raise DistilkitError("--plan and --status: give one (--plan shows what would be run or submitted and asks "
+                             "Slurm nothing; --status asks squeue about the jobs submitted)")
     sweep = SweepRun(path, output, seeds, quiet=quiet)
+    if plan:
+        if wait:
+            print("--wait: nothing is submitted with --plan, so nothing is waited for", file=sys.stderr)
+        if launcher == "slurm":
+            _slurm_plan(sweep, cluster or {})
+        else:
+            _local_plan(sweep, path, output)
+        return None
     if status or wait or launcher == "slurm":
         return _on_slurm(sweep, path, launcher, cluster or {}, status, wait, quiet)
-    if plan:
-        lines = sweep.plan()
-        print(f"# {len(lines)} commands for sweep {sweep.sweep.name}: run the first "
-              f"{len(sweep.upstream_tasks())} (the upstream stages) before the others; then `distilkit sweep "
-              f"{path} --output {output}` collects", file=sys.stderr)
-        print("\n".join(lines))
-        return None
     started = time.monotonic()
     failures = [] if collect else sweep.run(jobs)
     result = sweep.collect()
@@ -319,6 +323,26 @@ def run_sweep(path: str | Path, output: str | Path = "runs", seeds: list[int] | 
     if failures:
         raise DistilkitError("some runs failed (the others are in the table):\n  " + "\n  ".join(failures))
     return result
+
+
+def _local_plan(sweep: SweepRun, path: str | Path, output: str | Path) -> None:
+    """``--plan``: one ``distilkit run`` command per run on stdout (upstream first), after writing the variants'
+    recipes they run (``<output>/<sweep>/recipes``, named on stderr); nothing runs."""
+    lines = sweep.plan()
+    print(f"# {len(lines)} commands for sweep {sweep.sweep.name}: run the first {len(sweep.upstream_tasks())} (the "
+          f"upstream stages) before the others; then `distilkit sweep {path} --output {output}` collects. The "
+          f"recipes they run were written to {sweep.root / 'recipes'} (nothing else was written)", file=sys.stderr)
+    print("\n".join(lines))
+
+
+def _slurm_plan(sweep: SweepRun, cluster: dict[str, Any]) -> None:
+    """``--plan --launcher slurm``: the jobs, their dependencies and sbatch scripts that a submission would queue,
+    on stdout; no executor is built, no Slurm command runs and nothing is written."""
+    from distilkit.sweep.slurm import Resources, parse_slurm_options
+    from distilkit.sweep.slurm_plan import describe_plan, plan
+
+    res = Resources.merge(sweep.sweep.spec.launcher, {**cluster, "extra": parse_slurm_options(cluster.get("extra"))})
+    print(describe_plan(sweep, res, plan(sweep, res)))
 
 
 def _on_slurm(sweep: SweepRun, path: str | Path, launcher: str, cluster: dict[str, Any], status: bool, wait: bool,

@@ -4,9 +4,10 @@
 What is submitted: one job per upstream task (the teachers: shared, or one per seed) and, for each set of variant
 runs that need the same upstream jobs, one job array whose tasks wait on those jobs (``--dependency=afterok:...``,
 ``--kill-on-invalid-dep=yes``: a failed upstream job cancels its dependents instead of leaving them pending). A task
-that is finished already is not submitted. Each job runs the same ``distilkit run`` of the same recipe on the same
-output folder as the local launcher, in a child process with as many threads as the CPUs Slurm gave the job
-(``SLURM_CPUS_PER_TASK``), so the stage cache, the locks, resume and bitwise repeatability hold unchanged; with
+that is finished already is not submitted (:func:`schedule`; ``--plan`` prints these jobs and their sbatch scripts
+without submitting: :mod:`distilkit.sweep.slurm_plan`). Each job runs the same ``distilkit run`` of the same recipe
+on the same output folder as the local launcher, in a child process with as many threads as the CPUs Slurm gave the
+job (``SLURM_CPUS_PER_TASK``), so the stage cache, the locks, resume and bitwise repeatability hold unchanged; with
 ``--gpus-per-run N`` > 1 the run is ``distilkit run --nproc-per-node N`` (torchrun inside the job: ranks, world size
 and the master address are those of the job's node, the existing DDP path).
 
@@ -202,71 +203,93 @@ def _setup_signal() -> None:
     JobEnvironment.USR_SIG = os.environ[PREEMPT_ENV]
 
 
-def _executor(submitit: Any, folder: Path, res: Resources, name: str, after: list[str]) -> Any:
-    # the job's Python replaces the batch shell (exec, no srun): a signal to the job or to the batch shell
-    # (B:TERM@90 before the time limit) reaches it, and no shell or srun ends the job before it has requeued itself
-    ex = submitit.SlurmExecutor(folder=str(folder / "%j"), max_num_timeout=100,
-                                python=f"exec {shlex.quote(sys.executable)}")
-    extra: dict[str, Any] = {"kill-on-invalid-dep": "yes", "requeue": True,
-                             "signal": f"B:{os.environ[PREEMPT_ENV]}@90", **res.extra}
+def job_python() -> str:
+    """The job's Python, which replaces the batch shell (``exec``, no srun): a signal to the job or to the batch
+    shell (B:TERM@90 before the time limit) reaches it, and no shell or srun ends the job before it has requeued."""
+    return f"exec {shlex.quote(sys.executable)}"
+
+
+def sbatch_parameters(res: Resources, name: str, after: list[str], signal_name: str) -> dict[str, Any]:
+    """The parameters of one job (submitit's ``SlurmExecutor.update_parameters``), waiting on the jobs ``after``."""
+    extra: dict[str, Any] = {"kill-on-invalid-dep": "yes", "requeue": True, "signal": f"B:{signal_name}@90",
+                             **res.extra}
     params: dict[str, Any] = {"job_name": f"distilkit-{name}", "cpus_per_task": res.cpus, "ntasks_per_node": 1,
                               "nodes": 1, "time": res.time, "array_parallelism": res.array_parallelism,
                               "stderr_to_stdout": True, "use_srun": False, "additional_parameters": extra}
-    if res.gpus:
-        params["gpus_per_node"] = res.gpus
-    if res.mem:
-        params["mem"] = res.mem
-    if res.partition:
-        params["partition"] = res.partition
-    if after:
-        params["dependency"] = "afterok:" + ":".join(after)
-    ex.update_parameters(**params)
+    optional = {"gpus_per_node": res.gpus, "mem": res.mem, "partition": res.partition,
+                "dependency": "afterok:" + ":".join(after) if after else None}
+    return {**params, **{k: v for k, v in optional.items() if v}}
+
+
+def _executor(submitit: Any, folder: Path, res: Resources, name: str, after: list[str]) -> Any:
+    ex = submitit.SlurmExecutor(folder=str(folder / "%j"), max_num_timeout=100, python=job_python())
+    ex.update_parameters(**sbatch_parameters(res, name, after, os.environ[PREEMPT_ENV]))
     return ex
 
 
-def submit(run: Any, res: Resources) -> list[Submitted]:
-    """Queue every unfinished task of the sweep ``run`` (a :class:`~distilkit.sweep.runner.SweepRun`): upstream jobs
-    first, then the variants' arrays that wait on them; written to ``slurm/jobs.json`` and returned."""
-    submitit = submitit_module()
-    _setup_signal()
-    run.write_recipes()
-    folder = run.root / "slurm"
-    folder.mkdir(parents=True, exist_ok=True)
-    extra_argv = ["--nproc-per-node", str(res.gpus)] if res.gpus > 1 else []
-    output = run.output.resolve()  # the jobs may start elsewhere on the shared file system
+@dataclass
+class PlannedJob:
+    """One job a submission queues: a single task, or an array of tasks (more than one) that wait on the same
+    upstream jobs (``after``: keys of earlier planned jobs, or ids of jobs queued before)."""
 
-    def argv(task: Any) -> list[str]:
-        return [*replace(task, recipe_file=task.recipe_file.resolve()).argv(output), "--quiet", *extra_argv]
-    submitted: list[Submitted] = []
+    key: str  # job-1, job-2, ...: the plan's name for the id Slurm gives it
+    tasks: list[Any]
+    after: list[str]
+
+
+def schedule(run: Any, queued: dict[str, str] | None = None) -> list[PlannedJob]:
+    """The jobs :func:`submit` queues for ``run``: one per unfinished upstream task, then one per set of unfinished
+    variant tasks needing the same upstream jobs; ``queued`` (title -> job id) are not queued again. Runs nothing."""
+    queued = queued or {}
+    jobs: list[PlannedJob] = []
     upstream_job: dict[tuple[str, ...], str] = {}  # the upstream runs' folders -> the job that trains them
-    queued = {s.title: s.job_id for s in (status(run) if (folder / "jobs.json").is_file() else [])
-              if s.state in ("pending", "running")}  # submitted before and still queued: not again
     for task in run.upstream_tasks():
-        key = run.upstream_key(task)
         if run.finished(task):
             continue
+        key = run.upstream_key(task)
         if task.title in queued:
             upstream_job[key] = queued[task.title]
             continue
-        ex = _executor(submitit, folder, res, run.sweep.name, [])
-        job = ex.submit(RunJob(argv(task)))
-        upstream_job[key] = job.job_id
-        submitted.append(Submitted(task.title, task.variant, task.seed, list(task.stages), job.job_id,
-                                   str(job.paths.stdout), []))
+        upstream_job[key] = f"job-{len(jobs) + 1}"
+        jobs.append(PlannedJob(upstream_job[key], [task], []))
     groups: dict[tuple[str, ...], list[Any]] = {}
     for task in run.variant_tasks():
         if run.finished(task) or task.title in queued:
             continue
         key = run.upstream_key(task)
-        after = tuple(sorted({upstream_job[key]} if key in upstream_job else set()))
-        groups.setdefault(after, []).append(task)
+        groups.setdefault((upstream_job[key],) if key in upstream_job else (), []).append(task)
     for after, tasks in groups.items():
-        ex = _executor(submitit, folder, res, run.sweep.name, list(after))
-        with ex.batch():
-            jobs = [ex.submit(RunJob(argv(t))) for t in tasks]
-        for task, job in zip(tasks, jobs):
-            submitted.append(Submitted(task.title, task.variant, task.seed, list(task.stages), job.job_id,
-                                       str(job.paths.stdout), list(after)))
+        jobs.append(PlannedJob(f"job-{len(jobs) + 1}", tasks, list(after)))
+    return jobs
+
+
+def job_argv(run: Any, task: Any, res: Resources) -> list[str]:
+    """What a job's body runs (``distilkit ARGV``), with absolute paths: the job may start elsewhere on the shared
+    file system; with several GPUs, ``--nproc-per-node`` (torchrun inside the job)."""
+    extra = ["--nproc-per-node", str(res.gpus)] if res.gpus > 1 else []
+    return [*replace(task, recipe_file=task.recipe_file.resolve()).argv(run.output.resolve()), "--quiet", *extra]
+
+
+def submit(run: Any, res: Resources) -> list[Submitted]:
+    """Queue the unfinished tasks of ``run`` (a :class:`~distilkit.sweep.runner.SweepRun`) as :func:`schedule` plans
+    them (upstream jobs, then the variants' arrays that wait on them); written to ``slurm/jobs.json``, returned."""
+    submitit = submitit_module()
+    _setup_signal()
+    run.write_recipes()
+    folder = run.root / "slurm"
+    folder.mkdir(parents=True, exist_ok=True)
+    queued = {s.title: s.job_id for s in (status(run) if (folder / "jobs.json").is_file() else [])
+              if s.state in ("pending", "running")}  # submitted before and still queued: not again
+    ids: dict[str, str] = {}  # planned job key -> Slurm's job id
+    submitted: list[Submitted] = []
+    for planned in schedule(run, queued):
+        after = [ids.get(a, a) for a in planned.after]
+        ex = _executor(submitit, folder, res, run.sweep.name, after)
+        with ex.batch():  # one task: a plain job; several: an array
+            jobs = [ex.submit(RunJob(job_argv(run, t, res))) for t in planned.tasks]
+        ids[planned.key] = jobs[0].job_id
+        submitted += [Submitted(t.title, t.variant, t.seed, list(t.stages), job.job_id, str(job.paths.stdout), after)
+                      for t, job in zip(planned.tasks, jobs)]
     record = folder / "jobs.json"
     previous = json.loads(record.read_text(encoding="utf-8")) if record.is_file() else []
     from distilkit.files import atomic_write_text
@@ -370,5 +393,5 @@ def wait(run: Any, console: Any, poll: float = 5.0, quiet: bool = False) -> list
             time.sleep(poll)
 
 
-__all__ = ["EXTRA", "Resources", "RunJob", "Submitted", "TaskStatus", "minutes", "parse_slurm_options", "status",
-           "submit", "wait"]
+__all__ = ["EXTRA", "PlannedJob", "Resources", "RunJob", "Submitted", "TaskStatus", "job_argv", "minutes",
+           "parse_slurm_options", "sbatch_parameters", "schedule", "status", "submit", "wait"]

@@ -13,7 +13,7 @@ import re
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from distilkit.errors import RecipeError
 from distilkit.recipe import (LossSpec, Recipe, needed_stages, parse_yaml, pydantic_problems, recipe_from_dict,
@@ -50,6 +50,15 @@ class LauncherSpec(_Strict):
                                                                           "{account: mylab, qos: high}")
 
 
+def launcher_hint(value: Any) -> str:
+    """Why ``launcher:`` must be a block: the launcher is chosen on the command line, the block holds resources."""
+    got = f"{value!r}" if isinstance(value, (str, int, float, bool)) else f"a {type(value).__name__}"
+    return (f"{got} is not a block: the launcher is chosen on the command line (`distilkit sweep FILE --launcher "
+            f"slurm`); the sweep file's `launcher:` block holds each run's Slurm resources, with the keys "
+            f"{', '.join(LauncherSpec.model_fields)} (e.g. launcher: {{gpus_per_run: 1, time: '8:00:00', slurm: "
+            "{account: mylab}})")
+
+
 class SweepSpec(_Strict):
     """A comparison of variants of one stage of a recipe over seeds."""
 
@@ -73,6 +82,14 @@ class SweepSpec(_Strict):
     variants: dict[str, VariantSpec] = Field(..., min_length=1, description="name -> variant, in table order")
     launcher: LauncherSpec | None = Field(None, description="resources of each run on a cluster "
                                                             "(`--launcher slurm`)")
+
+    @field_validator("launcher", mode="before")
+    @classmethod
+    def _launcher_block(cls, value: Any) -> Any:
+        """``launcher: slurm`` (a name where the block of resources goes): say where the launcher is chosen."""
+        if value is None or isinstance(value, (dict, LauncherSpec)):
+            return value
+        raise ValueError(launcher_hint(value))
 
     @model_validator(mode="after")
     def _names(self) -> "SweepSpec":

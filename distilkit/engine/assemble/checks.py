@@ -73,9 +73,10 @@ def fit_problem(path: Path, model: Any, info: Any, strict: bool, whole: bool = F
 
 
 def run_problems(res: Any) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
-    """What a run of ``res`` would meet: (the data's problems, every problem — the data's and the weights files')."""
+    """What a run of ``res`` would meet: (the data's problems, every problem — the data's, the weights files' and
+    the sparse convolutions' where they cannot run)."""
     unreadable = data_problems(res, res.has_split)
-    return unreadable, unreadable + weights_problems(res)
+    return unreadable, unreadable + weights_problems(res) + sparse_problems(res)
 
 
 def describe(res: Any) -> tuple[str, list[str]]:
@@ -95,21 +96,77 @@ def describe(res: Any) -> tuple[str, list[str]]:
     return stages, [f"model of {', '.join(names)} — {line}" for line, names in seen.items()] + sparse_lines(res)
 
 
+def _sparse_models(res: Any) -> dict[str, tuple[bool, bool]]:
+    """Per stage: whether its student, and whether a model it only runs forward (its teacher, its auxiliary
+    models), hold sparse convolutions (each model built once, on the meta device)."""
+    from distilkit.sparse import uses_sparse
+
+    sparse: dict[int, bool] = {}
+
+    def uses(spec: Any) -> bool:
+        if id(spec) not in sparse:
+            sparse[id(spec)] = uses_sparse(_built(spec, res.data_info))
+        return sparse[id(spec)]
+
+    return {name: (uses(stage.student), any(uses(spec) for spec in ([stage.teacher] if stage.teacher is not None
+                                                                    else []) + [a.model for a in stage.aux]))
+            for name, stage in res.stages.items()}
+
+
+def sparse_calls(stage: Any, student: bool, forward: bool) -> list[Any]:
+    """The sparse convolutions' calls (:class:`~distilkit.sparse.backend.Call`) a stage makes where it runs, one per
+    kind: its student's in a training step (with gradients, in ``train.precision``: bf16/fp16 under autocast) or,
+    for a stage that only evaluates, without; its teacher's and auxiliary models' (``forward``) without gradients.
+    ``student``/``forward``: which of those hold sparse convolutions."""
+    import torch
+
+    from distilkit.engine.assemble.devices import pick_device
+    from distilkit.sparse.backend import Call
+
+    train = stage.spec.train
+    device = pick_device(train.device).type
+    dtype = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}[train.precision]
+    autocast = train.precision != "fp32"
+    calls = []
+    if student:
+        calls.append(Call(device, dtype, autocast, gradients=train.steps != 0))
+    if forward and not student:  # else the student's call covers it (one refused without gradients is refused with)
+        calls.append(Call(device, dtype, autocast, gradients=False))
+    return calls
+
+
+def sparse_problems(res: Any) -> list[tuple[str, str]]:
+    """(field, problem) per reason a stage's sparse convolutions cannot run where it will run: the backend
+    ``DISTILKIT_SPARSE`` names, asked for the calls of :func:`sparse_calls` (a missing library, spconv's CPU build
+    asked for a backward, a dtype it does not compute) — the problem is the line the run stops with, the stages that
+    meet it named in the field. A ``DISTILKIT_SPARSE`` that names no backend stops every run."""
+    from distilkit.sparse import backend
+
+    try:
+        backend.requested()
+    except backend.SparseBackendError as exc:
+        return [("", str(exc))]
+    found: dict[str, list[str]] = {}
+    for name, (student, forward) in _sparse_models(res).items():
+        for call in sparse_calls(res.stages[name], student, forward):
+            try:
+                backend.choose(call.device, call)
+            except backend.SparseBackendError as exc:
+                found.setdefault(str(exc), []).append(name)
+                break
+    return [(f"stage{'s' if len(names) > 1 else ''} {', '.join(names)}", why) for why, names in found.items()]
+
+
 def sparse_lines(res: Any) -> list[str]:
     """One line per device whose stages build sparse convolutions: which backend computes them there
     (``DISTILKIT_SPARSE``; :mod:`distilkit.sparse.backend`)."""
     from distilkit.engine.assemble.devices import pick_device
-    from distilkit.sparse import backend, uses_sparse
+    from distilkit.sparse import backend
 
     devices: dict[str, list[str]] = {}
-    sparse: dict[int, bool] = {}  # per model spec: built once
-    for name, stage in res.stages.items():
-        specs = [stage.student] + ([stage.teacher] if stage.teacher is not None else [])
-        for spec in specs:
-            if id(spec) not in sparse:
-                sparse[id(spec)] = uses_sparse(_built(spec, res.data_info))
-        if any(sparse[id(spec)] for spec in specs):
-            devices.setdefault(pick_device(stage.spec.train.device).type, []).append(name)
+    for name, (student, forward) in _sparse_models(res).items():
+        if student or forward:
+            devices.setdefault(pick_device(res.stages[name].spec.train.device).type, []).append(name)
     return [f"{backend.describe(device)} — stages {', '.join(names)}" for device, names in devices.items()]
 
 
@@ -127,4 +184,5 @@ def _built(model: Any, info: Any) -> Any:
             return build_model(model, info)
 
 
-__all__ = ["data_problems", "describe", "fit_problem", "model_shapes", "run_problems", "sparse_lines", "weights_problems"]
+__all__ = ["data_problems", "describe", "fit_problem", "model_shapes", "run_problems", "sparse_calls", "sparse_lines",
+           "sparse_problems", "weights_problems"]

@@ -207,12 +207,15 @@ class StepMemory:
 def measure_step(res: Any, stage_name: str, params: Any) -> StepMemory:
     """Two training steps of ``stage_name`` at batch size 1 on the first training sample of the data ``params``,
     measured by phase: the model's phase is the larger of the two (a first step may do one-off work, e.g. fill a
-    cache), the optimizer's is the second's (its state exists from then on)."""
-    from distilkit.engine.memory.probe import probe_trainer
+    cache), the optimizer's is the second's (its state exists from then on). A step that fails as the run's would
+    (a term on the shapes its taps have, a model) raises :class:`~distilkit.engine.memory.probe.StepFailure`."""
+    from distilkit.engine.memory.probe import first_step, name_terms, probe_trainer
 
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = probe_trainer(res, stage_name, params, Path(tmp))
-        batch = trainer.first_batch()
+        with first_step(stage_name):  # the recipe's errors, each one line (the term's, with what it read)
+            trainer = probe_trainer(res, stage_name, params, Path(tmp))
+            name_terms(trainer)
+            batch = trainer.first_batch()
         modules = [trainer.student, trainer.task, trainer.objectives, trainer.connectors,
                    *([trainer.teacher] if trainer.teacher is not None else [])]
         optimizers = [trainer.optimizer, *[o for o in trainer.own_optimizers if o is not None]]
@@ -228,10 +231,18 @@ def measure_step(res: Any, stage_name: str, params: Any) -> StepMemory:
         model = 0.0
         for i in range(2):
             before, kept = held()
-            peaks = step_peaks(lambda: trainer.train_step(batch, i), trainer.device)
+            peaks = step_peaks(lambda: _step(trainer, batch, i, stage_name), trainer.device)
             model = max(model, before + peaks.model)
         held_at, top = max(peaks.optimizer, key=lambda w: w[1], default=(0, 0))
     return StepMemory(kept, model, before + held_at, float(top - held_at))
+
+
+def _step(trainer: Any, batch: Any, step: int, stage_name: str) -> None:
+    """One training step of a probe's trainer; what fails in it, the recipe's error (a :class:`StepFailure`)."""
+    from distilkit.engine.memory.probe import first_step
+
+    with first_step(stage_name):
+        trainer.train_step(batch, step)
 
 
 def _bounds(points: list[tuple[float, float]], target: float, peak: bool = True) -> tuple[float, float]:
@@ -255,7 +266,8 @@ def _bounds(points: list[tuple[float, float]], target: float, peak: bool = True)
 
 
 def estimate_stage(res: Any, stage_name: str) -> MemoryEstimate | None:
-    """The estimate for one stage (None: the stage does not train, or its data has no probe plan).
+    """The estimate for one stage (None: the stage does not train, or its data has no probe plan); a
+    :class:`~distilkit.engine.memory.probe.StepFailure` where its first step fails as the run's would.
 
     Each probe's step is split in two phases — the model's (forward and backward) and the optimizer's step — whose
     peaks grow differently: the model's with the data; the optimizer's is what the model phase leaves live plus its

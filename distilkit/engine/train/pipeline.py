@@ -86,8 +86,22 @@ class Pipeline(RecipeRun):
             from distilkit.report.recipe import write_report
 
             write_report(self, results)
+        elif report and only and results and self.world.main:
+            self._show_stages(results, only)
         self.world.finish()
         return results
+
+    def _show_stages(self, results: list[StageResult], only: list[str]) -> None:
+        """``--stage``: no recipe report (it would describe part of the recipe), but the scores of the stages run
+        or reused (the table a whole run prints) and where each named stage's report is."""
+        from distilkit.report.recipe import results_table
+
+        self.console.print(results_table(results))
+        for result in results:
+            if result.name in only:
+                report = result.run_dir / "report.md"
+                where = report if report.is_file() else f"{result.run_dir} (no report.md there)"
+                self.console.print(f"stage [bold]{result.name}[/] report: {where}", highlight=False, soft_wrap=True)
 
     def _replace(self, name: str, run_dir: Path) -> None:
         """Move a stage's finished run aside (``--rerun``): kept beside the new one."""

@@ -234,7 +234,13 @@ class StageRun:
                     self.spec.eval_every or trainer.steps_per_epoch, self.world.main,
                     _log=self.log, _evaluate=lambda: self.evaluate(self.split("val")),
                     _save=lambda which: self.save(which, loop))
-        ckpt = self.checkpoints.resume(on_unreadable=lambda exc, path: self._unreadable(exc, path))
+        unreadable: list[Path] = []  # tried first and passed over: resume reads last.pt, then last.prev.pt
+
+        def passed_over(exc: Exception, path: Path) -> None:
+            unreadable.append(path)
+            self._unreadable(exc, path)
+
+        ckpt = self.checkpoints.resume(on_unreadable=passed_over)
         if ckpt is not None:
             trainer.load_state(ckpt)
             set_rng_state(ckpt["rng"])
@@ -242,6 +248,9 @@ class StageRun:
             loop.step, loop.best = int(ckpt["step"]), ckpt["best"]
             self._truncate_log(loop.step)
             self.log({"event": "resume", "step": loop.step})
+            read = "last.prev.pt" if any(p.name == "last.pt" for p in unreadable) else "last.pt"
+            self.pipeline.console.print(f"stage [bold]{self.name}[/]: resumed from step {loop.step} of "
+                                        f"{trainer.total_steps} ({read})", highlight=False)
         elif trainer.init_left_out is not None:
             self.log({"event": "init", "from": str(self.upstream("init")), "left_out": trainer.init_left_out})
         loop.hooks = self.hooks(on_step)

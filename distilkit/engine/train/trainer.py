@@ -271,8 +271,9 @@ class Trainer:
                 self._check_outputs(self.student, s_out, "student", strict=False)
                 for j, spec in enumerate(self.stage.distill):  # a connector maps the student tap to the teacher's
                     if spec.connector is not None:
+                        # on the device at once: the terms' setup below already runs the student tap through it
                         self.connectors[j] = Connector(spec.connector, s_out[spec.taps["student"]],
-                                                       t_out[spec.taps["teacher"]])
+                                                       t_out[spec.taps["teacher"]]).to(self.device)
                 for term in self.terms:  # bound first: setup may build from the teacher (an auxiliary copy)
                     term.module.bind(self._context())
                     term.module.setup(self._roles(term, s_out, t_out, batch, partial=True), batch)
