@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import textwrap
@@ -314,7 +315,13 @@ def test_the_requeue_handler_stops_the_run_with_its_checkpoint_and_the_requeued_
     deadline = time.monotonic() + 120
     while not list((tmp_path / "a").rglob("last.pt")) and time.monotonic() < deadline:
         time.sleep(0.2)
-    again = job.checkpoint().function
+    handler = signal.getsignal(signal.SIGTERM)
+    try:
+        again = job.checkpoint().function
+        # requeueing: a second SIGTERM (Slurm's requeue signals the job again) is ignored from here on
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGTERM, handler)  # this test process goes on
     assert job._child.returncode is not None  # it had stopped before the handler returned
     last = next((tmp_path / "a").rglob("last.pt"))
     stopped_at = torch.load(last, weights_only=True)["step"]
