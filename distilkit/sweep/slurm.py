@@ -159,12 +159,9 @@ class RunJob:
             child.send_signal(signal.SIGTERM)
             _reaped(child, None)
         print(f"checkpointed (run exit status {child.returncode if child else None}); requeueing", flush=True)
-        # submitit now runs `scontrol requeue`, and Slurm's requeue signals this job again (SIGCONT, SIGTERM) while
-        # that call waits: handled, it would requeue a second time and fail ("Job is pending execution"; seen on a
-        # one-node Slurm 22.05). The run has stopped and its checkpoint is written: later signals are ignored.
-        for name in {"SIGTERM", f"SIG{os.environ.get(PREEMPT_ENV, 'TERM')}"}:
-            if hasattr(signal, name):
-                signal.signal(getattr(signal, name), signal.SIG_IGN)
+        # Slurm's requeue signals the job again while `scontrol requeue` waits: ignored (handled: "pending execution")
+        for name in {"SIGTERM", f"SIG{os.environ.get(PREEMPT_ENV, 'TERM')}"} & set(dir(signal)):
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
         return DelayedSubmission(RunJob(self.argv, self.grace))
 
 
