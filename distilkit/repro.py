@@ -44,6 +44,21 @@ def set_environment() -> None:
             os.environ.setdefault(key, value)
 
 
+def set_deterministic(on: bool, warn_only: bool = False) -> None:
+    """``torch.use_deterministic_algorithms`` without its import of ``torch._inductor`` (1.1 s of CPU in each new
+    process, torch 2.13) where inductor is not loaded: the setting it adds there (``inductor.config.deterministic``)
+    only concerns ``torch.compile``, which distilkit does not use; where inductor is loaded, the public call."""
+    import sys
+
+    import torch
+
+    private = getattr(torch._C, "_set_deterministic_algorithms", None)
+    if private is None or "torch._inductor.config" in sys.modules:
+        torch.use_deterministic_algorithms(on, warn_only=warn_only)
+    else:
+        private(on, warn_only=warn_only)
+
+
 @contextlib.contextmanager
 def deterministic_algorithms() -> Iterator[bool]:
     """PyTorch's deterministic variants of its ops while a stage runs (a warning, not an error, for an op that has
@@ -54,7 +69,11 @@ def deterministic_algorithms() -> Iterator[bool]:
     was = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
            torch.utils.deterministic.fill_uninitialized_memory)  # type: ignore[attr-defined]
     cudnn = torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark
-    torch.use_deterministic_algorithms(on, warn_only=True)
+    mkldnn = torch.backends.mkldnn.deterministic
+    set_deterministic(on, warn_only=True)
+    # oneDNN (CPU convolutions) may use atomics in some implementations unless told not to (its "deterministic"
+    # attribute; PyTorch passes it where its oneDNN calls take it)
+    torch.backends.mkldnn.deterministic = on or mkldnn
     # a debugging aid that fills every new tensor with NaN in deterministic mode: no result depends on it, and it
     # cost 15 % of an SCPNet step here
     torch.utils.deterministic.fill_uninitialized_memory = False  # type: ignore[attr-defined]
@@ -63,9 +82,10 @@ def deterministic_algorithms() -> Iterator[bool]:
     try:
         yield on
     finally:
-        torch.use_deterministic_algorithms(was[0], warn_only=was[1])
+        set_deterministic(was[0], warn_only=was[1])
         torch.utils.deterministic.fill_uninitialized_memory = was[2]  # type: ignore[attr-defined]
         torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = cudnn
+        torch.backends.mkldnn.deterministic = mkldnn
 
 
 def processor() -> str:
@@ -82,6 +102,34 @@ def processor() -> str:
     except OSError:
         pass
     return f"{name} ({torch.backends.cpu.get_cpu_capability()})"
+
+
+# MKL's code branches as mkl_cbwr_get reports them (mkl_service.h); 1 is "not set", MKL's default
+MKL_BRANCHES = {0: "OFF", 1: "off", 2: "AUTO", 3: "COMPATIBLE", 4: "SSE2", 6: "SSSE3", 7: "SSE4_1", 8: "SSE4_2",
+                9: "AVX", 10: "AVX2", 11: "AVX512_MIC", 12: "AVX512", 13: "AVX512_MIC_E1", 14: "AVX512_E1"}
+MKL_STRICT = 0x10000
+
+
+def mkl_cbwr() -> str | None:
+    """MKL's conditional numerical reproducibility as MKL itself reports it in this process, e.g.
+    ``"AUTO,STRICT (AVX512_E1)"`` (the branch AUTO chose in brackets) or ``"off"`` — read back through the MKL service
+    functions that PyTorch's x86 builds export, so a summary says what MKL ran with, not what the environment asked
+    for (MKL reads ``MKL_CBWR`` once, at its first call). None where PyTorch has no MKL (ARM, macOS)."""
+    import ctypes
+
+    import torch
+
+    if not torch.backends.mkl.is_available():
+        return None
+    try:
+        lib = ctypes.CDLL(os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so"))
+        get, auto = lib.mkl_serv_cbwr_get, lib.mkl_serv_cbwr_get_auto_branch
+    except (OSError, AttributeError):
+        return None
+    get.argtypes, get.restype, auto.restype = [ctypes.c_int], ctypes.c_int, ctypes.c_int
+    mode = get(-1)  # MKL_CBWR_ALL
+    text = MKL_BRANCHES.get(mode & 0xFFFF, str(mode & 0xFFFF)) + (",STRICT" if mode & MKL_STRICT else "")
+    return f"{text} ({MKL_BRANCHES.get(auto(), '?')})" if mode & 0xFFFF == 2 else text
 
 
 NOT_DETERMINISTIC = "does not have a deterministic implementation"

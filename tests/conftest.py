@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Iterator
 
 import pytest
 
@@ -24,6 +25,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    if config.pluginmanager.hasplugin("xdist"):
+        config.pluginmanager.register(_XdistGroupIds(), "distilkit-xdist-group-ids")
     if config.getoption("--device") == "cuda":
         import torch
 
@@ -96,23 +99,55 @@ def _cache(tmp_path_factory: pytest.TempPathFactory) -> None:
     os.environ.setdefault("DISTILKIT_CACHE", str(tmp_path_factory.mktemp("cache")))
 
 
-@pytest.fixture(autouse=True)
-def _render_plots_only_where_looked_at(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+_RENDERS = [False]  # whether the test being set up looks at the pictures (marked plots)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Before any fixture of ``item`` is set up: module and session fixtures built for it render as it would."""
+    _RENDERS[0] = item.get_closest_marker("plots") is not None
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _render_plots_only_where_looked_at() -> "Iterator[None]":
     """Rendering PNGs is two thirds of a tiny run's time (matplotlib's text layout): a test that does not look at
-    the pictures gets each figure closed and an empty file where the PNG goes (every report path still runs, up to
-    the drawing); tests marked ``plots`` render them for real."""
-    if request.node.get_closest_marker("plots"):
-        return
+    the pictures — and every shared fixture built for one — gets each figure closed and an empty file where the PNG
+    goes (every report path still runs, up to the drawing); tests marked ``plots`` render them for real."""
     from distilkit.report import plots
 
-    def close_only(fig, path):
+    real = plots.save
+
+    def save(fig, path):
+        if _RENDERS[0]:
+            return real(fig, path)
         import matplotlib.pyplot as plt
 
         plt.close(fig)
         path.write_bytes(b"")
         return path
 
-    monkeypatch.setattr(plots, "save", close_only)
+    plots.save = save
+    yield
+    plots.save = real
+
+
+class _XdistGroupIds:
+    """``--dist loadgroup`` keeps the tests of one ``xdist_group`` on one worker by an ``@group`` suffix of their
+    ids; pytest-xdist 3.8 writes it to ``item._nodeid``, which pytest 9.2 no longer reads (its id is ``_id``), so the
+    groups are ignored without a word (pytest-dev/pytest-xdist#1386). Put the suffix where pytest reads it, where
+    xdist's own did not land."""
+
+    @pytest.hookimpl(trylast=True)
+    def pytest_collection_modifyitems(self, config: pytest.Config, items: list[pytest.Item]) -> None:
+        if not getattr(config.option, "loadgroup", False) and getattr(config.option, "dist", "no") != "loadgroup":
+            return
+        for item in items:
+            names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                            for m in item.iter_markers("xdist_group")})
+            if names and not item.nodeid.endswith("@" + "_".join(names)):
+                from _pytest.nodeid import coerce_node_id
+
+                item._id = coerce_node_id(f"{item.nodeid}@{'_'.join(names)}")
 
 
 def tiny_recipe(name: str = "tiny", steps: int = 2, distill: bool = True, adapter: str = "scpnet",

@@ -239,11 +239,14 @@ def test_ego_lane_traffic_does_appear_ahead() -> None:
     assert found >= 15
 
 
+@pytest.mark.xdist_group("street")
 def test_all_19_classes_occur_in_the_ground_truth() -> None:
-    p = P.model_copy(update={"scale": 4, "beams": 32, "azimuth_steps": 768, "gt_frames": 10, "input_frames": 1})
+    """Two street samples (shared with tests/test_rectify.py) hold every class in their voxel ground truth."""
+    from _street_samples import SEEDS, street_sample
+
     seen = set()
-    for seed in range(4):
-        seen |= set(np.unique(make_sample(seed, p)["voxel_label"]).tolist())
+    for seed in SEEDS:
+        seen |= set(np.unique(street_sample(seed)["voxel_label"]).tolist())
     missing = [CLASS_NAMES[c] for c in range(1, NUM_CLASSES) if c not in seen]
     assert not missing, f"classes never in the voxel ground truth: {missing}"
 

@@ -5,12 +5,13 @@ each process has a GPU of its own, gloo through the host on one GPU), and `disti
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import pytest
 import torch
@@ -25,11 +26,15 @@ from distilkit.errors import DistilkitError
 from distilkit.recipe import recipe_from_dict
 
 
-def register_camera() -> None:
-    """The camera-style toy of test_contracts (no BatchNorm; its CE is a mean over equally many voxels per sample)."""
+@contextlib.contextmanager
+def camera_registered() -> Iterator[None]:
+    """The camera-style toy of test_contracts (no BatchNorm; its CE is a mean over equally many voxels per sample)
+    registered while the context is open, then removed again where this added it: other tests iterate over the
+    registries (``distilkit schema --markdown`` against docs/recipe-reference.md)."""
     import test_contracts as tc
     from distilkit.registry import ADAPTERS, DATASETS
 
+    added = [r for r, name in ((DATASETS, "tiny-camera-data"), (ADAPTERS, "tiny-camera")) if name not in r]
     if "tiny-camera-data" not in DATASETS:
         DATASETS.add("tiny-camera-data", tc.camera_split, description="test", paper="tests",
                      params=tc.CameraDataParams, info=tc.camera_info, collate=tc.collate_camera, version=1,
@@ -37,12 +42,21 @@ def register_camera() -> None:
     if "tiny-camera" not in ADAPTERS:
         ADAPTERS.add("tiny-camera", tc.TinyCamera, description="test", paper="tests",
                      consumes=tuple(tc.TinyCamera.TAPS.values()))
+    try:
+        yield
+    finally:
+        for registry in added:
+            registry.remove("tiny-camera-data" if registry is DATASETS else "tiny-camera")
 
 
 def one_step(world: World, folder: Path, device: str = "cpu") -> dict[str, dict[str, torch.Tensor]]:
     """One training step of a distilled student (CE + KD + FitNets with its linear connector) on global batch 0;
     the gradients it took and the weights after it, by qualified name."""
-    register_camera()
+    with camera_registered():
+        return _one_step(world, folder, device)
+
+
+def _one_step(world: World, folder: Path, device: str) -> dict[str, dict[str, torch.Tensor]]:
     train = {"steps": 2, "batch_size": 4, "eval_every": 2}
     recipe = {"schema_version": 1, "name": "ddp", "seed": 0, "data": {"dataset": "tiny-camera-data", "params": {}},
               "stages": {"teacher": {"model": {"adapter": "tiny-camera", "params": {"channels": 6}}, "train": train},
@@ -76,6 +90,8 @@ def backend(device: str) -> str:
 
 
 def _worker(rank: int, size: int, init_file: str, folder: str, device: str = "cpu") -> None:
+    """One of two processes: a training step (:func:`one_step`) on ``device``, then the evaluation of
+    :func:`scored` (on the CPU, gloo), each saved for the parent."""
     torch.set_num_threads(1)
     if device == "cuda":
         torch.cuda.set_device(rank % torch.cuda.device_count())
@@ -83,18 +99,33 @@ def _worker(rank: int, size: int, init_file: str, folder: str, device: str = "cp
                                          world_size=size)
     world = World(rank, size)
     torch.save(one_step(world, Path(folder), device), Path(folder) / f"out{rank}.pt")
+    torch.save(scored(world, Path(folder) / f"rank{rank}"), Path(folder) / f"eval{rank}.pt")
     leave(world)  # as `distilkit run` ends a process: gloo's teardown can abort at exit
 
 
-def test_two_processes_take_the_same_step_as_one_on_the_global_batch(tmp_path: Path, device) -> None:
+@pytest.fixture(scope="module")
+def two_processes(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """One process's training step and evaluation, and two spawned processes' (one process group for both: a spawn
+    is two interpreters importing torch), on the device of ``--device``; read by the two tests below."""
+    device = request.config.getoption("--device")
+    tmp = tmp_path_factory.mktemp("two_processes")
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as each worker; given back after, since later tests compare with subprocesses
     try:
-        single = one_step(World(), tmp_path / "single", device.type)
+        single = one_step(World(), tmp / "single", device)
     finally:
         torch.set_num_threads(threads)
-    mp.spawn(_worker, args=(2, str(tmp_path / "init"), str(tmp_path), device.type), nprocs=2, join=True)
-    outs = [torch.load(tmp_path / f"out{r}.pt", weights_only=True) for r in range(2)]
+    single_eval = scored(World(), tmp / "single_eval")
+    mp.spawn(_worker, args=(2, str(tmp / "init"), str(tmp), device), nprocs=2, join=True)
+    return {"single": single, "outs": [torch.load(tmp / f"out{r}.pt", weights_only=True) for r in range(2)],
+            "single_eval": single_eval, "evals": [torch.load(tmp / f"eval{r}.pt", weights_only=True) for r in range(2)]}
+
+
+@pytest.mark.xdist_group("two_processes")
+def test_two_processes_take_the_same_step_as_one_on_the_global_batch(two_processes: dict[str, Any], device) -> None:
+    """Each of the two processes' gradients and weights after the step equal the one process's on the global batch
+    (and the step took a gradient)."""
+    single, outs = two_processes["single"], two_processes["outs"]
     for name, grad in single["grads"].items():
         for out in outs:
             torch.testing.assert_close(out["grads"][name], grad, rtol=1e-5, atol=1e-7, msg=name)
@@ -108,21 +139,37 @@ def test_a_global_batch_that_does_not_split_is_refused(tmp_path: Path) -> None:
         one_step(World(0, 3), tmp_path)  # refused before any collective operation
 
 
-@pytest.mark.gpus(2)
-def test_distilkit_run_with_two_processes_trains_with_one_writer(tmp_path: Path, device) -> None:
-    """On the device of ``--device`` where each process has one of its own: under ``--device cuda`` on a machine with
-    fewer than two GPUs the recipe says ``device: cpu`` (two processes on one GPU are refused; on the CPU they
-    reduce with gloo over the host whatever GPUs the machine has), and the test is not marked ``device`` there."""
-    recipe: dict[str, Any] = tiny_recipe(steps=3, device=on(device, gpus=2))
+def clean_env() -> dict[str, str]:
+    """This process's environment without Slurm's or torchrun's variables, one thread per process."""
+    base = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "RANK", "WORLD_SIZE", "LOCAL_RANK",
+                                                                      "MASTER_"))}
+    return {**base, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+@pytest.fixture(scope="module")
+def torchrun_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One `distilkit run --nproc-per-node 2` (torchrun) of the tiny teacher and DSKD student, 3 steps of global batch
+    2 each, into ``runs/`` beside its recipe ``r.yaml`` (the folder returned): read by the two tests below. On the
+    device of ``--device`` where each process has a GPU of its own: under ``--device cuda`` on a machine with fewer
+    than two GPUs the recipe says ``device: cpu`` (two processes on one GPU are refused; on the CPU they reduce with
+    gloo over the host whatever GPUs the machine has), and the tests are not marked ``device`` there."""
+    recipe: dict[str, Any] = tiny_recipe(steps=3, device=on(request.config.getoption("--device"), gpus=2))
     for stage in recipe["stages"].values():
         stage["train"].update(batch_size=2, eval_every=3)
-    path = tmp_path / "r.yaml"
-    path.write_text(yaml.safe_dump(recipe))
-    done = subprocess.run([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "runs"), "-q",
-                           "--nproc-per-node", "2"], capture_output=True, text=True)
+    folder = tmp_path_factory.mktemp("torchrun")
+    (folder / "r.yaml").write_text(yaml.safe_dump(recipe))
+    done = subprocess.run([sys.executable, "-m", "distilkit", "run", str(folder / "r.yaml"), "-o", str(folder / "runs"),
+                           "-q", "--nproc-per-node", "2"], capture_output=True, text=True, env=clean_env())
     assert done.returncode == 0, done.stderr[-3000:]
+    return folder
+
+
+@pytest.mark.gpus(2)
+@pytest.mark.xdist_group("torchrun")
+def test_distilkit_run_with_two_processes_trains_with_one_writer(torchrun_run: Path, device) -> None:
+    """Both stages of the torchrun run finished with 2 processes, and each step's loss was logged once."""
     for name in ("teacher", "student"):
-        (run,) = (tmp_path / "runs" / "tiny").glob(f"{name}-*")
+        (run,) = (torchrun_run / "runs" / "tiny").glob(f"{name}-*")
         summary = json.loads((run / "summary.json").read_text())
         assert summary["processes"] == 2 and summary["status"] == "finished"
         steps = [json.loads(x).get("step") for x in (run / "metrics.jsonl").read_text().splitlines()
@@ -131,30 +178,22 @@ def test_distilkit_run_with_two_processes_trains_with_one_writer(tmp_path: Path,
 
 
 @pytest.mark.gpus(2)
-def test_two_slurm_tasks_train_as_torchrun_would_start_them(tmp_path: Path, device) -> None:
-    """`srun -n 2 distilkit run ...`: two processes with Slurm's task variables (as srun sets them in a step) and no
-    torchrun train one run together, and its weights equal torchrun's two processes' bit for bit. On the device of
-    ``--device`` where each task has a GPU of its own; on a machine with fewer than two GPUs the recipe says
-    ``device: cpu`` (gloo over the host; not marked ``device`` under ``--device cuda`` there)."""
-    recipe: dict[str, Any] = tiny_recipe(steps=3, distill=False, device=on(device, gpus=2))
-    recipe["stages"]["teacher"]["train"].update(batch_size=2, eval_every=3)
-    path = tmp_path / "r.yaml"
-    path.write_text(yaml.safe_dump(recipe))
-    base = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "RANK", "WORLD_SIZE", "LOCAL_RANK",
-                                                                      "MASTER_"))}
-    base.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+@pytest.mark.xdist_group("torchrun")
+def test_two_slurm_tasks_train_as_torchrun_would_start_them(torchrun_run: Path, tmp_path: Path, device) -> None:
+    """`srun -n 2 distilkit run ... --stage teacher`: two processes with Slurm's task variables (as srun sets them in
+    a step) and no torchrun train one run together, and its weights equal those of the torchrun run's teacher (the
+    same recipe, device and global batch) bit for bit."""
+    path = torchrun_run / "r.yaml"
     procs = [subprocess.Popen([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "slurm"),
-                               "-q"], env={**base, "SLURM_STEP_ID": "0", "SLURM_NTASKS": "2", "SLURM_PROCID": str(i),
-                                           "SLURM_LOCALID": str(i), "SLURM_JOB_ID": str(4000 + os.getpid() % 1000),
-                                           "SLURM_STEP_NODELIST": "localhost"},
+                               "-q", "--stage", "teacher"],
+                              env={**clean_env(), "SLURM_STEP_ID": "0", "SLURM_NTASKS": "2", "SLURM_PROCID": str(i),
+                                   "SLURM_LOCALID": str(i), "SLURM_JOB_ID": str(4000 + os.getpid() % 1000),
+                                   "SLURM_STEP_NODELIST": "localhost"},
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
     outs = [p.communicate(timeout=600) for p in procs]
     assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
-    done = subprocess.run([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "torchrun"), "-q",
-                           "--nproc-per-node", "2"], capture_output=True, text=True, env=base)
-    assert done.returncode == 0, done.stderr[-3000:]
     (a,) = (tmp_path / "slurm" / "tiny").glob("teacher-*")
-    (b,) = (tmp_path / "torchrun" / "tiny").glob("teacher-*")
+    (b,) = (torchrun_run / "runs" / "tiny").glob("teacher-*")
     assert json.loads((a / "summary.json").read_text())["processes"] == 2
     x = torch.load(a / "checkpoints" / "last.pt", weights_only=True)["student"]
     y = torch.load(b / "checkpoints" / "last.pt", weights_only=True)["student"]
@@ -196,18 +235,12 @@ def scored(world: World, folder: Path) -> dict[str, Any]:
     return {"confusion": merged.acc.confusion, "mine": mine, "total": total}
 
 
-def _eval_worker(rank: int, size: int, init_file: str, folder: str) -> None:
-    torch.set_num_threads(1)
-    torch.distributed.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=size)
-    world = World(rank, size)
-    torch.save(scored(world, Path(folder) / f"rank{rank}"), Path(folder) / f"eval{rank}.pt")
-    leave(world)
-
-
-def test_two_processes_evaluate_each_scene_once_and_their_merged_confusion_is_one_processs(tmp_path: Path) -> None:
-    single = scored(World(), tmp_path / "single")
-    mp.spawn(_eval_worker, args=(2, str(tmp_path / "init"), str(tmp_path)), nprocs=2, join=True)
-    outs = [torch.load(tmp_path / f"eval{r}.pt", weights_only=True) for r in range(2)]
+@pytest.mark.xdist_group("two_processes")
+def test_two_processes_evaluate_each_scene_once_and_their_merged_confusion_is_one_processs(
+        two_processes: dict[str, Any]) -> None:
+    """Of 5 validation scenes the two processes score 2 and 3, each knows the total, and the merged confusion of
+    each equals one process's (which is not empty)."""
+    single, outs = two_processes["single_eval"], two_processes["evals"]
     assert [o["mine"] for o in outs] == [2, 3] and all(o["total"] == 5 for o in outs)  # each scene once
     assert single["confusion"].sum() > 0
     for out in outs:

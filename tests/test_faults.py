@@ -21,18 +21,34 @@ from distilkit.errors import RunLockedError
 from distilkit.recipe import recipe_from_dict
 
 
-def test_a_second_run_on_a_stage_in_training_waits_for_it_or_stops_with_a_clear_message(tmp_path, capsys) -> None:
+def test_a_second_run_on_a_stage_in_training_waits_for_it_or_stops_with_a_clear_message(tmp_path, capsys,
+                                                                                        monkeypatch) -> None:
+    """Another process's lock held: ``--no-wait`` stops with exit 2 and the holder named, nothing written; the
+    default says it waits (its ``on_wait`` is called), is still waiting, and trains the stage once released."""
+    import distilkit.engine.store.lock as locks
+
     recipe = tiny_recipe(steps=1, distill=False)
     path = tmp_path / "r.yaml"
     path.write_text(yaml.safe_dump(recipe))
     pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
     lock = lock_path(pipe.root, pipe.run_dir("teacher").name)
+    told = threading.Event()  # the waiter found the lock taken and began waiting: no fixed sleep needed
+
+    def telling_lock(path, wait=True, on_wait=None, **kwargs):
+        def tell(holder: str) -> None:
+            told.set()
+            if on_wait is not None:
+                on_wait(holder)
+        return stage_lock(path, wait=wait, on_wait=tell, **kwargs)
+
+    monkeypatch.setattr(locks, "stage_lock", telling_lock)  # the pipeline imports it from there when it runs
     with stage_lock(lock):  # another process's lock: flock conflicts across open file descriptions
         with pytest.raises(RunLockedError, match=r"teacher-\w+ is being trained by another distilkit run \(pid \d+"):
             pipe.run(wait=False)
         assert main(["run", str(path), "-o", str(tmp_path / "runs"), "-q", "--no-wait"]) == 2
         assert "is being trained by another distilkit run" in capsys.readouterr().err
         assert not any(pipe.root.glob("teacher-*/summary.json"))  # nothing was written under the holder's feet
+        assert not told.is_set()  # --no-wait never waited
         waited: list[str] = []
 
         def run_waiting() -> None:
@@ -41,16 +57,19 @@ def test_a_second_run_on_a_stage_in_training_waits_for_it_or_stops_with_a_clear_
 
         waiter = threading.Thread(target=run_waiting)
         waiter.start()
-        waiter.join(timeout=2.0)
+        assert told.wait(timeout=120)
+        waiter.join(timeout=0.2)
         assert waiter.is_alive() and not waited  # the default waits for the holder
+        assert not any(pipe.root.glob("teacher-*/summary.json"))
     waiter.join(timeout=120)
     assert waited == ["finished"]  # released: it trained the stage
 
 
-def test_a_truncated_last_checkpoint_falls_back_to_the_previous_one_with_the_same_result(tmp_path) -> None:
-    recipe = tiny_recipe(steps=4, distill=False)
-    recipe["stages"]["teacher"]["train"]["eval_every"] = 4
-    (clean,) = Pipeline(recipe_from_dict(recipe), tmp_path / "clean", quiet=True).run()
+@pytest.mark.xdist_group("faults_clean_run")  # one worker trains the shared clean run once
+def test_a_truncated_last_checkpoint_falls_back_to_the_previous_one_with_the_same_result(tmp_path, clean_run) -> None:
+    """Stopped after step 3, ``last.pt`` cut short: the run resumes from ``last.prev.pt`` (step 2), logs why, and
+    ends with the clean run's metrics (the shared 8-step run below)."""
+    recipe = _kill_recipe()
     pipe = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True)
     pipe.run(stop_after=3)
     ckpts = pipe.run_dir("teacher") / "checkpoints"
@@ -62,7 +81,7 @@ def test_a_truncated_last_checkpoint_falls_back_to_the_previous_one_with_the_sam
     bad = [r for r in log if r.get("event") == "unreadable_checkpoint"]
     assert bad and bad[0]["path"].endswith("last.pt") and "not a readable checkpoint" in bad[0]["error"]
     assert [r["step"] for r in log if r.get("event") == "resume"] == [2]
-    assert scores(result.summary) == scores(clean.summary)  # the same final metrics as an uninterrupted run
+    assert scores(result.summary) == scores(clean_run.summary)  # the same final metrics as an uninterrupted run
 
 
 def scores(summary: dict) -> dict:
@@ -101,6 +120,7 @@ def clean_run(tmp_path_factory: pytest.TempPathFactory):
     return clean
 
 
+@pytest.mark.xdist_group("faults_clean_run")
 @pytest.mark.parametrize("moment", ["first checkpoint", pytest.param("best checkpoint", marks=pytest.mark.slow),
                                     pytest.param("sixth log line", marks=pytest.mark.slow), "evaluation",
                                     "mid-epoch, 2 loader workers"])

@@ -5,12 +5,15 @@ budget; on a machine without CUDA the real check stops at once with one line say
 
 from __future__ import annotations
 
+import importlib.machinery
+import importlib.util
 import os
 import re
 import subprocess
 import sys
 import time
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -19,24 +22,50 @@ from conftest import ROOT
 SCRIPT = ROOT / "scripts" / "gpu-check"
 
 
-def test_without_cuda_the_gpu_check_stops_with_one_line(tmp_path: Path) -> None:
-    done = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "r.md")], capture_output=True,
-                          text=True, env={**os.environ, "CUDA_VISIBLE_DEVICES": ""}, timeout=120)
-    assert done.returncode == 4 and "CUDA is not available on this machine" in done.stderr
+def gpu_check_module() -> ModuleType:
+    """scripts/gpu-check imported as a module (a file without ``.py``), to call its ``main`` in this process."""
+    loader = importlib.machinery.SourceFileLoader("gpu_check_script", str(SCRIPT))
+    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
+    loader.exec_module(module)
+    return module
+
+
+def test_without_cuda_the_gpu_check_stops_with_one_line(tmp_path: Path, monkeypatch, capsys) -> None:
+    """The real check (``--device cuda``, the default) where torch sees no CUDA: exit status 4, one line on stderr
+    saying so, no report (in this process, torch.cuda.is_available answering False)."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    code = gpu_check_module().main(["--out", str(tmp_path / "r.md")])
+    err = capsys.readouterr().err
+    assert code == 4 and "CUDA is not available on this machine" in err
+    assert len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "r.md").exists()
 
 
+BUDGET = 10  # seconds: the machine section (which fails at once here) and the bf16 section's 5 s minimum fit in it
+
+
 def test_a_section_that_hangs_is_stopped_and_the_check_keeps_its_budget(tmp_path: Path) -> None:
-    out, tmp = tmp_path / "r.md", tmp_path / "tmp"
+    """The bf16 section sleeps 600 s before it works: it is stopped when the budget runs out, the benchmarks after
+    it are not run, the check still returns within its budget (plus its own start and end), says that it ran out of
+    time, and its temporary folder is removed (the sleeping section's process group killed). The sections see a
+    ``torch`` that cannot be imported (a stand-in first on PYTHONPATH), so that the report's machine lines fail at
+    once instead of taking a loaded machine's torch import out of the budget (the bf16 section sleeps before it
+    imports anything)."""
+    out, tmp, stub = tmp_path / "r.md", tmp_path / "tmp", tmp_path / "no-torch"
     tmp.mkdir()
-    env = {**os.environ, "TMPDIR": str(tmp), "DISTILKIT_GPU_CHECK_SLEEP": "bf16:600"}
+    stub.mkdir()
+    (stub / "torch.py").write_text("raise ImportError('no torch in this test')\n")
+    path = os.pathsep.join([str(stub), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))])
+    env = {**os.environ, "TMPDIR": str(tmp), "DISTILKIT_GPU_CHECK_SLEEP": "bf16:600", "PYTHONPATH": path}
     t0 = time.monotonic()
-    done = subprocess.run([sys.executable, str(SCRIPT), "--device", "cpu", "--quick", "--budget", "15", "--out",
-                           str(out), "--sections", "bf16", "benchmarks"], capture_output=True, text=True, env=env,
-                          timeout=120)
+    done = subprocess.run([sys.executable, str(SCRIPT), "--device", "cpu", "--quick", "--budget", str(BUDGET),
+                           "--out", str(out), "--sections", "bf16", "benchmarks"], capture_output=True, text=True,
+                          env=env, timeout=120)
     seconds = time.monotonic() - t0
     assert done.returncode == 0, done.stdout + done.stderr
-    assert seconds <= 15 + 10, seconds  # the budget, and the check's own start and end
+    assert seconds <= BUDGET + 10, seconds  # the budget, and the check's own start and end
     report = out.read_text()
     bf16, benchmarks = report.split("## bf16 against fp32")[1].split("## benchmarks")
     assert "**stopped: the time budget ran out during it**" in bf16, report

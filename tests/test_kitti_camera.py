@@ -131,11 +131,11 @@ def test_a_camera_model_trains_on_the_folder(exported, tmp_path, device) -> None
               "data": {"dataset": "semantickitti-ssc",
                        "params": {"root": str(exported), "train": ["00"], "val": ["08"], "scale": 4,
                                   "camera": {"height": 24, "width": 80}}},
-              "stages": {"proposal": {"model": {"adapter": "voxformer-proposal"},
-                                      "train": {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "iou",
+              "stages": {"proposal": {"model": {"adapter": "voxformer-proposal"},  # a step of 2 scenes each
+                                      "train": {"steps": 1, "batch_size": 2, "eval_every": 1, "metric": "iou",
                                                 "device": device.type}},
                          "camera": {"model": {"adapter": "voxformer"}, "aux": {"proposal": {"from": "proposal"}},
-                                    "train": {"steps": 2, "batch_size": 2, "eval_every": 2, "device": device.type}}}}
+                                    "train": {"steps": 1, "batch_size": 2, "eval_every": 1, "device": device.type}}}}
     proposal, camera = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     assert 0 <= camera.summary["test"]["best"]["miou"] <= 1 and camera.summary["report_split"] == "val"
     assert np.isfinite(proposal.summary["test"]["best"]["iou"])

@@ -130,8 +130,8 @@ def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_na
     bad["model.extra.kernel"] = torch.zeros(27, 3, 3)
     bad["model.stem.0.kernel"] = torch.zeros(27, 4, 32)
     torch.save({"state_dict": bad}, tmp_path / "bad.ckpt")
-    with pytest.raises(DataError) as err:
-        load_weights(lidiff(duplicate=4), type(model).read_weights(str(tmp_path / "bad.ckpt")), True, "bad.ckpt")
+    with pytest.raises(DataError) as err:  # the bad files load into a model already built (on the CPU): refused
+        load_weights(model, type(model).read_weights(str(tmp_path / "bad.ckpt")), True, "bad.ckpt")
     text = str(err.value)
     assert "1 missing: net.model.last.0.weight" in text and "1 unexpected: net.model.extra.weight" in text
     assert "net.model.stem.0.weight (32, 3, 3, 3, 4) (model: (32, 3, 3, 3, 3))" in text
@@ -140,7 +140,7 @@ def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_na
     torch.save({"state_dict": bad}, tmp_path / "bad.ckpt")
     with pytest.raises(DataError, match=r"net\.model\.up1\.1\.0\.downsample\.0\.weight \(in the file: "
                                         r"model\.up1\.1\.0\.downsample\.0\.kernel\)"):
-        load_weights(lidiff(duplicate=4), type(model).read_weights(str(tmp_path / "bad.ckpt")), True, "bad.ckpt")
+        load_weights(model, type(model).read_weights(str(tmp_path / "bad.ckpt")), True, "bad.ckpt")
 
 
 @pytest.mark.parametrize("shape,why", [((27 * 4 * 32,), r"\(3456,\)"), ((9, 3, 32), "9 offsets is not a cube")])
@@ -165,7 +165,7 @@ def test_a_malformed_minkowski_kernel_is_named_and_a_nan_refused(tmp_path, shape
     torch.save({"state_dict": state}, tmp_path / "nan.ckpt")
     with pytest.raises(DataError, match=r"net\.model\.stage2\.0\.net\.0\.weight \(in the file: "
                                         r"model\.stage2\.0\.net\.0\.kernel\) holds 2 NaN or infinite values"):
-        load_weights(lidiff(duplicate=4), type(model).read_weights(str(tmp_path / "nan.ckpt")), True, "nan.ckpt")
+        load_weights(model, type(model).read_weights(str(tmp_path / "nan.ckpt")), True, "nan.ckpt")  # built above
 
 
 def test_lidiffs_refine_net_ckpt_loads_with_the_same_forward(tmp_path) -> None:

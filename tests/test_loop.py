@@ -57,17 +57,20 @@ def test_the_loader_resumes_at_any_step_with_the_same_batches(workers: int) -> N
 
 
 def test_two_loader_workers_give_the_same_numbers_as_none_and_a_stop_mid_epoch_resumes_to_them(tmp_path) -> None:
-    recipe = tiny_recipe(steps=5)
+    """Teacher and student, 4 steps each, with 0 and 2 loader workers: the same run folders, test scores and
+    weights; a run with workers stopped after step 3 and started again ends the same too."""
+    recipe = tiny_recipe(steps=4)
     for stage in recipe["stages"].values():
-        stage["train"].update(checkpoint_every=1, eval_every=5)
-    # 2 training scenes, batch 1: epochs of 2 steps, so step 3 (after the stop) is the middle of the second epoch
+        stage["train"].update(checkpoint_every=1, eval_every=4)
+    # 2 training scenes, batch 1: epochs of 2 steps, so the step after the stop (the 4th) is the second of the
+    # second epoch: the resumed loader starts mid-epoch
     assert len(Pipeline(recipe_from_dict(recipe), tmp_path / "a", quiet=True).dataset("train")) == 2
     outcomes = {}
     for workers in (0, 2):
         for stage in recipe["stages"].values():
             stage["train"]["workers"] = workers
         outcomes[workers] = run(tmp_path, recipe, f"w{workers}")
-    # a third run with workers stops after 3 steps (in the first epoch) and is started again
+    # a third run with workers stops after 3 steps (in the second epoch) and is started again
     run(tmp_path, recipe, "resumed", stop_after=3)
     assert load_checkpoint(next((tmp_path / "resumed").glob("tiny/teacher-*")) / "checkpoints" / "last.pt")["step"] == 3
     outcomes["resumed"] = run(tmp_path, recipe, "resumed")

@@ -26,6 +26,13 @@ def write(tmp_path: Path, recipe: dict, name: str = "r.yaml") -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def tiny_runs(tmp_path_factory: pytest.TempPathFactory):
+    """One finished teacher + DSKD student run of the tiny recipe (a step each), shared by the tests that only read
+    it: its teacher's checkpoint, the student exported, the results table."""
+    return Pipeline(recipe_from_dict(tiny_recipe(steps=1)), tmp_path_factory.mktemp("runs"), quiet=True).run()
+
+
 # -- 1. validate checks what a run will need ------------------------------------------------------------------------
 
 def test_validate_names_a_missing_data_folder_once_and_exits_2(tmp_path, capsys) -> None:
@@ -36,7 +43,7 @@ def test_validate_names_a_missing_data_folder_once_and_exits_2(tmp_path, capsys)
     assert out.err.count("memory not estimated") == 1 and "data.params (train)" in out.err
 
 
-def test_validate_names_a_missing_an_unreadable_and_a_misfit_checkpoint(tmp_path, capsys) -> None:
+def test_validate_names_a_missing_an_unreadable_and_a_misfit_checkpoint(tmp_path, capsys, tiny_runs) -> None:
     recipe = tiny_recipe(steps=1, distill=False)
     student = recipe["stages"]["teacher"]
     recipe["stages"]["from_file"] = {**student, "init": {"checkpoint": str(tmp_path / "missing.pt")}}
@@ -49,7 +56,7 @@ def test_validate_names_a_missing_an_unreadable_and_a_misfit_checkpoint(tmp_path
     assert main(["validate", str(write(tmp_path, recipe)), "--no-memory"]) == 2
     assert "garbage.pt: not a readable checkpoint" in capsys.readouterr().err
     # weights that do not fit: every key that does not is named (missing, unexpected, of another shape: both shapes)
-    (teacher,) = Pipeline(recipe_from_dict(tiny_recipe(steps=1, distill=False)), tmp_path / "runs", quiet=True).run()
+    teacher = tiny_runs[0]  # the teacher stage of tiny_recipe(steps=1): the model of the recipe's teacher here
     good = torch.load(teacher.run_dir / "checkpoints" / "best.pt", weights_only=True)["student"]
     other = dict(good)
     gone, wide = [k for k, v in other.items() if v.dim() == 2][:2]
@@ -128,11 +135,11 @@ def test_an_unknown_key_gets_the_nearest_valid_one(tmp_path, capsys, where: str,
 
 # -- 5. distilkit export ------------------------------------------------------------------------------------------
 
-def test_export_writes_the_student_alone_loadable_by_torch_and_by_init(tmp_path, capsys) -> None:
+def test_export_writes_the_student_alone_loadable_by_torch_and_by_init(tmp_path, capsys, tiny_runs) -> None:
     from distilkit.engine.infer.export import build_exported
     from distilkit.engine.assemble.runs import load_run
 
-    teacher, student = Pipeline(recipe_from_dict(tiny_recipe(steps=1)), tmp_path / "runs", quiet=True).run()
+    teacher, student = tiny_runs
     out = tmp_path / "exp" / "student.pt"
     assert main(["export", str(student.run_dir), "--out", str(out)]) == 0
     weights = torch.load(out, weights_only=True)
@@ -200,14 +207,14 @@ def test_adapter_parameters_are_documented_where_a_user_looks(tmp_path, capsys) 
 
 # -- 2. readable at 80 columns ----------------------------------------------------------------------------------
 
-def test_the_results_table_and_the_progress_bar_keep_every_number_whole_at_80_columns(tmp_path) -> None:
+def test_the_results_table_and_the_progress_bar_keep_every_number_whole_at_80_columns(tiny_runs) -> None:
     from rich.console import Console
 
     from distilkit.console import stage_progress
     from distilkit.report.recipe import results_table
     from distilkit.report.scores import ScoreView, stage_row
 
-    results = Pipeline(recipe_from_dict(tiny_recipe(steps=2)), tmp_path / "runs", quiet=True).run()
+    results = tiny_runs
     for width in (80, 200):
         console = Console(width=width, record=True, file=io.StringIO())
         console.print(results_table(results, "a note under the table"))

@@ -199,7 +199,13 @@ def test_a_stopped_sweep_leaves_no_run_training(tmp_path, how: str) -> None:
         runs = _children(proc.pid)
         time.sleep(0.2)
     assert len(runs) == 2, "the sweep did not start its two runs"
-    time.sleep(3.0)  # they are training
+
+    def training() -> int:  # runs that logged a step: they are in their training loop (no fixed sleep)
+        return sum('"loss"' in p.read_text() for p in (tmp_path / "runs").rglob("metrics.jsonl"))
+
+    while time.time() < deadline and training() < 2 and proc.poll() is None:
+        time.sleep(0.05)
+    assert training() == 2, "the sweep's two runs did not start training"
     proc.send_signal(signal.SIGTERM if how == "SIGTERM" else signal.SIGKILL)
     proc.wait(timeout=120)
     deadline = time.time() + 60

@@ -99,12 +99,21 @@ def recipe(teacher_adapter: str = "test-denoiser") -> dict[str, Any]:
     return r
 
 
-def test_an_objective_trains_its_own_network_and_calls_a_teacher_capability(tmp_path) -> None:
-    pipe = Pipeline(recipe_from_dict(recipe()), tmp_path / "runs", quiet=True)
+@pytest.fixture(scope="module")
+def trained(components, tmp_path_factory) -> tuple[Pipeline, Any, dict[str, int]]:
+    """One run of :func:`recipe` (read only by the tests below): the pipeline, the student's result, and the calls
+    counted during the run."""
+    pipe = Pipeline(recipe_from_dict(recipe()), tmp_path_factory.mktemp("aux") / "runs", quiet=True)
     CALLS.update(denoise=0, frozen_forward=0)
     _, student = pipe.run()
+    return pipe, student, dict(CALLS)
+
+
+@pytest.mark.xdist_group("objective_context")  # one worker runs the shared stage once
+def test_an_objective_trains_its_own_network_and_calls_a_teacher_capability(trained) -> None:
+    _, student, calls = trained
     # no objective reads a teacher tap: the teacher never runs forward, only denoise() is called
-    assert CALLS["frozen_forward"] == 0 and CALLS["denoise"] > 0
+    assert calls["frozen_forward"] == 0 and calls["denoise"] > 0
     log = [json.loads(x) for x in (student.run_dir / "metrics.jsonl").read_text().splitlines()]
     assert all("aux_loss" in rec for rec in log if "loss" in rec)
     ckpt = load_checkpoint(student.run_dir / "checkpoints" / "last.pt")
@@ -115,12 +124,12 @@ def test_an_objective_trains_its_own_network_and_calls_a_teacher_capability(tmp_
     assert any(k.startswith("0.aux.") for k in ckpt["objectives"])
 
 
-def test_the_student_optimizer_leaves_an_objectives_own_parameters_alone(tmp_path) -> None:
+@pytest.mark.xdist_group("objective_context")  # one worker runs the shared stage once
+def test_the_student_optimizer_leaves_an_objectives_own_parameters_alone(trained) -> None:
     from conftest import make_trainer
     from distilkit.engine.assemble.runs import load_run
 
-    pipe = Pipeline(recipe_from_dict(recipe()), tmp_path / "runs", quiet=True)
-    pipe.run()
+    pipe = trained[0]
     stage = pipe.resolved.stages["student"]
     teacher = load_run(pipe.run_dir("teacher"), model=stage.teacher, info=pipe.resolved.data_info, role="teacher")
     trainer = make_trainer(pipe, "student", teacher)

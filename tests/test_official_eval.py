@@ -18,9 +18,9 @@ TO_TRAIN[list(LEARNING_MAP)] = list(LEARNING_MAP.values())
 TO_RAW = np.array([LEARNING_MAP_INV[t] for t in range(20)], np.uint16)
 
 
-def _write(root, pred_root, seed: int) -> None:
+def _write(root, pred_root, seed: int, sequences: tuple[str, ...] = ("08", "09")) -> None:
     rng = np.random.default_rng(seed)
-    for seq in ("08", "09"):
+    for seq in sequences:
         gt_dir, pred_dir = root / "sequences" / seq / "voxels", pred_root / "sequences" / seq / "predictions"
         gt_dir.mkdir(parents=True)
         pred_dir.mkdir(parents=True)
@@ -37,31 +37,41 @@ def _write(root, pred_root, seed: int) -> None:
 
 
 def naive_evaluate_completion(root, pred_root, sequences, box: int | None = None,
-                              learning_map: dict[int, int] = LEARNING_MAP, k: int = 20) -> dict[str, float]:
+                              learning_map: dict[int, int] = LEARNING_MAP, k: int = 20,
+                              boxes: tuple[int | None, ...] | None = None):
     """evaluate_completion.py written out: LUT both, mask = target != 255 and not invalid, one 20 x 20 confusion
     over every frame (rows prediction), class IoU with 1e-15, completion scores with float32 eps; ``box``: VoxFormer's
-    range box (the target outside set to 255)."""
+    range box (the target outside set to 255). ``boxes``: the scores of each of these boxes from one reading of the
+    files (a dict by box)."""
     lut = np.full(400, 255, np.int64)  # ids missing from the map are ignored, as the official LUT's zeros become 255
     for raw, v in learning_map.items():
         lut[raw] = v if v != 0 or raw == 0 else 255
-    conf = np.zeros((k, k), np.int64)
+    which = (box,) if boxes is None else boxes
+    confs = {b: np.zeros((k, k), np.int64) for b in which}
     for seq in sequences:
         for f in sorted((root / "sequences" / seq / "voxels").glob("*.label")):
-            target = lut[np.fromfile(f, np.uint16).astype(np.int64)].reshape(SHAPE)
-            if box == 256:
-                target[128:], target[:, :64], target[:, 192:] = 255, 255, 255
-            elif box == 128:
-                target[64:], target[:, :96], target[:, 160:] = 255, 255, 255
+            full = lut[np.fromfile(f, np.uint16).astype(np.int64)].reshape(SHAPE)
             invalid = np.unpackbits(np.fromfile(f.with_suffix(".invalid"), np.uint8)).reshape(SHAPE)
             pred = lut[np.fromfile(pred_root / "sequences" / seq / "predictions" / f.name, np.uint16).astype(np.int64)]
-            mask = (target.reshape(-1) != 255) & (invalid.reshape(-1) != 1)
-            np.add.at(conf, (pred[mask], target.reshape(-1)[mask]), 1)
-    tp = np.diag(conf).astype(np.float64)
-    iou = tp / (tp + (conf.sum(1) - tp) + (conf.sum(0) - tp) + 1e-15)
+            for b, conf in confs.items():
+                target = full.copy()
+                if b == 256:
+                    target[128:], target[:, :64], target[:, 192:] = 255, 255, 255
+                elif b == 128:
+                    target[64:], target[:, :96], target[:, 160:] = 255, 255, 255
+                mask = (target.reshape(-1) != 255) & (invalid.reshape(-1) != 1)
+                np.add.at(conf, (pred[mask], target.reshape(-1)[mask]), 1)
     eps = np.finfo(np.float32).eps
-    return {"iou_mean": float(iou[1:].mean()), "iou_completion": float(conf[1:, 1:].sum() / (conf.sum() - conf[0, 0])),
-            "precision_completion": float(conf[1:, 1:].sum() / (conf[1:, :].sum() + eps)),
-            "recall_completion": float(conf[1:, 1:].sum() / (conf[:, 1:].sum() + eps)), "class_iou": iou[1:].tolist()}
+    scores = {}
+    for b, conf in confs.items():
+        tp = np.diag(conf).astype(np.float64)
+        iou = tp / (tp + (conf.sum(1) - tp) + (conf.sum(0) - tp) + 1e-15)
+        scores[b] = {"iou_mean": float(iou[1:].mean()),
+                     "iou_completion": float(conf[1:, 1:].sum() / (conf.sum() - conf[0, 0])),
+                     "precision_completion": float(conf[1:, 1:].sum() / (conf[1:, :].sum() + eps)),
+                     "recall_completion": float(conf[1:, 1:].sum() / (conf[:, 1:].sum() + eps)),
+                     "class_iou": iou[1:].tolist()}
+    return scores if boxes is not None else scores[box]
 
 
 def test_eval_equals_the_official_script_on_random_data(tmp_path, capsys) -> None:
@@ -69,14 +79,15 @@ def test_eval_equals_the_official_script_on_random_data(tmp_path, capsys) -> Non
     _write(root, preds, 0)
     assert main(["eval", "--dataset-root", str(root), "--predictions", str(preds), "--sequences", "08", "09"]) == 0
     got = yaml.safe_load((preds / "scores.txt").read_text())
-    want = naive_evaluate_completion(root, preds, ["08", "09"])
+    boxes = naive_evaluate_completion(root, preds, ["08", "09"], boxes=(None, 256, 128))
+    want = boxes[None]
     for key, value in want.items():
         if key != "class_iou":
             assert got[key] == pytest.approx(value, rel=1e-12, abs=1e-15), key
     assert got["iou_car"] == pytest.approx(want["class_iou"][0], rel=1e-12)
     assert got["iou_other-vehicle"] == 0.0 < got["iou_car"]  # never predicted: counts 0 in the mean
     for r, box in ((25.6, 256), (12.8, 128)):
-        ranged = naive_evaluate_completion(root, preds, ["08", "09"], box)
+        ranged = boxes[box]
         assert got[f"iou_mean_{r:g}m"] == pytest.approx(ranged["iou_mean"], rel=1e-12)
         assert got[f"iou_completion_{r:g}m"] == pytest.approx(ranged["iou_completion"], rel=1e-12)
     assert "4 frames" in capsys.readouterr().out
@@ -88,7 +99,7 @@ def test_eval_equals_the_official_script_on_random_data(tmp_path, capsys) -> Non
 
 def test_eval_names_what_is_missing_or_malformed(tmp_path, capsys) -> None:
     root, preds = tmp_path / "kitti", tmp_path / "preds"
-    _write(root, preds, 1)
+    _write(root, preds, 1, sequences=("09",))  # the one sequence evaluated here
     f = preds / "sequences" / "09" / "predictions" / "000005.label"
     f.write_bytes(f.read_bytes()[:100])
     assert main(["eval", "--dataset-root", str(root), "--predictions", str(preds), "--sequences", "09"]) == 2

@@ -73,10 +73,26 @@ def test_changing_the_teacher_changes_the_student_identity(tmp_path) -> None:
     assert pipeline(tmp_path, r2).hashes == a.hashes
 
 
-def test_teacher_is_frozen_and_unchanged_by_a_step(tmp_path, device) -> None:
+@pytest.fixture(scope="module")
+def one_step_runs(tmp_path_factory) -> "Path":
+    """The folder of a finished tiny teacher-and-student run of one step each (``tiny_recipe(steps=1)``), trained
+    once for the tests that read it (a test that changes it works on a copy)."""
+    root = tmp_path_factory.mktemp("one_step")
+    assert [r.reused for r in pipeline(root, tiny_recipe(steps=1)).run()] == [False, False]
+    return root
+
+
+def copy_of(runs, tmp_path):
+    import shutil
+
+    shutil.copytree(runs / "runs", tmp_path / "runs")
+    return tmp_path
+
+
+@pytest.mark.xdist_group("pipeline_one_step")
+def test_teacher_is_frozen_and_unchanged_by_a_step(one_step_runs, device) -> None:
     """Three training steps of a distilled student on the device of --device: the student moves, the teacher not."""
-    pipe = pipeline(tmp_path, tiny_recipe(steps=1))
-    pipe.run()
+    pipe = pipeline(one_step_runs, tiny_recipe(steps=1))  # the shared finished run: its teacher is read only
     stage = pipe.resolved.stages["student"]
     teacher = load_run(pipe.run_dir("teacher"), model=stage.teacher, info=pipe.resolved.data_info,
                        role="teacher").to(device)
@@ -181,8 +197,10 @@ def test_generator_and_distilkit_versions_are_part_of_the_identity(tmp_path, mon
     assert all(pipeline(tmp_path, tiny_recipe()).hashes[k] != base[k] for k in base)
 
 
-def test_rerun_retrains_the_stage_and_its_students_and_keeps_the_old_run(tmp_path) -> None:
-    pipeline(tmp_path, tiny_recipe(steps=1)).run()
+@pytest.mark.xdist_group("pipeline_one_step")
+def test_rerun_retrains_the_stage_and_its_students_and_keeps_the_old_run(one_step_runs, tmp_path) -> None:
+    """On a copy of the shared finished run: ``--rerun teacher`` retrains both stages and keeps the old folders."""
+    tmp_path = copy_of(one_step_runs, tmp_path)
     pipe = pipeline(tmp_path, tiny_recipe(steps=1))
     results = pipe.run(rerun=["teacher"])
     assert [r.reused for r in results] == [False, False]  # the student depends on the teacher

@@ -37,7 +37,8 @@ def test_jsd_bev_matches_lidiffs_histogram_and_scipy() -> None:
         h, _ = np.histogramdd(x, bins=200, range=[(-50, 50)] * 3)
         return np.clip(h, 0, 1).sum(2).ravel()
 
-    want = jensenshannon(bev(g.numpy()) / bev(g.numpy()).sum(), bev(p.numpy()) / bev(p.numpy()).sum())
+    hg, hp = bev(g.numpy()), bev(p.numpy())
+    want = jensenshannon(hg / hg.sum(), hp / hp.sum())
     assert jsd_bev(p, g) == pytest.approx(float(want), rel=1e-9)
     assert jsd_bev(g, g) == 0.0
 
@@ -61,9 +62,12 @@ def test_jsd_3d_is_the_unclipped_point_count_histograms_distance() -> None:
         h, _ = np.histogramdd(x, bins=200, range=[(-50, 50)] * 3)
         return h.ravel()
 
-    want = jensenshannon(counts(g.numpy()) / counts(g.numpy()).sum(), counts(p.numpy()) / counts(p.numpy()).sum())
-    assert jsd_3d(p, g) == pytest.approx(float(want), rel=1e-9)
-    assert jsd_3d(p, g) != pytest.approx(jsd_bev(p, g))
+    cg, cp = counts(g.numpy()), counts(p.numpy())
+    used = (cg > 0) | (cp > 0)  # of the 200^3 bins: those empty in both add 0 to the distance
+    want = jensenshannon(cg[used] / cg.sum(), cp[used] / cp.sum())
+    got = jsd_3d(p, g)
+    assert got == pytest.approx(float(want), rel=1e-9)
+    assert got != pytest.approx(jsd_bev(p, g))
 
 
 def test_the_rounded_iou_is_lidiffs_histogram_of_rounded_indices() -> None:
@@ -88,8 +92,8 @@ def test_emd_is_the_optimal_matching_of_equal_subsamples() -> None:
     want = min(d[np.arange(6), list(perm)].mean() for perm in permutations(range(6)))
     assert emd(a, b) == pytest.approx(want, rel=1e-12)
     assert emd(a, a) == 0.0
-    big, other = scene(3000, 18, 3.0), scene(2500, 19, 3.0)
-    assert emd(big, other) == emd(big, other)  # a seeded draw: repeatable
+    big, other = scene(3000, 18, 3.0), scene(2500, 19, 3.0)  # larger than the draws: subsampled
+    assert emd(big, other, points=256) == emd(big, other, points=256)  # a seeded draw: repeatable
     assert emd(big, other, points=8) != emd(big, other, points=16)
 
 

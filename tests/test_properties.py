@@ -132,34 +132,51 @@ def _limited() -> None:  # in the child: 4 GiB of address space, so a runaway al
     resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
 
 
-def _short_run(tmp_path: Path, data: Any) -> None:
-    """One training step (--stop-after 1) of a mutated recipe in a process of its own with a memory limit: success,
+def _short_runs(tmp_path: Path, recipes: list[Any]) -> None:
+    """One training step (--stop-after 1) of each mutated recipe, all in one process of their own with a memory
+    limit (tests/_short_runs.py: `distilkit run` in-process, one interpreter start for all): each ends in success,
     or exit status 2 with one "error:" line — never a traceback."""
+    import json
     import subprocess
     import sys
 
-    path = tmp_path / "r.yaml"
-    path.write_text(yaml.safe_dump(data))
-    done = subprocess.run([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "runs"), "-q",
-                           "--stop-after", "1"], capture_output=True, text=True, preexec_fn=_limited, timeout=300)
-    assert done.returncode in (0, 2), f"{yaml.safe_dump(data)}\n{done.stderr[-2000:]}"
-    if done.returncode == 2:
-        assert done.stderr.startswith("error: ") and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert recipes
+    paths = []
+    for i, data in enumerate(recipes):
+        paths.append(path := tmp_path / f"r{i}.yaml")
+        path.write_text(yaml.safe_dump(data))
+    done = subprocess.run([sys.executable, str(Path(__file__).parent / "_short_runs.py"), str(tmp_path),
+                           *map(str, paths)], capture_output=True, text=True, preexec_fn=_limited, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert [r["recipe"] for r in results] == list(map(str, paths))
+    for data, r in zip(recipes, results):
+        assert r["status"] in (0, 2), f"{yaml.safe_dump(data)}\n{r['stderr'][-2000:]}"
+        if r["status"] == 2:
+            assert r["stderr"].startswith("error: ") and "Traceback" not in r["stderr"], r["stderr"][-2000:]
 
 
-SHORT_RUNS = dict(deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow,
-                                                                         HealthCheck.function_scoped_fixture])
+SHORT_RUNS = dict(deadline=None, derandomize=True, database=None, suppress_health_check=[HealthCheck.too_slow])
 
 
-@settings(max_examples=4, **SHORT_RUNS)
-@given(mutated(RECIPE, under=("stages",)))
-def test_short_runs_of_mutated_recipes_end_in_success_or_a_clear_error(tmp_path: Path, data: Any) -> None:
+def _drawn(n: int) -> list[Any]:
+    """``n`` mutations of the recipe's stages (the data stays small), drawn by hypothesis (derandomized)."""
+    drawn: list[Any] = []
+
+    @settings(max_examples=n, **SHORT_RUNS)
+    @given(mutated(RECIPE, under=("stages",)))
+    def draw(data: Any) -> None:
+        drawn.append(data)
+
+    draw()
+    return drawn
+
+
+def test_short_runs_of_mutated_recipes_end_in_success_or_a_clear_error(tmp_path: Path) -> None:
     """Mutations of the stages only (the data stays small): a few here, twenty in the slow run below."""
-    _short_run(tmp_path, data)
+    _short_runs(tmp_path, _drawn(4))
 
 
 @pytest.mark.slow
-@settings(max_examples=20, **SHORT_RUNS)
-@given(mutated(RECIPE, under=("stages",)))
-def test_twenty_short_runs_of_mutated_recipes_end_in_success_or_a_clear_error(tmp_path: Path, data: Any) -> None:
-    _short_run(tmp_path, data)
+def test_twenty_short_runs_of_mutated_recipes_end_in_success_or_a_clear_error(tmp_path: Path) -> None:
+    _short_runs(tmp_path, _drawn(20))

@@ -96,20 +96,19 @@ def test_classes_by_name_and_bad_input_are_named() -> None:
         rectify(np.zeros((3, 3, 3), np.uint8), np.zeros((0, 3)), np.zeros(0, np.uint32), GRID)
 
 
+@pytest.mark.xdist_group("street")
 def test_the_traces_of_moving_cars_in_synthetic_completion_labels_are_removed() -> None:
     """The synthetic street's completion labels fuse the current scan with the next 10: moving cars leave traces.
     Rectified with the current scan's panoptic labels, most car voxels of moving instances outside their current box
-    go, and every voxel of a static class stays."""
-    from distilkit.data.params import SyntheticParams
-    from distilkit.data.synthetic import make_sample
+    go, and every voxel of a static class stays (two street samples on 0.8 m voxels, shared with tests/test_data.py)."""
+    from _street_samples import SEEDS, STREET, street_sample
 
-    p = SyntheticParams(scale=1, input_frames=1, gt_frames=10, beams=32, azimuth_steps=512)
     removed, before = 0, 0
-    for seed in (3, 4, 5):
-        s = make_sample(seed, p)
+    for seed in SEEDS:
+        s = street_sample(seed)
         labels = s["voxel_label"]
         current = s["point_frame"] == 0
-        out = rectify(labels, s["points"][current, :3], s["point_raw"][current], VoxelGrid.semantickitti(1))
+        out = rectify(labels, s["points"][current, :3], s["point_raw"][current], VoxelGrid.semantickitti(STREET.scale))
         dynamic = np.isin(labels, dynamic_ids(DEFAULT_DYNAMIC))
         assert np.array_equal(out[~dynamic], labels[~dynamic])
         before += int(dynamic.sum())

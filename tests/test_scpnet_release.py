@@ -171,28 +171,52 @@ def reference(r: dict, pts: torch.Tensor, shared: bool) -> torch.Tensor:
     return out
 
 
-@pytest.mark.parametrize("semantics", ["spconv1", "spconv2"])
-def test_a_release_checkpoint_gives_the_releases_logits(semantics, tmp_path, device) -> None:
-    from distilkit.weights import load_weights
+def adapter(semantics: str) -> torch.nn.Module:
+    """The adapter's loading path around a paper network on GRID."""
     from distilkit_adapters.scpnet.adapter import SCPNetAdapter
     from distilkit_adapters.scpnet.cylinder import SCPNetPaper
 
-    torch.manual_seed(0)
-    model = SCPNetAdapter.__new__(SCPNetAdapter)  # the adapter's loading path around a network on GRID
+    model = SCPNetAdapter.__new__(SCPNetAdapter)
     torch.nn.Module.__init__(model)
     model.net = SCPNetPaper(20, semantics=semantics)
-    release = release_state(model, seed=3)
-    assert release["cylinder_3d_spconv_seg.upBlock0.conv3.weight"].shape == (3, 3, 3, 512, 512)
-    torch.save(release, tmp_path / "scpnet_release.pt")
-    assert load_weights(model, SCPNetAdapter.read_weights(str(tmp_path / "scpnet_release.pt")), True, "release") == []
+    return model
+
+
+@pytest.fixture(scope="module")
+def release(tmp_path_factory: pytest.TempPathFactory):
+    """One release checkpoint (random weights, seed 3) for both key semantics (their state dicts have the same keys
+    and shapes), the file it is saved in, and the reference's logits with SCPNet's shared keys and without
+    (``shared`` True / False), each computed once."""
+    torch.manual_seed(0)
+    state = release_state(adapter("spconv1"), seed=3)
+    path = tmp_path_factory.mktemp("scpnet_release") / "scpnet_release.pt"
+    torch.save(state, path)
+    pts = points().double()
+    return state, path, {shared: reference(state, pts, shared=shared) for shared in (True, False)}
+
+
+@pytest.mark.xdist_group("scpnet_release")  # one worker builds the shared checkpoint and references
+@pytest.mark.parametrize("semantics", ["spconv1", "spconv2"])
+def test_a_release_checkpoint_gives_the_releases_logits(semantics, release, device) -> None:
+    """The file loads with every key used and fitting (strict); the network's logits (on --device) are the
+    reference's of its semantics (spconv1: shared keys) to 1e-9 on the same active sites, more than 300; the other
+    semantics' reference differs."""
+    from distilkit.weights import load_weights
+    from distilkit_adapters.scpnet.adapter import SCPNetAdapter
+
+    state, path, references = release
+    torch.manual_seed(0)
+    model = adapter(semantics)
+    assert state["cylinder_3d_spconv_seg.upBlock0.conv3.weight"].shape == (3, 3, 3, 512, 512)
+    assert load_weights(model, SCPNetAdapter.read_weights(str(path)), True, "release") == []
     model = model.double().eval().to(device)
     pts = points().double()
     with torch.no_grad():
         _, _, logits = model.net(pts.to(device), torch.zeros(len(pts), dtype=torch.long, device=device), 1, GRID)
         logits = logits.cpu()
-        want = reference(release, pts, shared=semantics == "spconv1")
+    want = references[semantics == "spconv1"]
     active = want.abs().sum(1) > 0
     assert int(active.sum()) > 300 and torch.equal(logits.abs().sum(1) > 0, active)
     assert torch.allclose(logits, want, rtol=1e-9, atol=1e-9 * float(want.abs().max()))
-    other = reference(release, pts, shared=semantics != "spconv1")  # the two releases differ
+    other = references[semantics != "spconv1"]  # the two releases differ
     assert not torch.allclose(other, want, rtol=1e-3, atol=1e-3 * float(want.abs().max()))

@@ -1,6 +1,6 @@
 """The Scribble2Scene pipeline and the cross-modal recipe end to end: the shipped recipes in miniature by default
 (every edge: Dean labels, frozen query proposals, the Teacher-Labeler as teacher, RGO²D with image features), and
-``recipes/scribble2scene.yaml`` unchanged, at its default scale, in the slow run."""
+``recipes/scribble2scene.yaml`` at its default scale, on a short schedule, in the slow run."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from _miniature import shrink
 from conftest import ROOT
 from distilkit.cli import main
 from distilkit.engine.train.pipeline import Pipeline
@@ -83,9 +84,13 @@ def test_the_cross_modal_pairs_train(tmp_path: Path, device) -> None:
 
 @pytest.mark.slow
 def test_the_shipped_scribble2scene_recipe_at_its_default_scale(tmp_path: Path) -> None:
-    """`distilkit run recipes/scribble2scene.yaml` unchanged (about 7 minutes on a 2-core CPU with its data): the
-    Teacher-Labeler, which proposes the true geometry, beats the camera-only student on IoU."""
-    assert main(["run", str(ROOT / "recipes" / "scribble2scene.yaml"), "-o", str(tmp_path), "-q"]) == 0
+    """`distilkit run recipes/scribble2scene.yaml` at its default scale (its 64 x 64 x 8 grid, five 48 x 160 images,
+    its models and losses), each training stage 20 steps on 8 training scenes, scored on 4 (the full schedule, about
+    7 minutes on a 2-core CPU with its data, is the README's): the Teacher-Labeler, which proposes the true geometry,
+    beats the camera-only student on IoU (0.56 against 0.26 here); the Dean-Labeler keeps the complete geometry."""
+    recipe = ROOT / "recipes" / "scribble2scene.yaml"
+    assert main(["run", str(recipe), "-o", str(tmp_path), "-q", "--set",
+                 *shrink(recipe, 20, num_train=8, num_val=2, num_test=4)]) == 0
     done = summaries(tmp_path)
     teacher, student = done["teacher_labeler"]["test"]["best"], done["student"]["test"]["best"]
     assert teacher["iou"] > student["iou"]

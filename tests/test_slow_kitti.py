@@ -1,23 +1,32 @@
 """End to end on an exported SemanticKITTI folder at full resolution: `distilkit eval` of `distilkit predict`'s
-output gives the in-training evaluation's numbers (slow: SCPNet at 256 x 256 x 32 on the CPU)."""
+output gives the in-training evaluation's numbers (slow: SCPNet at 256 x 256 x 32 on the CPU), and the shipped
+SemanticKITTI recipe runs on such a folder. Both read one exported folder (nothing writes into it)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 import yaml
 
-from conftest import folder_recipe
+from conftest import export_kitti, folder_recipe
 from distilkit.cli import main
+
+pytestmark = pytest.mark.xdist_group("slow_kitti")  # one worker exports the folder for both
+
+
+@pytest.fixture(scope="module")
+def kitti(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two 11-scan sequences (00, 08) exported from the synthetic streets (conftest's EXPORT_SET: 16 beams)."""
+    return export_kitti(tmp_path_factory.mktemp("slow_kitti") / "kitti")
 
 
 @pytest.mark.slow
-def test_eval_of_predict_equals_the_in_training_evaluation(tmp_path) -> None:
+def test_eval_of_predict_equals_the_in_training_evaluation(kitti, tmp_path) -> None:
     from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
-    root = tmp_path / "kitti"
-    assert main(["data", "export-kitti", str(root), "--frames", "11", "--set", "beams=16", "azimuth_steps=256",
-                 "gt_frames=5", "seed=3"]) == 0
+    root = kitti
     recipe = folder_recipe(root, train=["00"], val=["08"], scale=1)
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     assert result.summary["report_split"] == "val"
@@ -35,14 +44,10 @@ def test_eval_of_predict_equals_the_in_training_evaluation(tmp_path) -> None:
 
 
 @pytest.mark.slow
-def test_the_shipped_kitti_recipe_runs_on_an_exported_folder(tmp_path) -> None:
+def test_the_shipped_kitti_recipe_runs_on_an_exported_folder(kitti, tmp_path) -> None:
     """recipes/semantickitti_scpnet.yaml unchanged but for the root, the sequences and smaller sizes: teacher on 5
     fused scans with rectified labels, student with and without DSKD, then predict and eval of the distilled one."""
-    from pathlib import Path
-
-    root = tmp_path / "kitti"
-    assert main(["data", "export-kitti", str(root), "--frames", "11", "--set", "beams=16", "azimuth_steps=256",
-                 "gt_frames=5"]) == 0
+    root = kitti
     sizes = [f"stages.{s}.{k}" for s in ("teacher", "student", "student_dskd")
              for k in ("model.params.channels=4", "model.params.point_mlp=[8]", "model.params.seg_channels=4",
                        "train.epochs=null", "train.steps=2", "train.batch_size=1")]

@@ -198,19 +198,20 @@ def test_the_local_plan_starts_nothing_and_writes_only_the_recipes_it_names(tmp_
         assert not list((tmp_path / "cwd").iterdir())
 
 
-def test_the_slurm_plan_runs_without_srun_on_path(tmp_path) -> None:
-    """A machine with submitit and no Slurm: PATH holds only stand-ins of the other Slurm commands (no srun), the
-    venv's Python run by its absolute path."""
+def test_the_slurm_plan_runs_without_srun_on_path(tmp_path, monkeypatch, capsys) -> None:
+    """A machine with submitit and no Slurm: PATH holds only stand-ins of the other Slurm commands (no srun; submitit
+    looks for it on PATH when its executor is built, in this process); nothing is called or written."""
     folder = never_called_bin(tmp_path / "bin", ("sbatch", "squeue", "scontrol", "scancel"))
     path = write_sweep(tmp_path)
     before = files_under(tmp_path)
     out = tmp_path / "runs"
-    done = subprocess.run([sys.executable, "-m", "distilkit", "sweep", str(path), "-o", str(out), "--launcher",
-                           "slurm", "--plan"], capture_output=True, text=True, cwd=tmp_path,
-                          env={**os.environ, "PATH": str(folder)})
-    assert done.returncode == 0, done.stderr
-    assert "Traceback" not in done.stderr and "srun" not in done.stderr
-    assert "Slurm plan for sweep sw" in done.stdout and "#SBATCH --dependency=afterok:job-1" in done.stdout
+    monkeypatch.setenv("PATH", str(folder))
+    monkeypatch.chdir(tmp_path)
+    code = main(["sweep", str(path), "-o", str(out), "--launcher", "slurm", "--plan"])
+    done = capsys.readouterr()
+    assert code == 0, done.err
+    assert "Traceback" not in done.err and "srun" not in done.err
+    assert "Slurm plan for sweep sw" in done.out and "#SBATCH --dependency=afterok:job-1" in done.out
     assert called(folder) == [] and files_under(tmp_path) == before
 
 
@@ -282,22 +283,23 @@ def test_launcher_problems_are_one_line(tmp_path, slurm_bin, capsys) -> None:
     assert not list(slurm_bin.glob("sbatch-*.sh"))  # nothing was submitted
 
 
-def test_without_submitit_the_slurm_launcher_names_the_extra(tmp_path) -> None:
+def test_without_submitit_the_slurm_launcher_names_the_extra(tmp_path, monkeypatch, capsys) -> None:
+    """submitit not importable (None in sys.modules: ``import submitit`` fails, as where it is not installed; the
+    launcher imports it when it is asked for): one line naming the extra, exit status 2."""
     path = write_sweep(tmp_path)
-    code = ("import sys; sys.modules['submitit'] = None\n"
-            "from distilkit.cli import main\n"
-            f"raise SystemExit(main(['sweep', {str(path)!r}, '-o', {str(tmp_path / 'r')!r}, '--launcher', 'slurm']))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert done.returncode == 2, done.stderr
-    assert "--launcher slurm needs submitit: pip install 'distilkit[slurm]'" in done.stderr
-    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+    monkeypatch.setitem(sys.modules, "submitit", None)
+    code = main(["sweep", str(path), "-o", str(tmp_path / "r"), "--launcher", "slurm"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "--launcher slurm needs submitit: pip install 'distilkit[slurm]'" in err
+    assert len(err.strip().splitlines()) == 1, err
 
 
 def test_the_requeue_handler_stops_the_run_with_its_checkpoint_and_the_requeued_body_ends_with_the_same_bits(
         tmp_path) -> None:
     """RunJob.checkpoint as submitit calls it on SIGTERM, against a real `distilkit run`: the run that did not get the
     signal itself is sent one, stops after its step with last.pt, and the body handed back for the requeue resumes
-    it to the bits of an uninterrupted run."""
+    it to the bits of an uninterrupted run (made in this process: the bits do not depend on it)."""
     import time
 
     import torch
@@ -332,9 +334,12 @@ def test_the_requeue_handler_stops_the_run_with_its_checkpoint_and_the_requeued_
         assert again() == 0  # the requeued job: resumes
     finally:
         os.environ.pop("SLURM_CPUS_PER_TASK")
-    full = subprocess.run([sys.executable, "-m", "distilkit", "run", str(tmp_path / "r.yaml"), "--output",
-                           str(tmp_path / "b"), "--quiet"], env=env, check=True)
-    assert full.returncode == 0
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the uninterrupted run, in this process with one thread as the runs in theirs
+    try:
+        assert main(["run", str(tmp_path / "r.yaml"), "--output", str(tmp_path / "b"), "--quiet"]) == 0
+    finally:
+        torch.set_num_threads(threads)
     a = torch.load(next((tmp_path / "a").rglob("last.pt")), weights_only=True)
     b = torch.load(next((tmp_path / "b").rglob("last.pt")), weights_only=True)
     assert a["step"] == b["step"] == 40

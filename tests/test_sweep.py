@@ -14,10 +14,12 @@ from distilkit.cli import main
 from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import RecipeError
 from distilkit.recipe import load_recipe
+from distilkit.report import plots
 from distilkit.sweep.runner import SweepRun
 from distilkit.sweep.spec import load_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
+RENDER = plots.save  # matplotlib's rendering, taken before tests/conftest.py's autouse fixture replaces it
 
 
 def write_sweep(tmp_path: Path, **extra) -> Path:
@@ -38,8 +40,12 @@ def summaries(root: Path) -> dict[str, float]:
     return {p.parent.name: p.stat().st_mtime for p in root.glob("*/summary.json")}
 
 
-@pytest.mark.plots
-def test_a_sweep_runs_every_variant_and_seed_shares_teachers_and_resumes(tmp_path: Path, capsys) -> None:
+def test_a_sweep_runs_every_variant_and_seed_shares_teachers_and_resumes(tmp_path: Path, monkeypatch) -> None:
+    """Every variant and seed is run (a teacher per seed), results.csv/.md hold each run and the paired difference,
+    results.png is rendered (for real: the runs' own figures, which the test does not look at, are not), and a
+    second start reuses everything."""
+    closed = plots.save  # tests/conftest.py's stand-in: closes the figure, writes an empty file
+    monkeypatch.setattr(plots, "save", lambda fig, p: (RENDER if p.name.startswith("results") else closed)(fig, p))
     path = write_sweep(tmp_path)
     out = tmp_path / "runs"
     assert main(["sweep", str(path), "-o", str(out), "-q"]) == 0

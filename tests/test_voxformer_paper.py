@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch import nn
 
-from conftest import export_kitti
+from _camera_kitti import camera_kitti_copy
 from distilkit.weights import PartialWeights, load_weights
 from distilkit.errors import DataError
 from distilkit_adapters.voxformer.deformable import plane_shape
@@ -125,7 +125,7 @@ def test_batch_norms_and_the_first_stage_stay_frozen_in_training() -> None:
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
-    root = export_kitti(tmp_path_factory.mktemp("vf_kitti"), "--camera", "camera={height: 24, width: 80}")
+    root = camera_kitti_copy(tmp_path_factory, "vf_kitti")  # the process's exported folder, copied: proposals added
     from distilkit.data import semantickitti as skio
     from distilkit.data.proposals import write_proposal
 

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from distilkit.bench.base import Case, register
+from distilkit.repro import set_deterministic
 
 
 @register("determinism")
@@ -41,12 +42,12 @@ def determinism_cases(device: torch.device, quick: bool) -> list[Case]:
         trainer.student.train()
 
         def step(on: bool, trainer=trainer, batch=batch) -> Tensor:
-            torch.use_deterministic_algorithms(on, warn_only=True)
+            set_deterministic(on, warn_only=True)
             torch.utils.deterministic.fill_uninitialized_memory = False  # type: ignore[attr-defined]  # as repro does
             try:
                 return torch.tensor(trainer.train_step(batch, 0)["loss"])
             finally:
-                torch.use_deterministic_algorithms(False)
+                set_deterministic(False)
 
         size = f"train step, batch 2, {'x'.join(map(str, res.data_info.grid.shape))}"
         cases.append(Case(f"determinism: {label}", size, lambda step=step: step(False), lambda step=step: step(True),
@@ -59,7 +60,7 @@ def loader_cases(device: torch.device, quick: bool) -> list[Case]:
     """Training steps of the quickstart's teacher (a 4-frame SCPNet, batch 2, recipes/quickstart.yaml's data) through
     the stage's loader with 2 worker processes ('fast') and with none ('naive'): the batches are read and collated
     in the workers while the step runs. Each timing covers the loader's start and one epoch of steps (6; the quick
-    mode: 2 steps on an 8-times smaller grid)."""
+    mode: 2 steps on an 8-times smaller grid of smaller scans)."""
     import tempfile
 
     from distilkit.engine.train.loader import BatchPlan, train_batches
@@ -68,7 +69,8 @@ def loader_cases(device: torch.device, quick: bool) -> list[Case]:
     from distilkit.recipe import recipe_from_dict
 
     data = {"scale": 8 if quick else 4, "num_train": 4 if quick else 12, "num_val": 1, "num_test": 1,
-            "input_frames": 4, "gt_frames": 10, "azimuth_steps": 768}
+            "input_frames": 4, "gt_frames": 3 if quick else 10, "azimuth_steps": 256 if quick else 768,
+            **({"beams": 16} if quick else {})}  # quick: scenes made in a fifth of the time (the path, not the figure)
     model = {"adapter": "scpnet", "params": {"frames": 4, "channels": 8, "point_mlp": [32, 64], "seg_channels": 16}}
     recipe = {"name": "bench", "data": {"dataset": "synthetic-lidar", "params": data},
               "stages": {"s": {"model": model, "train": {"batch_size": 2, "grad_clip": 10, "device": device.type}}}}
@@ -101,8 +103,8 @@ def camera_cases(device: torch.device, quick: bool) -> list[Case]:
     from distilkit.engine.assemble.resolve import resolve
     from distilkit.recipe import recipe_from_dict
 
-    data = {"dataset": "synthetic-lidar", "params": {"scale": 8 if quick else 4, "input_frames": 1, "gt_frames": 10,
-                                                     "camera": {"previous": [3]}}}
+    data = {"dataset": "synthetic-lidar", "params": {"scale": 8 if quick else 4, "input_frames": 1,
+                                                     "gt_frames": 4 if quick else 10, "camera": {"previous": [3]}}}
     student = {"model": {"adapter": "voxformer", "params": {"frames": 2}}, "aux": {"proposal": {"from": "proposal"}},
                "task_losses": [{"name": "weighted_ce"}, {"name": "geo_scal"}],
                "train": {"batch_size": 4, "device": device.type}}

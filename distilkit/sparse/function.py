@@ -22,6 +22,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from distilkit.repro import set_deterministic
 from distilkit.sparse.backend import Call, choose, library_conv, ran
 from distilkit.sparse.rulebook import Rulebook
 
@@ -34,11 +35,11 @@ def _scatter_add(out: Tensor, index: Tensor, values: Tensor) -> None:
     nothing here."""
     if out.device.type == "cuda" and torch.are_deterministic_algorithms_enabled():
         warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
-        torch.use_deterministic_algorithms(False)
+        set_deterministic(False)
         try:
             out.index_add_(0, index, values)
         finally:
-            torch.use_deterministic_algorithms(True, warn_only=warn_only)
+            set_deterministic(True, warn_only=warn_only)
         return
     out.index_add_(0, index, values)
 

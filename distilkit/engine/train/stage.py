@@ -35,7 +35,7 @@ from distilkit.engine.store.checkpoints import Checkpoints
 from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop, ProgressHook
 from distilkit.engine.train.randomness import seed_everything
 from distilkit.files import atomic_write_json, atomic_write_text
-from distilkit.repro import processor
+from distilkit.repro import mkl_cbwr, processor
 from distilkit.engine.train.loader import BatchPlan, eval_batches, resolve_workers, train_batches
 from distilkit.engine.assemble.runs import load_run
 from distilkit.engine.train.auxiliary import with_aux_inputs
@@ -411,7 +411,7 @@ class StageRun:
                                               if stage.spec.teacher else None),
             "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": self.seed,
             "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them
-            "deterministic": torch.are_deterministic_algorithms_enabled(), "cpu": processor(),
+            "deterministic": torch.are_deterministic_algorithms_enabled(), "cpu": processor(), "mkl_cbwr": mkl_cbwr(),
             "classes": {"names": list(self.info.classes.names),
                         "colours": [list(c) for c in self.info.classes.colours]},
             "steps": loop.step, "train_seconds": round(loop.seconds, 2),
@@ -421,6 +421,10 @@ class StageRun:
         }
         if self.sparse_backends:  # which implementation computed the sparse convolutions (DISTILKIT_SPARSE)
             summary["sparse_backend"] = sorted(self.sparse_backends)
+        if summary["deterministic"] and "STRICT" not in (summary["mkl_cbwr"] or "STRICT"):
+            p.console.print(f"[yellow]stage {self.name}: MKL ran with MKL_CBWR={summary['mkl_cbwr']} (not STRICT): its "
+                            "sums may depend on memory alignment, so this run may not repeat bitwise in another "
+                            "process[/]", highlight=False)
         if self.nondeterministic:  # this run is not bitwise repeatable: say which ops made it so
             summary["nondeterministic_ops"] = list(self.nondeterministic)
             for op in self.nondeterministic:
