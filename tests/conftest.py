@@ -139,7 +139,7 @@ class _XdistGroupIds:
 
     @pytest.hookimpl(trylast=True)
     def pytest_collection_modifyitems(self, config: pytest.Config, items: list[pytest.Item]) -> None:
-        if not getattr(config.option, "loadgroup", False) and getattr(config.option, "dist", "no") != "loadgroup":
+        if not getattr(config.option, "loadgroup", False):  # set in xdist's workers under --dist loadgroup
             return
         for item in items:
             names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
