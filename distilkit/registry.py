@@ -160,6 +160,7 @@ _BUILTIN_MODULES = (
     "distilkit.metrics.registered",
     "distilkit.engine.train.optim",
     "distilkit.engine.train.tensorboard",
+    "distilkit.engine.train.trackers",
     "distilkit.engine.assemble.recorders",
 )
 _loaded = False

@@ -5,6 +5,12 @@ Two things vary between processes on the CPU unless they are pinned:
 * PyTorch's CPU backward of advanced indexing (``x[idx]`` with repeated indices, e.g. gathering k nearest
   neighbours) accumulates from several threads in a racy order; ``torch.use_deterministic_algorithms`` makes it
   (and every other op that has a deterministic variant) deterministic — on while a stage runs;
+* MKL's vector maths (VML: PyTorch's ``exp``, ``log``, ``tanh``, ``erf``, ... on contiguous float tensors) picks
+  its implementation for the processor at a function's first call; when two threads make that first call at once
+  (a tensor large enough for PyTorch to split it), one of them may compute its half with another implementation,
+  1 ulp apart — so the first ``exp`` of a process differs from its later ones in about a third of processes
+  under load (found with the two-process and killed-EMA-run tests, 2026-11-27). :func:`warm_vector_math` makes every
+  such first call once in one thread, before a stage runs;
 * MKL's reductions may depend on the memory alignment of an operand (a view into a tensor); its strict
   conditional numerical reproducibility (``MKL_CBWR=AUTO,STRICT``) pins them, and cuBLAS needs a fixed workspace
   (``CUBLAS_WORKSPACE_CONFIG``) — both read when the libraries first run, so ``import distilkit`` sets them (the
@@ -59,6 +65,33 @@ def set_deterministic(on: bool, warn_only: bool = False) -> None:
         private(on, warn_only=warn_only)
 
 
+# PyTorch's unary ops that call MKL's VML on contiguous float32/float64 tensors (ATen/cpu/vml.h), and their neighbours
+VECTOR_MATH = ("abs", "acos", "asin", "atan", "cos", "cosh", "erf", "erfc", "erfinv", "exp", "expm1", "log", "log10",
+               "log1p", "log2", "lgamma", "rsqrt", "sigmoid", "sin", "sinh", "sqrt", "tan", "tanh", "trunc")
+_WARMED: list[bool] = []
+
+
+def warm_vector_math() -> bool:
+    """Each of :data:`VECTOR_MATH` called once, in this thread, on 64 values of float32 and of float64 (below
+    PyTorch's grain size: never split between threads), so that MKL's per-function dispatch is settled before any
+    two threads can race to it; once per process (a forked child inherits it). True where it ran now."""
+    import torch
+
+    if _WARMED:
+        return False
+    for dtype in (torch.float32, torch.float64):
+        x = torch.linspace(-0.9, 0.9, 64, dtype=dtype)
+        for name in VECTOR_MATH:
+            getattr(torch, name)(x.abs() + 0.05 if name in ("log", "log10", "log2", "lgamma", "rsqrt", "sqrt") else x)
+    _WARMED.append(True)
+    return True
+
+
+def vector_math_warmed() -> bool:
+    """Whether :func:`warm_vector_math` ran in this process (a stage's summary records it)."""
+    return bool(_WARMED)
+
+
 @contextlib.contextmanager
 def deterministic_algorithms() -> Iterator[bool]:
     """PyTorch's deterministic variants of its ops while a stage runs (a warning, not an error, for an op that has
@@ -71,6 +104,8 @@ def deterministic_algorithms() -> Iterator[bool]:
     cudnn = torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark
     mkldnn = torch.backends.mkldnn.deterministic
     set_deterministic(on, warn_only=True)
+    if on:
+        warm_vector_math()
     # oneDNN (CPU convolutions) may use atomics in some implementations unless told not to (its "deterministic"
     # attribute; PyTorch passes it where its oneDNN calls take it)
     torch.backends.mkldnn.deterministic = on or mkldnn

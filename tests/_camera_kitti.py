@@ -1,6 +1,8 @@
 """One exported SemanticKITTI folder with camera images per test process (conftest's
-:func:`export_kitti`, 24 x 80 images), read by the paper-network tests of several modules; a test that adds files
-works on a copy (:func:`camera_kitti_copy`)."""
+:func:`export_kitti`, 24 x 80 images), read by the paper-network tests of several modules and by the folder tests of
+test_export_kitti, test_new_user_faults and test_cli_recipe (the images add image_2/ and the intrinsics in calib.txt;
+scans, labels, voxels and poses are a plain export's); a test that adds files works on a copy
+(:func:`camera_kitti_copy`)."""
 
 from __future__ import annotations
 

@@ -15,6 +15,9 @@ if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest -n N: one thread per worker 
     os.environ.pop("LINES", None)
 
 import distilkit  # noqa: F401  first: it sets MKL's reproducibility before any test multiplies a matrix
+from distilkit.repro import warm_vector_math
+
+warm_vector_math()  # MKL's vector maths settled in one thread before a test computes anything twice (repro)
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -33,11 +33,10 @@ def validate(path: Path, capsys) -> tuple[int, str]:
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
     """A SemanticKITTI-format folder (sequences 00 and 08, images, ScribbleSC scribbles) for the recipes that read
-    one: validate checks the data is there."""
-    root = tmp_path_factory.mktemp("kitti")
-    assert main(["data", "export-kitti", str(root), "--frames", "6", "--camera",
-                 "--set", "beams=16", "azimuth_steps=256", "camera={height: 24, width: 80}"]) == 0
-    return root
+    one: validate checks the data is there. This process's exported folder (tests/_camera_kitti.py), read only."""
+    from _camera_kitti import camera_kitti
+
+    return camera_kitti(tmp_path_factory)
 
 
 @pytest.mark.parametrize("recipe", sorted([*(ROOT / "recipes").glob("*.yaml"), *(ROOT / "recipes" / "paper").glob("*.yaml")]),

@@ -5,14 +5,27 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import export_kitti, folder_recipe
+from _camera_kitti import camera_kitti
+from conftest import folder_recipe
 from distilkit.cli import main
 from distilkit.data import semantickitti as sk
 
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    return export_kitti(tmp_path_factory.mktemp("kitti"))
+    """This process's exported folder (tests/_camera_kitti.py: conftest's export_kitti with camera images, which
+    adds image_2/ and the intrinsics in calib.txt; scans, labels, voxels and poses are those of a plain export),
+    read only: a test that writes into it works on a copy."""
+    return camera_kitti(tmp_path_factory)
+
+
+@pytest.fixture
+def no_report(monkeypatch) -> None:
+    """The test's runs write no run report (report.md and its figures), which it does not read (tests/test_reports.py
+    tests them): a tiny stage's report is about a third of its CPU."""
+    import distilkit.report.run
+
+    monkeypatch.setattr(distilkit.report.run, "write_run_report", lambda run_dir: None)
 
 
 def test_the_folder_has_semantickittis_layout_and_reads_back(exported) -> None:
@@ -49,15 +62,21 @@ def test_the_dataset_fuses_exported_scans_through_the_poses(exported) -> None:
     assert s["voxel_label"].shape == (64, 64, 8) and (s["voxel_label"] != 0).any()
 
 
-def test_moving_objects_leave_traces_that_rectification_removes(exported, capsys) -> None:
+def test_moving_objects_leave_traces_that_rectification_removes(exported, tmp_path, capsys) -> None:
+    import shutil
+
     from distilkit.data.rectify import rectify_folder
 
-    counts = rectify_folder(exported, ["00", "08"])
+    root = tmp_path / "kitti"  # rectify writes voxels_rectified/ beside voxels/: on a copy of the shared folder
+    for seq in ("00", "08"):
+        shutil.copytree(exported / "sequences" / seq, root / "sequences" / seq,
+                        ignore=shutil.ignore_patterns("image_2"))
+    counts = rectify_folder(root, ["00", "08"])
     before = sum(b for b, _ in counts.values())
     left = sum(a for _, a in counts.values())
     assert before > 0 and left < before
-    static = sk.read_voxel_labels(exported / "sequences" / "08" / "voxels" / "000000.label")
-    fixed = sk.read_voxel_labels(exported / "sequences" / "08" / "voxels_rectified" / "000000.label")
+    static = sk.read_voxel_labels(root / "sequences" / "08" / "voxels" / "000000.label")
+    fixed = sk.read_voxel_labels(root / "sequences" / "08" / "voxels_rectified" / "000000.label")
     from distilkit.data.classes import remap, ssc_lut
 
     dyn = np.isin(remap(static, ssc_lut()), [1, 4, 5, 6, 7, 8])
@@ -72,7 +91,7 @@ def test_bad_export_arguments_are_named(tmp_path, capsys) -> None:
 
 
 def test_a_recipe_trains_on_the_folder_publishes_a_hidden_split_and_predict_and_eval_read_it(exported, tmp_path,
-                                                                                            capsys) -> None:
+                                                                                            capsys, no_report) -> None:
     """One 2-frame SCPNet run on the exported folder (rectification on) with a hidden test sequence 11 (scans only,
     no label files: the benchmark's test split): scores come from the validation split (and the summary says so),
     the hidden frames' predictions are published; then `distilkit predict` writes the validation sequence and the
@@ -181,7 +200,8 @@ def test_the_scan_dataset_gives_every_scan_with_its_point_labels(exported, tmp_p
         SemanticKittiDataset(SemanticKittiScanParams(root=str(root), train=["08"]), "train")
 
 
-def test_a_multi_frame_teacher_trains_on_every_scan_and_predicts_the_benchmark_frames(exported, tmp_path) -> None:
+def test_a_multi_frame_teacher_trains_on_every_scan_and_predicts_the_benchmark_frames(exported, tmp_path,
+                                                                                       no_report) -> None:
     from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
@@ -210,7 +230,7 @@ def test_point_labels_and_calibration_round_trip(tmp_path) -> None:
     assert np.allclose(calib["P2"][:3, :3], k, rtol=1e-9) and np.allclose(calib["Tr"], lidar_to_camera(), atol=1e-9)
 
 
-def test_class_weighted_losses_follow_semanticposs_twelve_classes(exported, tmp_path, device) -> None:
+def test_class_weighted_losses_follow_semanticposs_twelve_classes(exported, tmp_path, device, no_report) -> None:
     """JS3C-Net's weighted uncertainty loss and VoxFormer's weighted CE size their class weights by the data's class
     table (they were SemanticKITTI's 20 whatever the data): both train on a semanticposs-ssc folder (12 classes)."""
     from distilkit.engine.train.pipeline import Pipeline

@@ -12,6 +12,7 @@ import time
 import pytest
 import yaml
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import tiny_recipe
 from distilkit.cli import main
 from distilkit.weights import load_checkpoint
@@ -127,7 +128,8 @@ def clean_run(tmp_path_factory: pytest.TempPathFactory):
 def test_a_run_killed_at_any_moment_resumes_to_the_same_final_metrics(tmp_path, moment: str, clean_run) -> None:
     """Three kill moments by default, all five in the slow run. Epochs are 2 steps long: a kill after the third
     step is in the middle of the second epoch (with 2 loader processes reading ahead; workers are not part of the
-    stage's identity, so the clean run is the same stage)."""
+    stage's identity, so the clean run is the same stage). Over 3 s: the killed `distilkit run` process (Python and
+    torch started in it, and loader processes in the mid-epoch case) is its point."""
     recipe = _kill_recipe()
     if moment.startswith("mid-epoch"):
         recipe["stages"]["teacher"]["train"]["workers"] = 2

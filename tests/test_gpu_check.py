@@ -43,7 +43,8 @@ def test_without_cuda_the_gpu_check_stops_with_one_line(tmp_path: Path, monkeypa
     assert not (tmp_path / "r.md").exists()
 
 
-BUDGET = 10  # seconds: the machine section (which fails at once here) and the bf16 section's 5 s minimum fit in it
+BUDGET = 7  # seconds: the machine section (which fails at once here: under 0.5 s at a load of 12 on 2 cores) and
+# the bf16 section's 5 s minimum fit in it, with 2 s to spare
 
 
 def test_a_section_that_hangs_is_stopped_and_the_check_keeps_its_budget(tmp_path: Path) -> None:
@@ -52,7 +53,8 @@ def test_a_section_that_hangs_is_stopped_and_the_check_keeps_its_budget(tmp_path
     time, and its temporary folder is removed (the sleeping section's process group killed). The sections see a
     ``torch`` that cannot be imported (a stand-in first on PYTHONPATH), so that the report's machine lines fail at
     once instead of taking a loaded machine's torch import out of the budget (the bf16 section sleeps before it
-    imports anything)."""
+    imports anything). It takes the budget's 7 s of wall time (asleep, not computing): waiting the budget out is
+    its point."""
     out, tmp, stub = tmp_path / "r.md", tmp_path / "tmp", tmp_path / "no-torch"
     tmp.mkdir()
     stub.mkdir()

@@ -79,27 +79,30 @@ def test_lga_counts_the_face_neighbours_with_another_label() -> None:
         local_geometric_anisotropy(torch.zeros(3))
 
 
-def test_geometry_weighted_ce_equals_the_naive_mean_over_valid_voxels(device) -> None:
+@pytest.mark.parametrize("reduce", ["per_sample", "pooled"])
+def test_geometry_weighted_ce_equals_the_naive_mean_over_valid_voxels(reduce, device) -> None:
     labels = labels_with_structure()
     logits = torch.randn(2, 4, 4, 5, 3, dtype=torch.float64, requires_grad=True)
     weights = torch.tensor([0.4, 0.6, 0.8, 0.7], dtype=torch.float64)
     lga = naive_lga(labels)
-    terms = []
+    terms: list[list[torch.Tensor]] = [[], []]
     for n, i, j, k in (labels != 255).nonzero().tolist():
         y = int(labels[n, i, j, k])
-        terms.append(weights[y] * naive_ce(logits[n, :, i, j, k], y) * (1 + lga[n, i, j, k]))
-    naive = torch.stack(terms).mean()
-    ours = geometry_weighted_ce(logits, labels, weights, lga)
+        terms[n].append(weights[y] * naive_ce(logits[n, :, i, j, k], y) * (1 + lga[n, i, j, k]))
+    naive = (torch.stack(terms[0]).mean() + torch.stack(terms[1]).mean()) / 2 if reduce == "per_sample" else \
+        torch.stack(terms[0] + terms[1]).mean()
+    ours = geometry_weighted_ce(logits, labels, weights, lga, reduce=reduce)
     torch.testing.assert_close(ours, naive, rtol=1e-12, atol=0)
     g_ours, = torch.autograd.grad(ours, logits)
     g_naive, = torch.autograd.grad(naive, logits)
     torch.testing.assert_close(g_ours, g_naive, rtol=1e-10, atol=1e-14)
-    assert torch.autograd.gradcheck(lambda z: geometry_weighted_ce(z, labels, weights, lga), (logits,))
+    assert torch.autograd.gradcheck(lambda z: geometry_weighted_ce(z, labels, weights, lga, reduce=reduce), (logits,),
+                                    fast_mode=True)
     gpu = geometry_weighted_ce(logits.detach().float().to(device), labels.to(device), weights.float().to(device),
-                               lga.float().to(device))
+                               lga.float().to(device), reduce=reduce)
     torch.testing.assert_close(gpu.double().cpu(), naive.detach(), rtol=1e-5, atol=0)
     none = torch.full_like(labels, 255)
-    assert geometry_weighted_ce(logits, none, weights, lga).item() == 0.0
+    assert geometry_weighted_ce(logits, none, weights, lga, reduce=reduce).item() == 0.0
 
 
 def test_voxel_sample_reads_trilinearly_and_nearest_at_the_positions() -> None:
@@ -141,9 +144,13 @@ def test_each_sample_keeps_its_own_hardest_draws_then_uniform_ones(rank: str) ->
     assert got.shape == (2, n, 3) and float(got.min()) >= 0 and float(got.max()) < 1
 
 
-def naive_hvm(logits, labels, lga, weights, alpha, beta) -> torch.Tensor:
-    num, den = 0.0, 0.0
+def naive_hvm(logits, labels, lga, weights, alpha, beta, reduce="pooled") -> torch.Tensor:
+    """Σ CE (α + β LGA) / Σ w_y over the valid positions: per sample then the mean over the samples (``per_sample``,
+    the release's one sample per GPU) or both sums over the batch (``pooled``)."""
     b, _, n = logits.shape
+    if reduce == "per_sample":
+        return sum(naive_hvm(logits[s:s + 1], labels[s:s + 1], lga[s:s + 1], weights, alpha, beta) for s in range(b)) / b
+    num, den = 0.0, 0.0
     for s in range(b):
         for i in range(n):
             y = int(labels[s, i])
@@ -162,17 +169,18 @@ def test_hard_voxel_ce_equals_the_naive_normalised_sum(device) -> None:
     lga = torch.randint(0, 7, (2, 9), generator=g).double()
     weights = torch.tensor([0.4, 0.6, 0.8, 0.7], dtype=torch.float64)
     naive = naive_hvm(logits, labels, lga, weights, 0.2, 1.0)
-    ours = hard_voxel_ce(logits, labels, lga, weights, 0.2, 1.0)
+    ours = hard_voxel_ce(logits, labels, lga, weights, 0.2, 1.0, reduce="pooled")
     torch.testing.assert_close(ours, naive, rtol=1e-12, atol=0)
     torch.testing.assert_close(torch.autograd.grad(ours, logits)[0], torch.autograd.grad(naive, logits)[0],
                                rtol=1e-10, atol=1e-14)
-    assert torch.autograd.gradcheck(lambda z: hard_voxel_ce(z, labels, lga, weights), (logits,))
+    assert torch.autograd.gradcheck(lambda z: hard_voxel_ce(z, labels, lga, weights, reduce="pooled"), (logits,))
     on = hard_voxel_ce(logits.detach().float().to(device), labels.to(device), lga.float().to(device),
-                       weights.float().to(device))
+                       weights.float().to(device), reduce="pooled")
     torch.testing.assert_close(on.double().cpu(), naive.detach(), rtol=1e-5, atol=0)
 
 
-def test_the_objective_equals_the_naive_composition_of_both_branches(device) -> None:
+@pytest.mark.parametrize("reduce", ["per_sample", "pooled"])
+def test_the_objective_equals_the_naive_composition_of_both_branches(reduce, device) -> None:
     """hassc_hvm on the device: its value and the gradients into the student's prediction and features equal a naive
     float64 composition (the same random draws, naive sampling, hardness, head and normaliser)."""
     from distilkit.objectives.hassc import HardVoxelParams, HASSCHardVoxels
@@ -184,7 +192,7 @@ def test_the_objective_equals_the_naive_composition_of_both_branches(device) -> 
     student = torch.randn(2, k, 4, 5, 3, generator=g) * 2
     feats = torch.randn(2, c, 2, 3, 2, generator=g)  # another resolution: read at the same positions
     teacher = torch.randn(2, k, 4, 5, 3, generator=g) * 2
-    params = HardVoxelParams(points=6, oversample=2, omega=0.5, delta=0.1)
+    params = HardVoxelParams(points=6, oversample=2, omega=0.5, delta=0.1, reduce=reduce)
     obj = HASSCHardVoxels(params)
     obj.setup({"student": student, "features": feats}, None)
     obj.class_weight = torch.tensor([0.4, 0.6, 0.8, 0.7])
@@ -228,11 +236,11 @@ def test_the_objective_equals_the_naive_composition_of_both_branches(device) -> 
     refined = torch.stack([torch.stack([w @ torch.cat([naive_trilinear(s64[smp], q), naive_trilinear(f64[smp], q)])
                                         + bias for q in mine[smp]], 1) for smp in range(2)])
     lab, lg = truth(mine)
-    naive = naive_hvm(refined, lab, lg, weights, 0.2, 1.0)
+    naive = naive_hvm(refined, lab, lg, weights, 0.2, 1.0, reduce)
     theirs = positions(teacher, draws[2], draws[3])
     at = torch.stack([torch.stack([naive_nearest(s64[smp], q) for q in theirs[smp]], 1) for smp in range(2)])
     lab, lg = truth(theirs)
-    naive = naive + 0.1 * naive_hvm(at, lab, lg, weights, 0.2, 1.0)
+    naive = naive + 0.1 * naive_hvm(at, lab, lg, weights, 0.2, 1.0, reduce)
     ns, nf = torch.autograd.grad(naive, (s64, f64))
     rel = 1e-10 if device.type == "cpu" else 1e-4
     torch.testing.assert_close(ours.double().cpu(), naive.detach(), rtol=rel, atol=0)

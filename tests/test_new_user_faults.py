@@ -15,7 +15,9 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import FIXTURES, export_kitti, folder_recipe, tiny_recipe
+from _camera_kitti import camera_kitti
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
+from conftest import FIXTURES, folder_recipe, tiny_recipe
 from distilkit.cli import main
 from distilkit.data.pointfiles import read_points
 from distilkit.errors import DataError
@@ -25,7 +27,9 @@ SCAN = FIXTURES / "semantickitti-sample" / "sequences" / "00" / "velodyne" / "00
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    return export_kitti(tmp_path_factory.mktemp("kitti"))
+    """This process's exported SemanticKITTI folder (tests/_camera_kitti.py), read only: the tests that break files
+    work on a copy."""
+    return camera_kitti(tmp_path_factory)
 
 
 def copy_of(exported: Path, tmp_path: Path) -> Path:
@@ -183,7 +187,8 @@ def _alive(pid: int) -> bool:
 @pytest.mark.parametrize("how", ["SIGTERM", "SIGKILL"])
 def test_a_stopped_sweep_leaves_no_run_training(tmp_path, how: str) -> None:
     """SIGTERM to `distilkit sweep --jobs 2` stops its runs (their checkpoints written); SIGKILL leaves them
-    orphaned, and they notice and stop on their own."""
+    orphaned, and they notice and stop on their own. Over 3 s: a sweep process and its two run processes, trained
+    until signalled, are its point."""
     recipe = tiny_recipe(steps=2000, distill=False)
     recipe["stages"]["teacher"]["train"].update(eval_every=2000, checkpoint_every=1000)
     (tmp_path / "base.yaml").write_text(yaml.safe_dump(recipe))

@@ -21,7 +21,7 @@ NETWORKS = {
     "js3cnet": ["js3cnet: the paper's network"],
     "scorelidar": ["lidiff: the paper's network", "lidiff-refine: the paper's network"],
     "scribble2scene": ["voxformer: the paper's network", "voxformer-proposal: CPU stand-in",
-                       "dean-labeler: CPU stand-in"],
+                       "dean-labeler: the paper's network"],
 }
 
 

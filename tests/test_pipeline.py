@@ -7,6 +7,7 @@ import json
 import pytest
 import torch
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import make_trainer, tiny_recipe
 from distilkit.weights import load_checkpoint
 from distilkit.engine.train.pipeline import Pipeline

@@ -19,8 +19,19 @@ pytestmark = pytest.mark.plots  # these tests look at the rendered pictures
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory):
+    """A teacher and its student. The teacher's pictures, which no test looks at (it is compared by its summary and
+    rendered for real by `distilkit report` below), are drawn without rendering (tests/conftest.py's stand-in); the
+    student's and the recipe's are rendered by the run itself."""
+    import conftest
+
     out = tmp_path_factory.mktemp("runs")
+    renders, conftest._RENDERS[0] = conftest._RENDERS[0], False
+    try:
+        Pipeline(recipe_from_dict(tiny_recipe(steps=2)), out, quiet=True).run(only=["teacher"])
+    finally:
+        conftest._RENDERS[0] = renders
     teacher, student = Pipeline(recipe_from_dict(tiny_recipe(steps=2)), out, quiet=True).run()
+    assert teacher.reused and not student.reused
     return teacher.run_dir, student.run_dir
 
 

@@ -3,7 +3,11 @@
 Without the deterministic setting (``DISTILKIT_DETERMINISTIC=0``) this JS3C-Net stage differed between processes
 in 3 runs of 3 here: the CPU backward of its nearest-neighbour gathers (``x[idx]``) accumulates from two threads
 in a racy order once it is large enough to be split between them (119 of 138 tensors differ, the losses part at
-step 4). CI once saw 119 of 138 differ *with* the setting on (2026-11-26, not reproduced since). The same count comes
+step 4). CI once saw 119 of 138 differ *with* the setting on (2026-11-26); the cause, found 2026-11-27 through a
+killed EMA run that resumed to other bits under load: the first ``exp`` of a process split between two threads
+computed one half 1 ulp apart (MKL's VML settling its implementation at a function's first call) in about a third
+of processes under load, so step 1 differed; a stage's deterministic context now makes those first calls in one
+thread (``warm_vector_math``, ``vector_math_warmed`` in the summary; the last test below). The same count comes
 from MKL running another code branch in one of the processes (``MKL_CBWR=COMPATIBLE`` against the default
 ``AUTO,STRICT``: 119 of 138, the losses part at step 1, the forward pass already); alignment did not change a bit
 here (a process with another allocation history and glibc settings, on another CPU, reading the scenes that the
@@ -163,6 +167,7 @@ def test_a_stage_names_the_ops_that_made_it_not_repeatable(tmp_path: Path, monke
     from distilkit.repro import mkl_cbwr
 
     assert summary["mkl_cbwr"] == mkl_cbwr()
+    assert summary["vector_math_warmed"] is True
     if torch.backends.mkl.is_available() and os.environ.get("MKL_CBWR") == "AUTO,STRICT":
         assert summary["mkl_cbwr"].startswith("AUTO,STRICT (")
     orig = Trainer.loss_terms
@@ -180,3 +185,36 @@ def test_a_stage_names_the_ops_that_made_it_not_repeatable(tmp_path: Path, monke
     assert f"stage teacher: put_ has no deterministic variant on the {device.type}; this run is not bitwise " \
            "repeatable" in out
     assert "stage teacher: MKL ran with MKL_CBWR=AVX2 (not STRICT)" in " ".join(out.split())
+
+
+VML_PROBE = """
+import json, sys, torch
+from distilkit.repro import VECTOR_MATH, deterministic_algorithms, vector_math_warmed
+before = vector_math_warmed()
+with deterministic_algorithms():
+    torch.set_num_threads(2)
+    x = torch.linspace(-0.9, 0.9, 1 << 17)  # four times PyTorch's grain size: split between the two threads
+    bad = []
+    for name in VECTOR_MATH:
+        arg = x.abs() + 0.05 if name in ("log", "log10", "log2", "lgamma", "rsqrt", "sqrt") else x
+        f = getattr(torch, name)
+        first = f(arg)
+        if not all(torch.equal(first, f(arg)) for _ in range(2)):
+            bad.append(name)
+print(json.dumps({"before": before, "after": vector_math_warmed(), "bad": bad}))
+"""
+
+
+def test_a_stage_makes_the_first_vector_math_calls_of_its_process_in_one_thread() -> None:
+    """The cause of the killed-EMA-run and two-process failures (2026-11-27): the first ``exp`` of a process, split
+    between two threads, gave one thread's half 1 ulp apart from every later ``exp`` of the same values in 2-4 of 12
+    processes under load (MKL's VML settles its implementation at a function's first call), so a run's step 1
+    differed from another process's. With :func:`distilkit.repro.warm_vector_math` (run by the stage's
+    deterministic context) 0 of 20 did. Here: a fresh process is not warmed until a stage's context opens, and then
+    every vector-maths function's first two-thread call equals its later ones bit for bit."""
+    env = {**os.environ, "OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"}
+    out = subprocess.run([sys.executable, "-c", VML_PROBE], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert (got["before"], got["after"]) == (False, True)
+    assert got["bad"] == [], f"first calls that differ from later ones: {got['bad']}"

@@ -299,7 +299,8 @@ def test_the_requeue_handler_stops_the_run_with_its_checkpoint_and_the_requeued_
         tmp_path) -> None:
     """RunJob.checkpoint as submitit calls it on SIGTERM, against a real `distilkit run`: the run that did not get the
     signal itself is sent one, stops after its step with last.pt, and the body handed back for the requeue resumes
-    it to the bits of an uninterrupted run (made in this process: the bits do not depend on it)."""
+    it to the bits of an uninterrupted run (made in this process: the bits do not depend on it). Over 3 s: two
+    `distilkit run` processes (each starts Python and torch) are its point."""
     import time
 
     import torch
@@ -307,16 +308,17 @@ def test_the_requeue_handler_stops_the_run_with_its_checkpoint_and_the_requeued_
     from conftest import tiny_recipe
     from distilkit.sweep.slurm import RunJob
 
-    recipe = tiny_recipe(steps=40, distill=False)
-    recipe["stages"]["teacher"]["train"].update({"checkpoint_every": 5, "eval_every": 40, "log_every": 10})
+    steps = 24  # the signal comes about 0.15 s after the first last.pt (step 4): 20 steps of margin, ~0.9 s of CPU
+    recipe = tiny_recipe(steps=steps, distill=False)
+    recipe["stages"]["teacher"]["train"].update({"checkpoint_every": 4, "eval_every": steps, "log_every": 8})
     (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
     argv = ["run", str(tmp_path / "r.yaml"), "--output", str(tmp_path / "a"), "--quiet"]
-    job = RunJob(argv, grace=0.5)
+    job = RunJob(argv, grace=0.1)  # the run did not get the signal itself: the grace is only waited out
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     job._child = subprocess.Popen([sys.executable, "-m", "distilkit", *argv], env=env)
     deadline = time.monotonic() + 120
     while not list((tmp_path / "a").rglob("last.pt")) and time.monotonic() < deadline:
-        time.sleep(0.2)
+        time.sleep(0.02)
     handler = signal.getsignal(signal.SIGTERM)
     try:
         again = job.checkpoint().function
@@ -327,7 +329,7 @@ def test_the_requeue_handler_stops_the_run_with_its_checkpoint_and_the_requeued_
     assert job._child.returncode is not None  # it had stopped before the handler returned
     last = next((tmp_path / "a").rglob("last.pt"))
     stopped_at = torch.load(last, weights_only=True)["step"]
-    assert 0 < stopped_at < 40 and not list((tmp_path / "a").rglob("summary.json"))
+    assert 0 < stopped_at < steps and not list((tmp_path / "a").rglob("summary.json"))
     assert isinstance(again, RunJob) and again.argv == argv
     os.environ.update({"SLURM_CPUS_PER_TASK": "1"})
     try:
@@ -342,5 +344,5 @@ def test_the_requeue_handler_stops_the_run_with_its_checkpoint_and_the_requeued_
         torch.set_num_threads(threads)
     a = torch.load(next((tmp_path / "a").rglob("last.pt")), weights_only=True)
     b = torch.load(next((tmp_path / "b").rglob("last.pt")), weights_only=True)
-    assert a["step"] == b["step"] == 40
+    assert a["step"] == b["step"] == steps
     assert all(torch.equal(a["student"][k], b["student"][k]) for k in b["student"])

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import tiny_recipe
 from distilkit.cli import main
 from distilkit.engine.train.pipeline import Pipeline
@@ -121,6 +122,8 @@ def test_a_launcher_name_in_the_sweep_file_says_where_the_launcher_is_chosen(tmp
 
 
 def test_jobs_run_in_parallel_processes(tmp_path: Path) -> None:
+    """`--jobs 2`: the runs go to `distilkit run` processes, each with its log. Over 3 s: the child processes (each
+    starts Python and torch, trains, writes its report) are its point."""
     path = write_sweep(tmp_path, seeds=[0])
     out = tmp_path / "runs"
     assert main(["sweep", str(path), "-o", str(out), "-q", "--jobs", "2"]) == 0

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from conftest import ROOT, TINY_DATA, export_kitti
+from conftest import ROOT, TINY_DATA
 from distilkit.cli import main
 from distilkit.registry import OBJECTIVES
 
@@ -140,10 +140,10 @@ def test_static_runs_no_model_and_says_what_it_did_not_check(tmp_path) -> None:
 @pytest.fixture(scope="module")
 def paper_scpnet(tmp_path_factory: pytest.TempPathFactory) -> list[str]:
     """The SCPNet paper recipe (sparse convolutions) on an exported folder, one CPU step per stage: its arguments."""
+    from _camera_kitti import camera_kitti
     from test_paper_recipes import overrides
 
-    # 6 scans a sequence (voxel frames 0 and 5), not 11: the tests stop at the sparse backend, before any step
-    folder = export_kitti(tmp_path_factory.mktemp("kitti"), "--frames=6")
+    folder = camera_kitti(tmp_path_factory)  # this process's exported folder (read only), as tests/test_sparse_backends
     sets = overrides("scpnet", folder, small=True) + ["stages.*.train.steps=1", "stages.*.train.epochs=null",
                                                        "stages.*.train.batch_size=1", "stages.*.train.device=cpu"]
     return [str(ROOT / "recipes" / "paper" / "scpnet.yaml"), "--set", *sets]
@@ -157,7 +157,8 @@ def _error_line(err: str) -> str:
 
 def test_validate_refuses_a_sparse_backend_that_is_not_installed_with_the_runs_line(paper_scpnet, tmp_path) -> None:
     """DISTILKIT_SPARSE=spconv with spconv unimportable (a fresh process): validate exits 2 with the line the run
-    stops with at step 0 (was: "sparse convolutions: cannot run — ..." and exit 0)."""
+    stops with at step 0 (was: "sparse convolutions: cannot run — ..." and exit 0). Over 3 s: the fresh process
+    (Python, torch and distilkit started without spconv) is its point."""
     code = ("import sys; sys.modules['spconv'] = None\n"
             "from distilkit.cli import main\n"
             f"args = {paper_scpnet!r}\n"

@@ -59,6 +59,8 @@ def network_cases(quick: bool) -> list[NetworkCase]:
             NetworkCase("VoxFormer", "voxformer", "synthetic-lidar", size, camera,
                         {"size": size, "geometry": "ground-truth"},
                         f"{camera['camera']['height']}x{camera['camera']['width']} image, {grid}"),
+            NetworkCase("Dean-Labeler", "dean-labeler", "synthetic-lidar", size, lidar, {"size": size},
+                        f"complete geometry, {grid}"),
         ]
     return cases
 

@@ -29,8 +29,11 @@ def add(sub: Any) -> None:
     _folder_split(ev, "the SemanticKITTI folder (holds sequences/NN/voxels/)", "valid", "08")
     ev.add_argument("--predictions", required=True, help="the folder holding sequences/NN/predictions/*.label")
     ev.add_argument("--out", default=None, help="where to write the scores (default: PREDICTIONS/scores.txt)")
-    ev.add_argument("--classes", default="semantickitti", choices=["semantickitti", "semanticposs"],
-                    help="the labels' class table and official splits (semanticposs: 11 classes, valid = test = 02)")
+    ev.add_argument("--classes", default="semantickitti",
+                    choices=["semantickitti", "semanticposs", "sscbench-kitti360"],
+                    help="the labels' class table and official splits (semanticposs: 11 classes, valid = test = 02; "
+                         "sscbench-kitti360: its folder layout, 19 classes, valid 06, test 09, predictions "
+                         "PREDICTIONS/<drive>/FFFFFF_1_1.npy or .label)")
     ev.set_defaults(fn=evaluate)
     pr = command(sub, "predict", "write a trained SSC run's predictions of a SemanticKITTI folder in "
                                  "the submission format (sequences/NN/predictions/NNNNNN.label)",
@@ -76,22 +79,37 @@ def _folder_split(parser: argparse.ArgumentParser, root_help: str, split: str, s
 
 
 def evaluate(args: argparse.Namespace) -> int:
-    import yaml
-    from rich.table import Table
-
     from distilkit.console import make_console, progress_bar
-    from distilkit.files import atomic_write_text
     from distilkit.data.info import ClassTable
     from distilkit.data.params import KITTI_SPLITS, POSS_SPLITS
-    from distilkit.metrics.official import evaluate_folder, scores_yaml
+    from distilkit.metrics.official import evaluate_folder
 
     console = make_console()
+    if args.classes == "sscbench-kitti360":  # its own layout and target rule (distilkit.metrics.sscbench)
+        from distilkit.data.sscbench import SPLITS, drive_name
+        from distilkit.metrics.sscbench import evaluate_sscbench
+
+        sequences = [drive_name(s) for s in args.sequences] if args.sequences else list(SPLITS[args.split])
+        with progress_bar(console, "eval") as advance:
+            ev = evaluate_sscbench(args.dataset_root, args.predictions, sequences, advance)
+        return _report(args, console, ev, "SSCBench-KITTI-360 completion", sequences)
     poss = args.classes == "semanticposs"
     sequences = args.sequences or list((POSS_SPLITS if poss else KITTI_SPLITS)[args.split])
     table = ClassTable.semanticposs() if poss else ClassTable.semantickitti()
     with progress_bar(console, "eval") as advance:
         ev = evaluate_folder(args.dataset_root, args.predictions, sequences, advance, table)
-    table = Table(title=f"SemanticKITTI completion, sequences {' '.join(sequences)}, {ev.frames} frames (%)")
+    return _report(args, console, ev, "SemanticKITTI completion", sequences)
+
+
+def _report(args: argparse.Namespace, console: Any, ev: Any, title: str, sequences: list[str]) -> int:
+    """Print an evaluation's table and per-class IoU and write its scores.txt."""
+    import yaml
+    from rich.table import Table
+
+    from distilkit.files import atomic_write_text
+    from distilkit.metrics.official import scores_yaml
+
+    table = Table(title=f"{title}, sequences {' '.join(sequences)}, {ev.frames} frames (%)")
     for col in ("box", "IoU", "precision", "recall", "mIoU"):
         table.add_column(col, justify="left" if col == "box" else "right")
     for name, s in (("51.2 m (whole grid)", ev.scores), *((f"{r:g} m", v) for r, v in sorted(ev.ranges.items(),

@@ -11,7 +11,8 @@ from distilkit.cli.base import command, overrides, set_option
 EXAMPLES = {
     "run": ["distilkit run recipes/quickstart.yaml",
             "distilkit run recipes/quickstart.yaml --set 'stages.*.train.steps=4'   # every stage, 4 steps",
-            "distilkit run recipes/scorelidar.yaml --seed 0 1 2                    # mean ± std over seeds"],
+            "distilkit run recipes/scorelidar.yaml --seed 0 1 2                    # mean ± std over seeds",
+            "distilkit run recipes/quickstart.yaml --set 'trackers=[tensorboard, mlflow]'   # experiment trackers"],
 }
 
 

@@ -20,6 +20,7 @@ from distilkit.data.params import (SceneParams, SemanticKittiParams, SemanticKit
                                    SyntheticParams)
 from distilkit.data.probe import cloud_plan, grid_plan
 from distilkit.data.render import CAMERA_VERSION
+from distilkit.data.sscbench import SscbenchParams, sscbench_check, sscbench_fingerprint, sscbench_info
 from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.structures import VoxelGrid
 from distilkit.registry import DATASETS
@@ -109,6 +110,23 @@ for _name, _params, _description, _paper in (
                  info=kitti_info, collate=collate_street, version=1,
                  has_split=lambda p, split: bool(p.sequences(split)), probe=grid_plan,
                  fingerprint=kitti_fingerprint, check=kitti_check)
+
+
+def _sscbench_factory(params: Any, split: str, progress: Any = None) -> Any:
+    from distilkit.data.sscbench import SscbenchDataset
+
+    return SscbenchDataset(params, split)
+
+
+DATASETS.add(
+    "sscbench-kitti360", _sscbench_factory,
+    description="an SSCBench-KITTI-360 folder: data_2d_raw/2013_05_28_drive_NNNN_sync/voxels/*.label|.invalid|.bin "
+                "(or preprocess/labels/*_1_1.npy), 19 classes, train 00/02-05/07/10, valid 06, test 09; the input "
+                "is the voxelised scan; with `camera` also image_00/data_rect/ and its calibration",
+    paper="Li et al., SSCBench, IROS 2024 (ai4ce/SSCBench, dataset/configs/kitti360.yaml)",
+    params=SscbenchParams, info=sscbench_info, collate=collate_street, version=1,
+    has_split=lambda p, split: bool(p.sequences(split)), probe=grid_plan,
+    fingerprint=sscbench_fingerprint, check=sscbench_check)
 
 
 def _scenes_factory(params: Any, split: str, progress: Any = None) -> Any:

@@ -1,9 +1,10 @@
 """The training loop's lifecycle hooks (as in Pointcept and mmengine) and the public view of the loop they get.
 
-A hook may implement any of ``before_train``, ``before_step``, ``after_step``, ``after_evaluation`` and
-``after_train``; each receives the :class:`Loop` (never the trainer's internals). The stage's own hooks run first,
-in this order, after every step: logging, progress, evaluation on the validation split (choosing ``best.pt``) and
-checkpointing (``last.pt``); then the recipe's registered hooks (``train.hooks``, e.g. ``tensorboard``).
+A hook may implement any of ``before_train``, ``before_step``, ``after_step``, ``after_evaluation``,
+``after_train`` and ``after_publish``; each receives the :class:`Loop` (never the trainer's internals). The stage's
+own hooks run first, in this order, after every step: logging, progress, evaluation on the validation split
+(choosing ``best.pt``) and checkpointing (``last.pt``); then the recipe's registered hooks (``train.hooks``, e.g.
+``tensorboard``) and its trackers (``trackers``: :mod:`distilkit.engine.train.trackers`).
 Plugins register hooks in ``HOOKS`` like any component: ``HOOKS.add(name, factory(params, loop_info), params=...)``.
 """
 
@@ -61,6 +62,14 @@ class Loop:
         """Write ``last.pt`` (everything to resume from) or ``best.pt`` (the student and its scores)."""
         self._save(which)
 
+    def published(self, summary: dict[str, Any]) -> None:
+        """Every hook's ``after_publish``: the finished stage's ``summary.json`` and report are written (a hook
+        written before this moment existed, without the method, is passed over)."""
+        for hook in self.hooks:
+            after = getattr(hook, "after_publish", None)
+            if after is not None:
+                after(self, summary)
+
     def emit(self, event: str) -> None:
         """Call ``event`` (``before_train``, ``before_step``, ``after_step``, ``after_train``) on every hook."""
         for hook in self.hooks:
@@ -84,6 +93,10 @@ class Hook:
 
     def after_train(self, loop: Loop) -> None:
         """Once, after the last step (also when a run stops early on request)."""
+
+    def after_publish(self, loop: Loop, summary: dict[str, Any]) -> None:
+        """Once, when a finished stage's ``summary.json`` and report (``report.md`` and its plots) are written, by
+        the main process (not after a run stopped early)."""
 
 
 class LogHook(Hook):

@@ -6,8 +6,10 @@ songw-zju/HASSC, ``utils/hvm_header.py`` and ``dense_heads/hassc_voxformer_head.
   from precomputed files it does not ship (``kitti_lga/…/lgas/*.npy``, values 0…6: its LGA metric's class names are
   '0' … '6'); here it is derived from the labels the stage trains on. Our choices: a neighbour outside the volume or
   with the ignore label does not count, an ignored voxel has LGA 0 (no loss reads it).
-* :func:`geometry_weighted_ce`: class-weighted CE per valid voxel times (1 + LGA), the mean over the valid voxels of
-  the batch (the release's ``loss_ssc``).
+* :func:`geometry_weighted_ce`: class-weighted CE per valid voxel times (1 + LGA), the mean over each sample's valid
+  voxels (the release's ``loss_ssc``), then over the samples: the release trains one sample per GPU
+  (``samples_per_gpu=1``) and DDP averages, so its value at B > 1 is the mean of per-sample values
+  (``reduce="pooled"``: the mean over the batch's valid voxels, its code run on a batch).
 * :func:`sample_hard_voxels` (global hardness): t·N uniform positions, the coarse prediction read there
   (trilinear), hardness 1 / (p₁ − p₂) of its two largest class probabilities, the ω·N hardest kept and N − ω·N
   uniform ones added. The release differs in two places, offered as options or stated: it ranks the two largest
@@ -16,7 +18,8 @@ songw-zju/HASSC, ``utils/hvm_header.py`` and ``dense_heads/hassc_voxformer_head.
   sample its own).
 * :func:`hard_voxel_ce`: CE at sampled positions times (α + β·LGA), summed over the valid ones and divided by the
   sum of the class weights of their labels (the release's ``loss_hard_voxel_mining``; its teacher branch indexes the
-  class weights by the LGA values instead of the labels — not copied).
+  class weights by the LGA values instead of the labels — not copied), per sample then the mean over the samples
+  (the release's one sample per GPU; ``reduce="pooled"``: the sums over the batch).
 
 Positions are (B, N, 3) in [0, 1)³ along the volume's (X, Y, Z) axes; :func:`voxel_sample` reads a (B, C, X, Y, Z)
 volume there as ``grid_sample`` does with ``align_corners=False`` (a position c lies at index c·size − ½), zeros
@@ -35,6 +38,7 @@ from torch import Tensor
 from distilkit.losses.ce import deterministic_form_needed, weighted_cross_entropy
 
 IGNORE = 255
+Reduce = Literal["per_sample", "pooled"]
 
 
 def local_geometric_anisotropy(labels: Tensor, ignore_index: int = IGNORE) -> Tensor:
@@ -54,19 +58,29 @@ def local_geometric_anisotropy(labels: Tensor, ignore_index: int = IGNORE) -> Te
     return out
 
 
+def _per_sample_or_pooled(num: Tensor, den: Tensor, reduce: str) -> Tensor:
+    """(B,) numerators and denominators: mean_b num_b / den_b (0 where den_b = 0; ``per_sample``) or
+    sum num / sum den (``pooled``; 0 where the sum is 0)."""
+    if reduce == "pooled":
+        num, den = num.sum().reshape(1), den.sum().reshape(1)
+    elif reduce != "per_sample":
+        raise ValueError(f"reduce must be per_sample or pooled, got {reduce!r}")
+    return torch.where(den > 0, num / torch.where(den > 0, den, torch.ones_like(den)), num * 0).mean()
+
+
 def geometry_weighted_ce(logits: Tensor, labels: Tensor, class_weights: Tensor | None, lga: Tensor,
-                         ignore_index: int = IGNORE) -> Tensor:
-    """mean over valid voxels of w_y · CE(z, y) · (1 + LGA) on (B, K, *S) logits, (B, *S) labels and LGA (0 when
-    no voxel is valid)."""
+                         ignore_index: int = IGNORE, reduce: Reduce = "per_sample") -> Tensor:
+    """w_y · CE(z, y) · (1 + LGA) on (B, K, *S) logits, (B, *S) labels and LGA, averaged over each sample's valid
+    voxels then over the samples (``per_sample``: the release, one sample per GPU) or over the batch's valid voxels
+    pooled (``pooled``); a sample (batch) without a valid voxel gives 0."""
     if labels.shape != logits.shape[:1] + logits.shape[2:] or lga.shape != labels.shape:
         raise ValueError(f"geometry_weighted_ce: logits {tuple(logits.shape)}, labels {tuple(labels.shape)} and LGA "
                          f"{tuple(lga.shape)} must be (B, K, *S), (B, *S) and (B, *S)")
     valid = labels != ignore_index
-    if not bool(valid.any()):
-        return logits.sum() * 0.0
     weight = class_weights.to(logits.dtype) if class_weights is not None else None
     ce = weighted_cross_entropy(logits, labels.long().masked_fill(~valid, 0), weight, reduction="none")
-    return (ce * (1.0 + lga.to(ce.dtype)))[valid].mean()
+    per_voxel = torch.where(valid, ce * (1.0 + lga.to(ce.dtype)), torch.zeros_like(ce)).flatten(1)
+    return _per_sample_or_pooled(per_voxel.sum(1), valid.flatten(1).sum(1).to(ce.dtype), reduce)
 
 
 def voxel_sample(volume: Tensor, coords: Tensor, mode: str = "bilinear", deterministic: bool | None = None) -> Tensor:
@@ -147,19 +161,19 @@ def sample_hard_voxels(coarse: Tensor, n: int = 4096, oversample: int = 3, omega
 
 
 def hard_voxel_ce(logits: Tensor, labels: Tensor, lga: Tensor, class_weights: Tensor, alpha: float = 0.2,
-                  beta: float = 1.0, ignore_index: int = IGNORE) -> Tensor:
+                  beta: float = 1.0, ignore_index: int = IGNORE, reduce: Reduce = "per_sample") -> Tensor:
     """Σ_valid CE(z_i, y_i)·(α + β·LGA_i) / Σ_valid w_{y_i} over (B, K, N) logits at sampled positions, their (B, N)
-    labels and LGA; 0 when none is valid."""
+    labels and LGA: per sample, then the mean over the samples (``per_sample``: the release, one sample per GPU), or
+    the sums over the batch pooled (``pooled``); 0 for a sample (batch) without a valid position."""
     if labels.shape != logits.shape[:1] + logits.shape[2:] or lga.shape != labels.shape:
         raise ValueError(f"hard_voxel_ce: logits {tuple(logits.shape)}, labels {tuple(labels.shape)} and LGA "
                          f"{tuple(lga.shape)} must be (B, K, N), (B, N) and (B, N)")
     valid = labels != ignore_index
-    if not bool(valid.any()):
-        return logits.sum() * 0.0
     target = labels.long().masked_fill(~valid, 0)
     ce = weighted_cross_entropy(logits, target, reduction="none")
-    num = (ce * (alpha + beta * lga.to(ce.dtype)))[valid].sum()
-    return num / class_weights.to(ce.dtype)[target[valid]].sum()
+    num = torch.where(valid, ce * (alpha + beta * lga.to(ce.dtype)), torch.zeros_like(ce)).sum(1)
+    den = torch.where(valid, class_weights.to(ce.dtype)[target], torch.zeros_like(ce)).sum(1)
+    return _per_sample_or_pooled(num, den, reduce)
 
 
 __all__ = ["geometry_weighted_ce", "hard_voxel_ce", "local_geometric_anisotropy", "sample_hard_voxels",

@@ -5,22 +5,29 @@ similarity numeric (FSD) and relational.
 * :func:`l2cocc_pad` — per sample, ``KLDivLoss(reduction="mean")`` of the student's log-softmax against the
   teacher's softmax over the voxels that are valid (label != 255) and non-empty (label != 0; ``include_empty``:
   valid only, the release's ``distill_kl_empty``): sum_{v, k} p_T (log p_T - log p_S) / (n_v K); averaged over the
-  batch (the release divides the sum over samples by the batch size). A sample without such voxels gives 0 (the
-  release's mean over nothing is NaN).
+  batch (the release divides the sum over samples by the batch size: the mean of per-sample values, as its one
+  sample per GPU under DDP). A sample without such voxels gives 0 (the release's mean over nothing is NaN).
 * :func:`l2cocc_fsd` — the mean over the masked positions of 1 - cos(f_S, f_T) (``F.cosine_similarity``, channels
-  the vector), over the whole batch; 0 without a masked position (the release: NaN).
+  the vector), per sample then over the batch (the release trains one sample per GPU: DDP averages the per-sample
+  values) or pooled over the batch (``reduce="pooled"``: the release's code run at B > 1); 0 without a masked
+  position (the release: NaN). Several maps: the mean over them (the release: the sum over its 20 maps divided by
+  their number, then x4).
 * :func:`l2cocc_relation` — per map, the P x P cosine-similarity matrices of the student with itself and of the
   teacher with itself (rows L2-normalised as ``F.normalize`` does: a zero row stays zero), their L1 distance averaged
-  over the B P^2 entries (``F.l1_loss``). Exact in row blocks with a hand-written backward: O(P^2 C) time, never a
-  P x P matrix (at a 128 x 128 plane, P^2 = 2.7e8 entries, 1 GiB in float32 per matrix). The diagonal is |1 - 1|
+  over the B P^2 entries (``F.l1_loss``; every sample has P^2 entries, so the pooled mean is the mean of the
+  per-sample means: the release's one sample per GPU gives the same value at B > 1). Exact in row blocks with a
+  hand-written backward: O(P^2 C) time, never a P x P matrix (at a 128 x 128 plane, P^2 = 2.7e8 entries, 1 GiB in
+  float32 per matrix). The diagonal is |1 - 1|
   = 0 for every non-zero row whatever the features: its gradient is 0 here, where autograd of the dense form takes
   the sign of a rounding residue.
 
-The release computes per-layer ratios for FSD and never uses them; its relation term reads the first neck output of
-each of the three TPV planes and sums the three; the recipe's objectives choose the maps.
+The release computes per-layer ratios for FSD (0.1, 1, 0.5, 1.5) and never uses them; its relation term reads the
+first neck output of each of the three TPV planes and sums the three; the recipe's objectives choose the maps.
 """
 
 from __future__ import annotations
+
+from typing import Literal, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -48,19 +55,45 @@ def l2cocc_pad(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, i
     return per_sample.mean()
 
 
-def l2cocc_fsd(student_features: Tensor, teacher_features: Tensor, mask: Tensor) -> Tensor:
-    """L2COcc's numeric feature similarity: mean over the positions where ``mask`` (B, *spatial) holds of
-    1 - cos(f_S, f_T) over the channels of (B, C, *spatial) features."""
+Reduce = Literal["per_sample", "pooled"]
+REDUCTIONS = ("per_sample", "pooled")
+
+
+def _fsd_map(student_features: Tensor, teacher_features: Tensor, mask: Tensor, reduce: str) -> Tensor:
+    """One map's 1 - cos over its masked positions: the mean of each sample's mean (``per_sample``) or the mean
+    over the batch's masked positions pooled (``pooled``); 0 for a sample (batch) without one."""
     if student_features.shape != teacher_features.shape or mask.shape != student_features.shape[:1] + \
             student_features.shape[2:]:
         raise ValueError(f"l2cocc_fsd: features {tuple(student_features.shape)} and {tuple(teacher_features.shape)} "
                          f"must match, the mask {tuple(mask.shape)} be (B, *spatial)")
-    keep = mask.flatten(1).reshape(-1).bool()
-    s = _voxels(student_features).reshape(-1, student_features.shape[1])[keep]
-    t = _voxels(teacher_features.to(student_features.dtype)).reshape(-1, student_features.shape[1])[keep]
-    if s.shape[0] == 0:
-        return student_features.sum() * 0
-    return (1 - F.cosine_similarity(s, t, dim=1)).mean()
+    keep = mask.flatten(1).bool()
+    distance = 1 - F.cosine_similarity(student_features, teacher_features.to(student_features.dtype), dim=1)
+    distance = torch.where(keep, distance.flatten(1), torch.zeros_like(distance.flatten(1)))
+    if reduce == "pooled":
+        sums, counts = distance.sum().reshape(1), keep.sum().reshape(1)
+    else:
+        sums, counts = distance.sum(1), keep.sum(1)
+    return torch.where(counts > 0, sums / counts.clamp_min(1), sums * 0).mean()
+
+
+def l2cocc_fsd(student_features: Tensor | Sequence[Tensor], teacher_features: Tensor | Sequence[Tensor],
+               mask: Tensor | Sequence[Tensor], reduce: Reduce = "per_sample") -> Tensor:
+    """L2COcc's numeric feature similarity: over the positions where ``mask`` (B, *spatial) holds, 1 - cos(f_S,
+    f_T) over the channels of (B, C, *spatial) features, averaged per sample then over the batch (``per_sample``:
+    the release, one sample per GPU) or over the batch's positions pooled (``pooled``: the release's code at B > 1
+    on one GPU). Sequences of maps (each pair of one shape, with its own mask): the mean over the maps — the
+    release sums over its maps and divides by their number before its weight 4."""
+    if reduce not in REDUCTIONS:
+        raise ValueError(f"l2cocc_fsd: reduce must be per_sample or pooled, got {reduce!r}")
+    if isinstance(student_features, Tensor):
+        if not isinstance(teacher_features, Tensor) or not isinstance(mask, Tensor):
+            raise ValueError("l2cocc_fsd: one student map needs one teacher map and one mask")
+        return _fsd_map(student_features, teacher_features, mask, reduce)
+    maps = list(zip(student_features, teacher_features, mask))
+    if not maps or not len(maps) == len(student_features) == len(teacher_features) == len(mask):
+        raise ValueError(f"l2cocc_fsd: needs as many teacher maps and masks as student maps, at least one (got "
+                         f"{len(student_features)}, {len(teacher_features)} and {len(mask)})")
+    return torch.stack([_fsd_map(s, t, m, reduce) for s, t, m in maps]).mean()
 
 
 class _RelationL1(torch.autograd.Function):
@@ -120,4 +153,4 @@ def l2cocc_relation(student_features: Tensor, teacher_features: Tensor) -> Tenso
     return _RelationL1.apply(a, b)
 
 
-__all__ = ["l2cocc_fsd", "l2cocc_pad", "l2cocc_relation"]
+__all__ = ["REDUCTIONS", "l2cocc_fsd", "l2cocc_pad", "l2cocc_relation"]

@@ -199,12 +199,17 @@ class _GeometryCEParams(_WeightedParams):
         "log_frequency", description="log_frequency: scale / ln(f_c + 0.001) from the training split's voxel counts "
                                      "(the release's table is this formula on SemanticKITTI's counts); release: that "
                                      "table itself (20 classes); none")
+    reduce: Literal["per_sample", "pooled"] = Field(
+        "per_sample", description="the mean over each sample's valid voxels, then over the samples (the release: one "
+                                  "sample per GPU, DDP averaging), or over the batch's valid voxels pooled (distilkit "
+                                  "before v2)")
 
 
 class GeometryWeightedCE(_ClassWeighted):
-    """HASSC's geometry-weighted CE: w_y · CE · (1 + LGA) per valid voxel, the mean over the batch's valid voxels, with
-    LGA (the count of face neighbours with another label, :func:`~distilkit.losses.hardness.local_geometric_anisotropy`)
-    derived from the labels the stage trains on."""
+    """HASSC's geometry-weighted CE: w_y · CE · (1 + LGA) per valid voxel, the mean over each sample's valid voxels,
+    then over the samples (``reduce``: the release's one sample per GPU; ``pooled``: over the batch's valid voxels),
+    with LGA (the count of face neighbours with another label,
+    :func:`~distilkit.losses.hardness.local_geometric_anisotropy`) derived from the labels the stage trains on."""
 
     CHOICES = (
         Choice("LGA", "derived from the training labels per batch: face neighbours (6) with another label; outside "
@@ -213,9 +218,13 @@ class GeometryWeightedCE(_ClassWeighted):
         Choice("class weights", "10 / ln(f_c + 0.001) from the training split's counts",
                "class-weighted CE", "a table of 20 numbers: the same formula on SemanticKITTI's counts",
                "`class_weights: release`"),
+        Choice("the batch reduction", "the mean of per-sample means (a sample without a valid voxel: 0)",
+               "not stated", "one sample per GPU (samples_per_gpu=1), DDP averaging: the mean of per-sample means "
+               "(each its valid voxels' mean)", "`reduce: pooled` (the batch's valid voxels pooled)"),
     )
     Params = _GeometryCEParams
     BATCH = {"target": "voxel_target"}
+    VERSION = 2  # 2: per-sample means by default (was: the batch's valid voxels pooled)
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.losses.hardness import geometry_weighted_ce, local_geometric_anisotropy
@@ -223,7 +232,7 @@ class GeometryWeightedCE(_ClassWeighted):
         target = taps["target"]
         weight = self.weight if self.params.class_weights != "none" else None
         lga = local_geometric_anisotropy(target, self.ignore_index)
-        return geometry_weighted_ce(taps["student"], target, weight, lga, self.ignore_index)
+        return geometry_weighted_ce(taps["student"], target, weight, lga, self.ignore_index, self.params.reduce)
 
 
 class _VoxelLoss(TaskLoss):
@@ -264,7 +273,7 @@ TASK_LOSSES.add("weighted_ce", WeightedCE, description="class-weighted voxel CE,
                 paper="VoxFormer (Li et al. CVPR 2023); MonoScene (Cao & de Charette CVPR 2022)",
                 consumes=("voxel_logits",))
 TASK_LOSSES.add("hassc_ce", GeometryWeightedCE, description="class-weighted voxel CE × (1 + local geometric "
-                "anisotropy), the mean over valid voxels", paper="HASSC (Wang et al. CVPR 2024), eq. of L_ssc with LGA; "
+                "anisotropy), the mean over each sample's valid voxels, then over the samples", paper="HASSC (Wang et al. CVPR 2024), eq. of L_ssc with LGA; "
                 "dense_heads/hassc_voxformer_head.py", consumes=("voxel_logits",))
 TASK_LOSSES.add("partial_ce", PartialCE, description="CE over the voxels a scribble labels with a class",
                 paper="Scribble2Scene (Wang et al. IJCAI 2024), Dean-Labeler", consumes=("voxel_logits",))

@@ -1,6 +1,6 @@
 """HASSC's objectives (Wang et al., CVPR 2024; release songw-zju/HASSC): the self-distillation KD
-(``utils/ssc_loss.py``: per-voxel KL over the valid voxels, times exp(the teacher's batch mIoU)) and the hard voxel
-mining with its small head (``utils/hvm_header.py``). HASSC's teacher is the student's own moving average
+(``utils/ssc_loss.py``: per-voxel KL over the valid voxels, times exp(the teacher's mIoU on the sample)) and the hard
+voxel mining with its small head (``utils/hvm_header.py``). HASSC's teacher is the student's own moving average
 (``teacher: {ema: true}``); its geometry-weighted CE is the task loss ``hassc_ce``."""
 
 from __future__ import annotations
@@ -22,34 +22,55 @@ from distilkit.objectives.common import release_labels
 class HASSCKDParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     temperature: float = Field(1.0, gt=0)
-    dynamic_weight: bool = Field(True, description="times exp(mIoU of the teacher's argmax on the batch), the "
-                                                   "release's weight; false: the KL term alone")
+    dynamic_weight: bool = Field(True, description="times exp(mIoU of the teacher's argmax), the release's weight; "
+                                                   "false: the KL term alone")
+    classes: Literal["non_empty", "all"] = Field(
+        "non_empty", description="the classes the dynamic weight's mIoU averages: 1..K-1, empty left out (the "
+                                 "release's iou[1:]), or all K")
+    per: Literal["sample", "batch"] = Field(
+        "sample", description="the dynamic weight per sample, each sample's KL times exp(its own mIoU) (the release: "
+                              "one sample per GPU), or one weight from the batch's voxels pooled")
 
 
 class HASSCKD(MultiTapObjective):
-    """HASSC's KD: T^2 KL(p_T || p_S) per valid voxel, the mean per sample, then over the batch, times exp(the
-    teacher's mIoU on the batch) (the release's dynamic weight, absent classes counted as 0); weight 48 as the
-    release. HASSC's teacher is the student's own EMA; any teacher edge serves."""
+    """HASSC's KD: T^2 KL(p_T || p_S) per valid voxel, the mean per sample, times exp(the teacher's mIoU over
+    classes 1..K-1 on that sample), then the mean over the samples (the release, one sample per GPU, DDP averaging
+    the gradients; ``per: batch``: one weight from the batch pooled); weight 48 as the release. Reduction: the mean
+    of per-sample values, as the release at B > 1. HASSC's teacher is the student's own EMA; any teacher edge
+    serves."""
 
-    CHOICES = (Choice("the batch reduction", "the mean over samples", "not stated", "the sum of per-sample means "
-                      "(the same at its batch size of 1)"),
-               Choice("the dynamic weight's mIoU", "classes absent from the batch count as IoU 0, as the release",
-                      "the teacher's mIoU", "computed over all classes, absent ones 0", "`dynamic_weight: false`"))
+    CHOICES = (Choice("the batch reduction", "the mean of per-sample values (each sample's mean over its valid "
+                      "voxels)", "not stated", "one sample per GPU (samples_per_gpu=1), DDP averaging: the mean of "
+                      "per-sample values; its distill_ssc_loss sums the per-sample means (the same at one sample)"),
+               Choice("the dynamic weight's mIoU: classes", "classes 1..K-1 (empty left out), a class absent from "
+                      "prediction and label IoU 0 (TP / (TP + FP + FN + 1e-5)), as the release",
+                      "the teacher's mIoU", "dense_heads/hassc_voxformer_head.py: teacher_ssc_iou[1:].mean(), "
+                      "ssc_metric_torch.py's IoU with + 1e-5 (an absent class: 0)", "`classes: all` (all K classes; "
+                      "distilkit before v2)"),
+               Choice("the dynamic weight's mIoU: over what", "each sample's own mIoU weighs its own KL",
+                      "the teacher's mIoU", "one sample per GPU: exp(that sample's mIoU) on that GPU",
+                      "`per: batch` (one mIoU from the batch's voxels pooled; distilkit before v2)"),
+               Choice("the teacher's mode", "eval", "a mean teacher (the release calls teacher.eval())",
+                      "train: mmcv's runner calls model.train() on the detector holding it "
+                      "(detectors/hassc_voxformer.py)", "`teacher: {mode: train}` (or `ema: {mode: train}`)"))
     Params = HASSCKDParams
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 48.0
+    VERSION = 2  # 2: the dynamic weight per sample over classes 1..K-1 (was: the batch pooled, all K classes)
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         labels = release_labels(taps["target"], self.ignore_index)
         teacher = taps["teacher"].detach()
-        miou = teacher_batch_miou(teacher, labels) if self.params.dynamic_weight else None
-        return hassc_kd(taps["student"], teacher, labels, self.params.temperature, miou)
+        p = self.params
+        miou = teacher_batch_miou(teacher, labels, classes=p.classes, per=p.per) if p.dynamic_weight else None
+        return hassc_kd(taps["student"], teacher, labels, p.temperature, miou)
 
 
 register_objective("hassc_kd", HASSCKD, description="HASSC's KD: per-voxel KL over valid voxels × exp(teacher "
-                   "mIoU)", paper="HASSC (Wang et al., CVPR 2024), utils/ssc_loss.py",
-                   equation="exp(mIoU_T) · mean_b mean_{v valid} T² KL(softmax(t_v/T) ‖ softmax(s_v/T))",
+                   "mIoU), per sample", paper="HASSC (Wang et al., CVPR 2024), utils/ssc_loss.py",
+                   equation="mean_b exp(mIoU_T,b) · mean_{v valid in b} T² KL(softmax(t_v/T) ‖ softmax(s_v/T)); "
+                            "mIoU over classes 1..K-1",
                    shapes="(B, K, X, Y, Z) logits, student and teacher")
 
 
@@ -68,6 +89,10 @@ class HardVoxelParams(BaseModel):
     class_weights: Literal["log_frequency", "release"] = Field(
         "log_frequency", description="the normaliser's class weights: 10 / ln(f_c + 0.001) from the training split, "
                                      "or the release's SemanticKITTI table (20 classes)")
+    reduce: Literal["per_sample", "pooled"] = Field(
+        "per_sample", description="each branch's normalised sum per sample, then the mean over the samples (the "
+                                  "release: one sample per GPU, DDP averaging), or the sums over the batch pooled "
+                                  "(distilkit before v2)")
 
 
 class HASSCHardVoxels(MultiTapObjective):
@@ -79,7 +104,8 @@ class HASSCHardVoxels(MultiTapObjective):
     (α + β·LGA) normalised by the class weights of the sampled labels. Teacher branch (weight δ): the same CE on the
     student's prediction (nearest) at the positions the teacher's prediction finds hard. Random draws: the student
     branch's t·N then N − ω·N positions, then the teacher's, from the device's default generator (part of a
-    checkpoint, so a resumed run draws the same)."""
+    checkpoint, so a resumed run draws the same). Reduction (``reduce``): each branch's ratio per sample, then the
+    mean over the samples (the release's one sample per GPU); ``pooled``: the sums over the batch."""
 
     CHOICES = (
         Choice("hardness", "1/(p1 − p2) of the two largest probabilities of the interpolated prediction",
@@ -94,11 +120,15 @@ class HASSCHardVoxels(MultiTapObjective):
                "to the final logits", "`taps: {student: ..., teacher: ...}`"),
         Choice("LGA", "derived from the labels per batch (6 face neighbours with another label)",
                "local geometric anisotropy", "precomputed files (values 0-6), truncated to integers when sampled", ""),
+        Choice("the batch reduction", "the mean over the samples of each sample's Σ CE (α + β·LGA) / Σ w_y",
+               "not stated", "one sample per GPU (samples_per_gpu=1), DDP averaging: the mean of per-sample ratios",
+               "`reduce: pooled` (Σ over the batch / Σ over the batch)"),
     )
     Params = HardVoxelParams
     CONSUMES = {"student": "voxel_logits", "features": "volume_features", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 1.0
+    VERSION = 2  # 2: per-sample ratios by default (was: the batch's sums pooled)
 
     def __init__(self, params: HardVoxelParams) -> None:
         super().__init__(params)
@@ -134,19 +164,20 @@ class HASSCHardVoxels(MultiTapObjective):
         coords = sample_hard_voxels(logits.detach(), p.points, p.oversample, p.omega, p.rank)
         at = torch.cat([voxel_sample(logits, coords), voxel_sample(feats.to(logits.dtype), coords)], 1)
         truth = voxel_sample(volume, coords, "nearest")
-        loss = hard_voxel_ce(self.head(at), truth[:, 0].long(), truth[:, 1], weights, p.alpha, p.beta)
+        loss = hard_voxel_ce(self.head(at), truth[:, 0].long(), truth[:, 1], weights, p.alpha, p.beta,
+                             reduce=p.reduce)
         if p.delta > 0:
             coords = sample_hard_voxels(teacher, p.points, p.oversample, p.omega, p.rank)
             truth = voxel_sample(volume, coords, "nearest")
             student_at = voxel_sample(logits, coords, "nearest")
             loss = loss + p.delta * hard_voxel_ce(student_at, truth[:, 0].long(), truth[:, 1], weights, p.alpha,
-                                                  p.beta)
+                                                  p.beta, reduce=p.reduce)
         return loss
 
 
 register_objective("hassc_hvm", HASSCHardVoxels, description="HASSC's hard voxel mining: a 1×1 head at the hardest "
                    "positions (CE × (α + β·LGA)) + δ × the student's CE at the teacher's hard positions",
                    paper="HASSC (Wang et al., CVPR 2024), utils/hvm_header.py",
-                   equation="Σ_i CE(h([z_i, f_i]), y_i)(α + β·LGA_i) / Σ_i w_{y_i} + δ Σ_j CE(z_j, y_j)(α + β·LGA_j) / "
-                            "Σ_j w_{y_j}; i: the student's hard positions, j: the teacher's",
+                   equation="mean_b [Σ_i CE(h([z_i, f_i]), y_i)(α + β·LGA_i) / Σ_i w_{y_i} + δ Σ_j CE(z_j, y_j)"
+                            "(α + β·LGA_j) / Σ_j w_{y_j}]; i: the student's hard positions in b, j: the teacher's",
                    shapes="(B, K, X, Y, Z) logits, (B, C, X', Y', Z') voxel features", function="hard_voxel_ce")

@@ -4,7 +4,7 @@ alignment (``l2cocc_pad``), numeric feature similarity (``l2cocc_fsd``) and rela
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
@@ -17,6 +17,10 @@ from distilkit.objectives.common import occupied_at, release_labels
 
 _EMPTY_NAN = Choice("a sample (or map) with nothing to align", "0", "not stated",
                     "NaN (KLDivLoss and .mean() over no element)")
+_TEACHER_MODE = Choice("the frozen teacher's mode", "eval (`teacher: {mode: eval}`)", "not stated",
+                       "train: the teacher is set to eval once, then PyTorch Lightning's .train() on the module "
+                       "holding it switches it back (batch statistics, its Swin's drop-path 0.2 on; "
+                       "tools/pl_model.py, CameraSegmentor.py)", "`teacher: {mode: train}` (recipes/sweeps/l2cocc.yaml)")
 
 
 class PADParams(BaseModel):
@@ -27,9 +31,13 @@ class PADParams(BaseModel):
 class PAD(MultiTapObjective):
     """L2COcc's prediction alignment: per sample the mean over valid non-empty voxels and classes of
     KL(p_T || p_S) (the release's ``KLDivLoss(reduction="mean")``), averaged over the batch; weight 70 as its
-    configs."""
+    configs. Reduction: the mean of per-sample values, as the release at any batch size (its code divides the sum
+    over samples by B; one sample per GPU under DDP gives the same)."""
 
-    CHOICES = (_EMPTY_NAN,)
+    CHOICES = (_EMPTY_NAN,
+               Choice("the batch reduction", "the mean of per-sample values", "not stated",
+                      "the sum over the samples / B (and one sample per GPU, DDP averaging): the same", ""),
+               _TEACHER_MODE)
     Params = PADParams
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}
@@ -44,36 +52,78 @@ class NoParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+MAX_MAPS = 4  # map pairs one FSD term reads: student/teacher, student_2/teacher_2, ...
+_EXTRA = [(f"student_{i}", f"teacher_{i}") for i in range(2, MAX_MAPS + 1)]
+
+
+class FSDParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    reduce: Literal["per_sample", "pooled"] = Field(
+        "per_sample", description="each sample's mean over its positions, then the mean over the samples (the "
+                                  "release: one sample per GPU, DDP averaging), or the mean over the batch's "
+                                  "positions pooled (the release's code at B > 1 on one GPU; distilkit before v2)")
+
+
 class FSD(MultiTapObjective):
     """L2COcc's numeric feature similarity: the mean of 1 - cos(f_S, f_T) over the feature map's positions whose
-    block of the label grid holds an occupied voxel; weight 4 as its configs (it computes per-layer ratios and never
-    uses them). Student and teacher maps of one shape and width (a ``connector`` where the widths differ)."""
+    block of the label grid holds an occupied voxel, per sample then over the batch (``reduce``); with several map
+    pairs (``taps: {student, teacher, student_2, teacher_2, ...}``, up to 4) the mean over the maps before the
+    weight, as the release (the sum over its 20 maps / 20, x4); weight 4 as its configs (it computes per-layer
+    ratios and never uses them). Each pair of one shape and width (a ``connector`` projects the first student map
+    only). More than 4 maps: several terms, each weighted 4 m / M for its m of the M maps."""
 
-    CHOICES = (_EMPTY_NAN, Choice("per-layer ratios", "none (one map per term; add a term per map)", "not stated",
-                                  "computed (0.1, 1, 0.5, 1.5) and never applied"))
-    Params = NoParams
-    CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
+    CHOICES = (_EMPTY_NAN,
+               Choice("per-layer ratios", "none: the mean over the term's maps", "not stated",
+                      "computed (0.1, 1, 0.5, 1.5) and never applied: the sum over its maps / their number"),
+               Choice("several maps", "the pairs of one term averaged before the weight 4 (the release's form)",
+                      "not stated", "CameraSegmentor.py: 20 maps summed, / 20, x4 (0.2 per map); one term per map "
+                      "at x4 gives M times the release", "`taps: {student_2: ..., teacher_2: ...}` (up to 4 pairs)"),
+               Choice("the batch reduction", "the mean of per-sample values", "not stated",
+                      "one sample per GPU (batch_size=1), DDP averaging: the mean of per-sample values; its code "
+                      "pools the masked positions of a batch", "`reduce: pooled`"))
+    Params = FSDParams
+    CONSUMES = {"student": "feature_map", "teacher": "feature_map",
+                **{role: "feature_map" for pair in _EXTRA for role in pair}}
+    TEACHER_ROLES = frozenset({"teacher", *(t for _, t in _EXTRA)})
+    OPTIONAL = frozenset(role for pair in _EXTRA for role in pair)
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 4.0
+    VERSION = 2  # 2: per-sample reduction by default, several map pairs averaged (was: pooled over the batch)
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
-        s, t = taps["student"], taps["teacher"]
-        if s.shape != t.shape:
-            from distilkit.errors import TapError
+        from distilkit.errors import TapError
 
-            raise TapError(f"l2cocc_fsd: student map {tuple(s.shape)} and teacher map {tuple(t.shape)} differ "
-                           "(give the term a connector, or taps of one shape)")
-        mask = occupied_at(release_labels(taps["target"], self.ignore_index), tuple(s.shape[2:]))
-        return l2cocc_fsd(s, t.detach(), mask)
+        pairs = [("student", "teacher")]
+        for s_role, t_role in _EXTRA:
+            if (s_role in taps) != (t_role in taps):
+                raise TapError(f"l2cocc_fsd: {s_role if s_role in taps else t_role} is given without "
+                               f"{t_role if s_role in taps else s_role} (name both taps of a pair)")
+            if s_role in taps:
+                pairs.append((s_role, t_role))
+        labels = release_labels(taps["target"], self.ignore_index)
+        students, teachers, masks = [], [], []
+        for s_role, t_role in pairs:
+            s, t = taps[s_role], taps[t_role]
+            if s.shape != t.shape:
+                raise TapError(f"l2cocc_fsd: {s_role} map {tuple(s.shape)} and {t_role} map {tuple(t.shape)} differ "
+                               "(give the term a connector, or taps of one shape)")
+            students.append(s)
+            teachers.append(t.detach())
+            masks.append(occupied_at(labels, tuple(s.shape[2:])))
+        return l2cocc_fsd(students, teachers, masks, self.params.reduce)
 
 
 class Relation(MultiTapObjective):
     """L2COcc's relational feature similarity: the mean L1 distance between the student's and the teacher's P x P
     cosine matrices among the map's positions (computed in row blocks: O(P^2 C) time, no P x P matrix); weight 5
-    as its configs (the release sums it over the three TPV planes' first neck maps: one term per map here)."""
+    as its configs (the release sums it over the three TPV planes' first neck maps: one term per map here, each at
+    x5, is the release's sum). Reduction: the mean over the B P^2 entries, which is the mean of per-sample values
+    (every sample has P^2), as the release's one sample per GPU."""
 
     CHOICES = (Choice("which maps", "the recipe's feature-map taps (one term each)", "the TPV planes' features",
-                      "the first neck output of each TPV plane, summed", ""),)
+                      "the first neck output of each TPV plane, summed", ""),
+               Choice("the batch reduction", "the mean over the B P^2 entries (= the mean of per-sample values)",
+                      "not stated", "F.l1_loss over (B, P, P), one sample per GPU (DDP averaging): the same", ""))
     Params = NoParams
     CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
     DEFAULT_WEIGHT = 5.0
@@ -87,9 +137,10 @@ register_objective("l2cocc_pad", PAD, description="L2COcc's prediction alignment
                    equation="mean_b 1/(n_b K) Σ_{v valid, non-empty} Σ_k p_T (log p_T − log p_S)",
                    shapes="(B, K, X, Y, Z) logits, student and teacher")
 register_objective("l2cocc_fsd", FSD, description="L2COcc's numeric feature similarity: 1 − cos over occupied "
-                   "positions", paper="L2COcc (Wang et al., IROS 2025), CameraSegmentor.py",
-                   equation="mean_{p occupied} (1 − cos(f_S,p, f_T,p))",
-                   shapes="(B, C, X, Y[, Z]) maps of one shape; labels pooled to the map")
+                   "positions, per sample, averaged over the term's maps", paper="L2COcc (Wang et al., IROS 2025), "
+                   "CameraSegmentor.py", equation="mean_m mean_b mean_{p occupied in b} (1 − cos(f_S,p, f_T,p)); "
+                   "m: the term's map pairs", shapes="(B, C, X, Y[, Z]) maps, each pair of one shape; labels pooled "
+                   "to each map")
 register_objective("l2cocc_relation", Relation, description="L2COcc's relational similarity: L1 between P×P "
                    "cosine matrices, in row blocks", paper="L2COcc (Wang et al., IROS 2025), CameraSegmentor.py",
                    equation="mean_{b,i,j} |cos_S(i,j) − cos_T(i,j)|",

@@ -69,6 +69,13 @@ class TeacherSpec(_Strict):
     which: Literal["best", "last"] = Field("best", description="checkpoint of the upstream stage to use")
     ema: EmaSpec | None = Field(None, description="the student's exponential moving average is the teacher (HASSC): "
                                                   "`ema: true` or its settings")
+    mode: Literal["eval", "train"] = Field(
+        "eval", description="the frozen teacher's module mode (no gradients either way): eval (default: BatchNorm's "
+                            "running statistics, no dropout); train: batch statistics, dropout and drop-path on, and "
+                            "BatchNorm's running statistics updated by every teacher forward as PyTorch does under "
+                            "no_grad (kept in last.pt, so a resumed run goes on with them) — what the L2COcc and "
+                            "HASSC releases do (their frameworks call .train() on the module holding the teacher). "
+                            "With `ema`, the same as `ema.mode`")
     taps: dict[str, HookTapSpec] = Field(default_factory=dict,
                                          description="extra teacher taps recorded from submodules by forward hooks")
 
@@ -92,6 +99,10 @@ class TeacherSpec(_Strict):
             raise ValueError("a `checkpoint` teacher needs `model` (adapter and params)")
         if self.ema is not None and self.model is not None:
             raise ValueError("an `ema` teacher is the student's own model: leave out `model`")
+        if self.ema is not None:  # one mode, either spelling: `mode` and `ema.mode` agree (and hash alike)
+            if "mode" in self.model_fields_set and "mode" in self.ema.model_fields_set and self.mode != self.ema.mode:
+                raise ValueError(f"`mode: {self.mode}` and `ema.mode: {self.ema.mode}` disagree: give one")
+            self.mode = self.ema.mode = self.mode if "mode" in self.model_fields_set else self.ema.mode
         return self
 
 
@@ -310,6 +321,25 @@ class Recipe(_Strict):
     data: DataSpec = Field(default_factory=DataSpec)
     stages: dict[str, StageSpec] = Field(..., min_length=1)
     report: ReportSpec = Field(default_factory=ReportSpec)
+    trackers: list[str | dict[str, dict[str, Any] | None]] = Field(
+        default_factory=list, description="experiment trackers every stage logs to (registered hooks: tensorboard, "
+                                          "wandb, mlflow, trackio, or a plugin's), each a name or {NAME: {param: "
+                                          "value}}, e.g. [tensorboard, {wandb: {project: kd, mode: offline}}]; on the "
+                                          "command line --set 'trackers=[mlflow]'. Not part of any stage's identity")
+
+    @field_validator("trackers")
+    @classmethod
+    def _trackers(cls, v: list[Any]) -> list[Any]:
+        for i, item in enumerate(v):
+            if isinstance(item, dict) and len(item) != 1:
+                raise ValueError(f"trackers[{i}]: give one tracker per entry, as NAME or {{NAME: {{params}}}}, got "
+                                 f"{len(item)} names ({', '.join(map(str, item)) or 'none'})")
+        return v
+
+    def tracker_specs(self) -> list[tuple[str, dict[str, Any]]]:
+        """``trackers`` as (name, params) pairs."""
+        pairs = [(item, None) if isinstance(item, str) else next(iter(item.items())) for item in self.trackers]
+        return [(name, params or {}) for name, params in pairs]
 
     @field_validator("stages")
     @classmethod

@@ -25,6 +25,7 @@ from distilkit.engine.train.cpus import usable_cpus
 from distilkit.files import atomic_write_text
 from distilkit.engine.train.pipeline import Pipeline
 from distilkit.engine.train.stage import read_summary
+from distilkit.engine.train.trackers.base import in_sweep, sweep_env
 from distilkit.errors import DistilkitError, RecipeError
 from distilkit.sweep.results import RunRecord, write_results
 from distilkit.sweep.spec import Sweep, load_sweep
@@ -144,7 +145,8 @@ class SweepRun:
             if not self.quiet:
                 self.console.rule(f"[{i}/{len(todo)}] {task.title}")
             try:
-                self.pipes[task.variant, task.seed].run(only=list(task.stages), report=False)
+                with in_sweep(self.sweep.name, list(self.sweep.recipes)):  # for the runs' trackers
+                    self.pipes[task.variant, task.seed].run(only=list(task.stages), report=False)
             except DistilkitError as exc:  # one run's failure (a NaN loss) must not stop the others
                 failures.append(f"{task.title}: {exc}")
                 self.console.print(f"[red]failed:[/] {task.title}: {exc}")
@@ -160,7 +162,8 @@ class SweepRun:
         from distilkit.engine.train.stop import PARENT_ENV
 
         env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
-               PARENT_ENV: str(os.getpid())}  # a run stops (checkpoint written) if this process dies
+               PARENT_ENV: str(os.getpid()),  # a run stops (checkpoint written) if this process dies
+               **sweep_env(self.sweep.name, list(self.sweep.recipes))}  # its trackers group it by the sweep
         logs = self.root / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         failures: list[str] = []
@@ -359,7 +362,8 @@ def _on_slurm(sweep: SweepRun, path: str | Path, launcher: str, cluster: dict[st
         from distilkit.sweep.slurm import Resources, parse_slurm_options
 
         res = Resources.merge(sweep.sweep.spec.launcher, {**cluster, "extra": parse_slurm_options(cluster.get("extra"))})
-        submitted = slurm.submit(sweep, res)
+        with in_sweep(sweep.sweep.name, list(sweep.sweep.recipes)):  # sbatch exports it to the jobs' trackers
+            submitted = slurm.submit(sweep, res)
         total = len(sweep.variant_tasks())
         console.print(f"sweep [bold]{sweep.sweep.name}[/]: {len(submitted)} job(s) queued on Slurm for "
                       f"{total} runs ({res.cpus} CPUs, {res.gpus} GPUs, {res.time} min each); records in "

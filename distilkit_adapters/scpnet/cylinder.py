@@ -146,14 +146,16 @@ class Asymm3dSpconv(nn.Module):
     """``cylinder_3d_spconv_seg``: the completion sub-network (dense, as released) and the asymmetric U-Net."""
 
     def __init__(self, num_input_features: int = 32, init_size: int = 32, nclasses: int = 20,
-                 semantics: Semantics = "spconv1") -> None:
+                 semantics: Semantics = "spconv1", completion: bool = True) -> None:
+        """``completion=False``: Cylinder3D's U-Net alone (no completion sub-network; the Dean-Labeler's)."""
         super().__init__()
         c, sem = init_size, semantics
-        self.a_conv1, self.a_conv2 = _dense(c, c, 3), _dense(c, c, 3)
-        self.a_conv3, self.a_conv4 = _dense(c, c, 5), _dense(c, c, 7)
-        self.a_conv5, self.a_conv6, self.a_conv7 = _dense(3 * c, c, 3), _dense(3 * c, c, 5), _dense(3 * c, c, 7)
-        self.ch_conv1 = _dense(7 * c, c, 1)
-        self.res_1, self.res_2, self.res_3 = _dense(c, c, 3), _dense(c, c, 5), _dense(c, c, 7)
+        if completion:
+            self.a_conv1, self.a_conv2 = _dense(c, c, 3), _dense(c, c, 3)
+            self.a_conv3, self.a_conv4 = _dense(c, c, 5), _dense(c, c, 7)
+            self.a_conv5, self.a_conv6, self.a_conv7 = _dense(3 * c, c, 3), _dense(3 * c, c, 5), _dense(3 * c, c, 7)
+            self.ch_conv1 = _dense(7 * c, c, 1)
+            self.res_1, self.res_2, self.res_3 = _dense(c, c, 3), _dense(c, c, 5), _dense(c, c, 7)
         self.downCntx = ResContextBlock(num_input_features, c, "pre", sem)
         self.resBlock2 = ResBlock(c, 2 * c, "down2", True, sem)
         self.resBlock3 = ResBlock(2 * c, 4 * c, "down3", True, sem)
@@ -176,6 +178,10 @@ class Asymm3dSpconv(nn.Module):
         return dense + y0 + self.res_1(dense) + self.res_2(dense) + self.res_3(dense)
 
     def segment(self, x: SparseConvTensor) -> SparseConvTensor:
+        return self.logits(self.segment_features(x))
+
+    def segment_features(self, x: SparseConvTensor) -> SparseConvTensor:
+        """The U-Net's last features, [ReconNet, upBlock3] (4 x init_size channels), which ``logits`` reads."""
         x = self.downCntx(x)
         down1c, down1b = self.resBlock2(x)
         down2c, down2b = self.resBlock3(down1c)
@@ -186,7 +192,7 @@ class Asymm3dSpconv(nn.Module):
         up2e = self.upBlock2(up3e, down2b)
         up1e = self.upBlock3(up2e, down1b)
         up0e = self.ReconNet(up1e)
-        return self.logits(up0e.replace_feature(torch.cat((up0e.features, up1e.features), 1)))
+        return up0e.replace_feature(torch.cat((up0e.features, up1e.features), 1))
 
 
 class CylinderFea(nn.Module):

@@ -66,22 +66,35 @@ def extra_metrics(names: list[str], model: ResolvedModel, info: Any, path: str,
     return out
 
 
-def resolve_hooks(specs: list[Any], path: str, problems: list[tuple[str, str]]) -> list[ResolvedHook]:
-    """``train.hooks``: registered hooks with their parameters, and whatever each needs installed."""
+def resolve_hooks(specs: list[Any], path: str, problems: list[tuple[str, str]],
+                  where: str | None = None) -> list[ResolvedHook]:
+    """``train.hooks`` (or the recipe's ``trackers``, ``where``): registered hooks with their parameters, and
+    whatever each needs installed."""
     out = []
+    where = where or f"{path}.train.hooks"
     for i, spec in enumerate(specs):
-        entry = lookup(HOOKS, spec.name, f"{path}.train.hooks[{i}].name", problems)
+        entry = lookup(HOOKS, spec.name, f"{where}[{i}].name", problems)
         if entry is None:
             continue
         from distilkit.registry import NoParams
 
-        params = validate_params(entry.meta.get("params", NoParams), spec.params, f"{path}.train.hooks[{i}].params", problems)
+        params = validate_params(entry.meta.get("params", NoParams), spec.params, f"{where}[{i}].params", problems)
         missing = entry.meta.get("check", lambda: None)()
         if missing:
-            problems.append((f"{path}.train.hooks[{i}]", missing))
+            problems.append((f"{where}[{i}]", missing))
         if params is not None:
             out.append(ResolvedHook(entry.name, params))
     return out
+
+
+def resolve_trackers(recipe: Recipe, problems: list[tuple[str, str]]) -> list[ResolvedHook]:
+    """The recipe's ``trackers``: registered hooks (``tensorboard``, ``wandb``, ``mlflow``, ``trackio``, a
+    plugin's) that every stage runs after its own ``train.hooks``; a tracker's missing library is a problem that
+    names its ``pip install`` line."""
+    from distilkit.recipe.schema import HookSpec
+
+    specs = [HookSpec(name=name, params=params) for name, params in recipe.tracker_specs()]
+    return resolve_hooks(specs, "", problems, where="trackers")
 
 
 def resolve_aux(spec: Any, stages: dict[str, ResolvedStage], path: str,
@@ -151,6 +164,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
     data_params = validate_params(ds.meta["params"], recipe.data.params, "data.params", problems) if ds else None
     info = ds.meta["info"](data_params) if data_params is not None else None
     stages: dict[str, ResolvedStage] = {}
+    trackers = resolve_trackers(recipe, problems)
     for name in order:
         spec = recipe.stages[name]
         path = f"stages.{name}"
@@ -201,6 +215,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
             else None
         extras = extra_metrics(spec.train.metrics, student, info, path, problems) if student is not None else []
         hooks = resolve_hooks(spec.train.hooks, path, problems)
+        hooks += [t for t in trackers if t.name not in {h.name for h in hooks}]  # a stage's own settings win
         if info is not None:
             # a teacher stage was checked as a student, an EMA teacher is the student
             own_teacher = teacher if teacher_from is None and (spec.teacher is None or spec.teacher.ema is None) else None

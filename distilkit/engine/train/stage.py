@@ -35,7 +35,7 @@ from distilkit.engine.store.checkpoints import Checkpoints
 from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop, ProgressHook
 from distilkit.engine.train.randomness import seed_everything
 from distilkit.files import atomic_write_json, atomic_write_text
-from distilkit.repro import mkl_cbwr, processor
+from distilkit.repro import mkl_cbwr, processor, vector_math_warmed
 from distilkit.engine.train.loader import BatchPlan, eval_batches, resolve_workers, train_batches
 from distilkit.engine.assemble.runs import load_run
 from distilkit.engine.train.auxiliary import with_aux_inputs
@@ -412,6 +412,7 @@ class StageRun:
             "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": self.seed,
             "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them
             "deterministic": torch.are_deterministic_algorithms_enabled(), "cpu": processor(), "mkl_cbwr": mkl_cbwr(),
+            "vector_math_warmed": vector_math_warmed(),  # MKL VML's first calls made in one thread (repro)
             "classes": {"names": list(self.info.classes.names),
                         "colours": [list(c) for c in self.info.classes.colours]},
             "steps": loop.step, "train_seconds": round(loop.seconds, 2),
@@ -439,6 +440,7 @@ class StageRun:
             write_run_report(self.run_dir)
         except Exception as exc:  # a plotting problem must not lose a finished stage
             p.console.print(f"[yellow]{self.run_dir / 'report.md'} not written: {exc}[/]")
+        loop.published(summary)  # the trackers: the report, its plots and the final scores
         return StageResult(self.name, self.run_dir, summary, reused=False)
 
 

@@ -1,22 +1,22 @@
-"""The TensorBoard logger, a registered lifecycle hook (``train.hooks: [{name: tensorboard}]``), as the field's
-trainers offer beside their own logs: every logged training value (each weighted term, the total loss, the learning
-rate) and every scalar validation score, by step, into ``<run>/tensorboard/``. Needs the optional extra
-(``pip install "distilkit[tensorboard]"``); ``validate`` says so when it is missing. ``metrics.jsonl`` stays the
-record the reports read."""
+"""The TensorBoard logger, a tracker (``trackers: [tensorboard]``, or as a lifecycle hook of one stage,
+``train.hooks: [{name: tensorboard}]``), as the field's trainers offer beside their own logs: every logged training
+value (each weighted term, the total loss, the learning rate) and every scalar validation score, by step, into
+``<run>/tensorboard/`` (:class:`~distilkit.engine.train.trackers.base.Tracker` chooses the values and steps, the
+same for every tracker). Needs the optional extra (``pip install "distilkit[tensorboard]"``); ``validate`` says so
+when it is missing. ``metrics.jsonl`` stays the record the reports read."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from distilkit.engine.hooks import Hook, Loop
+from distilkit.engine.hooks import Loop
+from distilkit.engine.train.trackers.base import RunIdentity, Tracker, TrackerParams
 from distilkit.registry import HOOKS
 
 
-class TensorBoardParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    every: int = Field(0, ge=0, description="write training values every N steps (0: as often as log_every)")
+class TensorBoardParams(TrackerParams):
     folder: str = Field("tensorboard", min_length=1, description="the event files' folder inside the run folder")
 
 
@@ -29,38 +29,37 @@ def available() -> str | None:
     return None
 
 
-class TensorBoardHook(Hook):
+class TensorBoardHook(Tracker):
+    key = "tensorboard"
+
     def __init__(self, params: TensorBoardParams) -> None:
-        self.params = params
+        super().__init__(params)
+        self.params: TensorBoardParams = params
         self.writer: Any = None
 
-    def before_train(self, loop: Loop) -> None:
-        if loop.main:
-            from torch.utils.tensorboard import SummaryWriter
+    def start(self, identity: RunIdentity, resume: Any, step: int) -> None:
+        from torch.utils.tensorboard import SummaryWriter
 
-            self.writer = SummaryWriter(str(loop.run_dir / self.params.folder), purge_step=loop.step + 1)
+        # a resumed run drops the events a killed process wrote after its checkpoint
+        self.writer = SummaryWriter(str(identity.run_dir / self.params.folder), purge_step=step + 1)
 
-    def after_step(self, loop: Loop) -> None:
-        every = self.params.every or loop.spec.log_every
-        if self.writer is None or not (loop.step % every == 0 or loop.step == loop.total):
-            return
-        for key, value in loop.values.items():
-            self.writer.add_scalar(f"train/{key}", float(value), loop.step)
+    def scalars(self, values: dict[str, float], step: int) -> None:
+        for key, value in values.items():
+            self.writer.add_scalar(key, value, step)
 
-    def after_evaluation(self, loop: Loop, scores: dict[str, Any]) -> None:
-        if self.writer is None:
-            return
-        for key, value in scores.items():
-            if isinstance(value, (int, float)) and not isinstance(value, bool):
-                self.writer.add_scalar(f"val/{key}", float(value), loop.step)
-
-    def after_train(self, loop: Loop) -> None:
+    def finish(self, finished: bool) -> None:
         if self.writer is not None:
             self.writer.close()
             self.writer = None
 
+    def after_train(self, loop: Loop) -> None:
+        """The event files are closed when the loop ends (the report reads ``metrics.jsonl``, not them)."""
+        if self.active:
+            self.active = False
+            self.finish(loop.step == loop.total)
+
 
 HOOKS.add("tensorboard", TensorBoardHook, description="TensorBoard event files: training values and validation scores",
-          paper="TensorBoard (torch.utils.tensorboard)", params=TensorBoardParams, check=available)
+          paper="TensorBoard (torch.utils.tensorboard)", params=TensorBoardParams, check=available, tracker=True)
 
 __all__ = ["TensorBoardHook", "TensorBoardParams"]

@@ -4,7 +4,8 @@ connectors and the optimizer, and one training step.
 Per step (:meth:`Trainer.train_step`): ``s_out = student(batch)``; the teacher's outputs under ``no_grad`` when a
 term reads a teacher tap; ``loss = sum_j w_j task_j + sum_i w_i objective_i(taps)``; backward, a finite-gradient
 check, clipping, the optimizer step, then each objective's own ``update``. A stage that is its own teacher
-(``teacher: {ema: ...}``) moves its moving-average teacher before the step's forward (:mod:`~distilkit.engine.train.ema`). The stage's run (the loop, its hooks,
+(``teacher: {ema: ...}``) moves its moving-average teacher before the step's forward (:mod:`~distilkit.engine.train.ema`); a
+teacher runs in its ``teacher.mode`` (:mod:`~distilkit.engine.train.teacher_mode`). The stage's run (the loop, its hooks,
 evaluation, checkpoints) is :mod:`distilkit.engine.train.stage`; this class is what it optimises.
 """
 
@@ -23,6 +24,7 @@ from distilkit.data.info import DataInfo
 from distilkit.engine.train.distributed import SINGLE, World, sync_batchnorm
 from distilkit.engine.train.ema import EmaTeacher
 from distilkit.engine.train.groups import freeze, param_groups
+from distilkit.engine.train.teacher_mode import apply_mode, evaluating, load_teacher_buffers, teacher_buffers
 from distilkit.weights import load_weights
 from distilkit.engine.train.loader import BatchPlan, Collate
 from distilkit.engine.assemble.resolved import ResolvedStage, ResolvedTerm
@@ -79,6 +81,10 @@ class Trainer:
             assert stage.teacher is not None
             self.ema = EmaTeacher(stage.teacher, info, self.student, stage.ema, self.device)
             self.teacher = self.ema.model
+        if self.teacher is not None and stage.spec.teacher is not None:  # ``teacher.mode`` (an EMA's: ``ema.mode``)
+            self.teacher = apply_mode(self.teacher, stage.spec.teacher.mode, world, device)
+            if self.ema is not None:
+                self.ema.model = self.teacher
         # per objective: the projection of its student tap (nn.Identity where it has none)
         self.connectors = nn.ModuleList(nn.Identity() for _ in stage.distill)
         self.steps_per_epoch = plan.steps_per_epoch
@@ -112,6 +118,8 @@ class Trainer:
         if full:
             if self.ema is not None:
                 out["ema_teacher"] = self.ema.state_dict()
+            elif self.teacher is not None and self.teacher.training:  # its BatchNorm statistics move (teacher_mode)
+                out["teacher_buffers"] = teacher_buffers(self.teacher)
             out["optimizer"] = self.optimizer.state_dict()
             out["term_optimizers"] = [o.state_dict() if o is not None else {} for o in self.own_optimizers]
             if self.scaler.is_enabled():
@@ -129,6 +137,11 @@ class Trainer:
                 raise DistilkitError(f"stage {self.stage.name!r}: the checkpoint to resume from has no EMA teacher "
                                      "(it was written by a run without `teacher: {ema: ...}`)")
             self.ema.load_state_dict(ckpt["ema_teacher"])
+        elif self.teacher is not None and self.teacher.training:
+            if "teacher_buffers" not in ckpt:
+                raise DistilkitError(f"stage {self.stage.name!r}: the checkpoint to resume from has no teacher buffers "
+                                     "(it was written by a run whose teacher was not in `mode: train`)")
+            load_teacher_buffers(self.teacher, ckpt["teacher_buffers"], f"stage {self.stage.name!r}")
         for opt, state in zip(self.own_optimizers, ckpt.get("term_optimizers", [])):
             if opt is not None and state:
                 opt.load_state_dict(state)
@@ -266,7 +279,7 @@ class Trainer:
             batch = self.first_batch()
             was = self.student.training
             self.student.eval()
-            with torch.no_grad():
+            with torch.no_grad(), evaluating(self.teacher):  # a train-mode teacher's statistics move in steps only
                 s_out, t_out = self.student(batch), self._teacher_outputs(batch)
                 self._check_outputs(self.student, s_out, "student", strict=False)
                 for j, spec in enumerate(self.stage.distill):  # a connector maps the student tap to the teacher's
