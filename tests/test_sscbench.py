@@ -251,3 +251,30 @@ def test_the_camera_wants_the_image_and_only_the_current_frame(folder, tmp_path)
     assert "perspective.txt: P_rect_00 has 11 numbers, expected 12" in sscbench_check(params, "train")
     (calibrated / "calibration" / "calib_cam_to_velo.txt").unlink()
     assert "calib_cam_to_velo.txt: not found" in sscbench_check(params, "train")
+
+
+def test_a_recipe_trains_on_the_folder_and_scores_its_test_drive(folder, tmp_path) -> None:
+    """As a user runs it: a recipe whose data is the folder trains a stage (2 steps, the grid coarsened 8x) and
+    scores the benchmark's test drive with its 19 classes."""
+    import json
+
+    import yaml
+
+    from conftest import tiny_recipe
+    from distilkit.cli import main
+
+    root, _ = folder
+    recipe = tiny_recipe(steps=2, distill=False)
+    recipe["stages"].pop("student", None)
+    recipe["stages"]["teacher"]["model"]["params"]["frames"] = 1  # the folder has no scans: one voxelised input
+    recipe["data"] = {"dataset": "sscbench-kitti360",
+                      "params": {"root": str(root), "scale": 8, "train": ["2013_05_28_drive_0000_sync"],
+                                 "val": ["2013_05_28_drive_0006_sync"]}}
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    assert main(["run", str(path), "-o", str(tmp_path / "runs"), "-q"]) == 0
+    (summary_path,) = (tmp_path / "runs").glob("*/teacher-*/summary.json")
+    summary = json.loads(summary_path.read_text())
+    assert summary["status"] == "finished" and summary["steps"] == 2 and summary["report_split"] == "test"
+    assert summary["classes"]["names"][:2] == ["empty", "car"] and len(summary["classes"]["names"]) == 19
+    assert len(summary["test"]["best"]["class_iou"]) == 18 and 0.0 < summary["test"]["best"]["iou"] <= 1.0
