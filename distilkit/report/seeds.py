@@ -35,11 +35,13 @@ def _mean_std(xs: list[float]) -> tuple[float, float]:
 
 
 def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None,
-              compare: dict[str, str] | None = None) -> list[dict[str, Any]]:
+              compare: dict[str, str] | None = None, methods: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Per stage (recipe order): seeds, per-seed test scores — the selection score (``main``, SSC: mIoU) and
     the metric's next column (``second``, SSC: IoU) at the best-validation checkpoint, ``main`` at the last
     step (``last_main``) — their mean and sample std, and the per-seed differences in ``main`` to its reference
-    (``compare``'s stage for it, else ``baseline``; ``row["reference"]``) with their mean and std."""
+    (``compare``'s stage for it, else ``baseline``; ``row["reference"]``) with their mean and std. ``methods``: a
+    stage's method key where the caller knows more than the summary (a sweep: the whole resolved stage but the
+    objectives' weights); rows with one key are one method's weights (:func:`choose_on_validation`)."""
     seeds = sorted(results_by_seed)
     per_stage: dict[str, dict[int, dict[str, Any]]] = {}
     for seed in seeds:
@@ -62,8 +64,7 @@ def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None,
                                "reference": reference if name != reference else None,
                                "objectives": first["objectives"], "split": first["split"],
                                # weights of one method: the same input and objectives (a stage without any is alone)
-                               "group": (first["input"], tuple(o.split("×")[0] for o in first["objective_list"]))
-                               if first["objective_list"] else ("stage", name)}
+                               "group": _group(name, first, (methods or {}).get(name))}
         for key, get in pick.items():
             values = [get(by_seed[s]) for s in got]
             row[key] = values
@@ -76,6 +77,16 @@ def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None,
         rows.append(row)
     choose_on_validation(rows)
     return rows
+
+
+def _group(name: str, first: dict[str, Any], method: Any) -> Any:
+    """Weights of one method: the caller's method key, else the same input and objectives (a stage without any
+    objective is alone)."""
+    if not first["objective_list"]:
+        return ("stage", name)
+    if method is not None:
+        return ("method", method)
+    return (first["input"], tuple(o.split("×")[0] for o in first["objective_list"]))
 
 
 def choose_on_validation(rows: list[dict[str, Any]]) -> None:

@@ -37,7 +37,8 @@ def sweep_rows(records: list[RunRecord], baseline: str | None,
         by_seed.setdefault(r.seed, []).append(r)
     upstream = {r.name for r in records if r.upstream}
     # an upstream stage is its own reference: seed_rows compares it with nothing
-    rows = {row["stage"]: row for row in seed_rows(by_seed, baseline, {name: name for name in upstream})}
+    rows = {row["stage"]: row for row in seed_rows(by_seed, baseline, {name: name for name in upstream},
+                                                   method_keys(records))}
     variant_view = next((rows[n]["view"] for n in order if n in rows and n not in upstream), None)
     out, notes = [], []
     for name in order:
@@ -51,6 +52,37 @@ def sweep_rows(records: list[RunRecord], baseline: str | None,
             row["label"] = f"*{row['label']}* (upstream)"
         out.append(row)
     return out, notes
+
+
+_NOT_THE_METHOD = ("recipe", "stage", "hash", "label", "seed", "versions", "distilkit")
+
+
+def method_keys(records: list[RunRecord]) -> dict[str, str]:
+    """Per variant, what makes it a method: its resolved stage (``recipe.resolved.yaml`` of its lowest seed) without
+    its name, label, seed and hash and without the objectives' weights. Two variants with one key differ only in
+    weights — the rows among which validation chooses one; variants that differ in anything else (a teacher's mode,
+    an objective's parameter, a task loss) are methods of their own. A run without the file keeps the summary's
+    grouping (input and objectives)."""
+    import json
+
+    import yaml
+
+    keys: dict[str, str] = {}
+    for r in sorted((r for r in records if not r.upstream), key=lambda r: r.seed):
+        path = r.run_dir / "recipe.resolved.yaml"
+        if r.name in keys or not path.is_file():
+            continue
+        try:
+            stage = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError):
+            continue
+        if not isinstance(stage, dict):
+            continue
+        stage = {k: v for k, v in stage.items() if k not in _NOT_THE_METHOD}
+        stage["distill"] = [{k: v for k, v in t.items() if k != "weight"} if isinstance(t, dict) else t
+                            for t in stage.get("distill") or []]
+        keys[r.name] = json.dumps(stage, sort_keys=True, default=str)
+    return keys
 
 
 def _own_metric_note(row: dict[str, Any]) -> str:
@@ -103,4 +135,4 @@ def write_results(root: Path, name: str, records: list[RunRecord], baseline: str
     return path
 
 
-__all__ = ["RunRecord", "results_csv", "sweep_rows", "write_results"]
+__all__ = ["RunRecord", "method_keys", "results_csv", "sweep_rows", "write_results"]
