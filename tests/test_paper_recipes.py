@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, export_kitti
 from distilkit.cli import main
 from distilkit.recipe import load_recipe, parse_overrides
 
@@ -49,11 +49,7 @@ def _overrides(name: str, root: Path, small: bool) -> list[str]:
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """This process's exported folder with 24 x 80 camera images (tests/_camera_kitti.py, shared with test_amp and
-    the other folder tests of the process; read only: the runs below write under tmp_path)."""
-    from _camera_kitti import camera_kitti
-
-    return camera_kitti(tmp_path_factory)
+    return export_kitti(tmp_path_factory.mktemp("paper_kitti"), "--camera", "camera={height: 24, width: 80}")
 
 
 def test_every_paper_recipe_validates_and_says_which_networks_it_builds(folder, capsys) -> None:
