@@ -90,8 +90,8 @@ def _group(name: str, first: dict[str, Any], method: Any) -> Any:
 
 
 def choose_on_validation(rows: list[dict[str, Any]]) -> None:
-    """Mark each row ``chosen``: within a group of rows that differ only in weights (the same input and the same
-    objectives), the one with the best mean validation score over the seeds; a row alone in its group is its own
+    """Mark each row ``chosen``: within a group of rows that differ only in weights (one ``group`` key: see
+    :func:`_group`), the one with the best mean validation score over the seeds; a row alone in its group is its own
     choice. The test split plays no part in the choice. ``alternatives`` counts the group's rows."""
     groups: dict[Any, list[dict[str, Any]]] = {}
     for row in rows:
