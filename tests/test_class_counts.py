@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import tiny_recipe
 from distilkit.data.classes import IGNORE_INDEX, SCRIBBLE_UNLABELLED
 from distilkit.engine.train.distributed import SINGLE
@@ -51,7 +52,7 @@ def test_each_stage_weights_its_own_labels_pseudo_labels_included(tmp_path) -> N
     r["stages"]["teacher"]["publish"] = ["train"]
     r["stages"]["pseudo"] = {**r["stages"]["teacher"], "labels": {"from": "teacher"}, "publish": []}
     pipe = Pipeline(recipe_from_dict(r), tmp_path / "runs", quiet=True)
-    pipe.run()
+    pipe.run(only=["teacher"])  # the teacher's published labels; the pseudo stage's trainer is built below
     k = pipe.resolved.data_info.num_classes
     dense, dense_set = stage_trainer(pipe, "teacher")  # counts the dense labels first, on the shared split
     pseudo, pseudo_set = stage_trainer(pipe, "pseudo")

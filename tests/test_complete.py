@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import FIXTURES
 from distilkit.cli import main
 from distilkit.data.pointfiles import read_points, write_points
@@ -37,16 +38,34 @@ def test_point_files_round_trip_and_malformed_files_are_named(tmp_path) -> None:
         read_points(tmp_path / "d.txt")
 
 
-def test_a_trained_lidiff_completes_a_real_scan_from_the_command_line(tmp_path, capsys) -> None:
+@pytest.fixture(scope="module")
+def lidiff_runs(tmp_path_factory):
+    """A LiDiff teacher, an evaluate-only copy of it at 1 sampler step (teacher_1), a refiner of teacher_1's
+    completions and an evaluate-only refiner of the teacher's (refined_2), trained once for the tests that complete
+    scans with them (read only). The stages train on the CPU: the tests are about `distilkit complete` (which runs
+    on the CPU), not training."""
     data = {"num_train": 2, "num_val": 1, "num_test": 1, "scan_points": 32, "scene_points": 128, "frames": 3,
             "beams": 8, "azimuth_steps": 128}
-    recipe = {"schema_version": 1, "name": "c", "seed": 0, "data": {"dataset": "synthetic-scenes", "params": data},
+    train = {"steps": 1, "batch_size": 2, "eval_every": 1, "metric": "cd", "device": "cpu"}
+    recipe = {"schema_version": 1, "name": "r", "seed": 0, "data": {"dataset": "synthetic-scenes", "params": data},
               "stages": {"teacher": {"model": {"adapter": "lidiff", "params": {"channels": 8, "blocks": 1,
                                                                                 "duplicate": 4, "sample_steps": 2}},
-                                     # about `distilkit complete` (which runs on the CPU), not training: the CPU
-                                     "train": {"steps": 1, "batch_size": 2, "eval_every": 1, "metric": "cd",
-                                               "device": "cpu"}}}}
-    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+                                     "train": train},
+                         "teacher_1": {"model": {"adapter": "lidiff", "params": {"channels": 8, "blocks": 1,
+                                                                                  "duplicate": 4, "sample_steps": 1}},
+                                       "init": {"from": "teacher", "strict": False}, "train": {**train, "steps": 0}},
+                         "refiner": {"model": {"adapter": "lidiff-refine", "params": {"channels": 8}},
+                                     "aux": {"diffusion": {"from": "teacher_1", "inputs": {"completion": "coarse"}}},
+                                     "train": train},
+                         "refined_2": {"model": {"adapter": "lidiff-refine", "params": {"channels": 8}},
+                                       "aux": {"diffusion": {"from": "teacher", "inputs": {"completion": "coarse"}}},
+                                       "init": {"from": "refiner"}, "train": {**train, "steps": 0}}}}
+    return Pipeline(recipe_from_dict(recipe), tmp_path_factory.mktemp("lidiff") / "runs", quiet=True).run()
+
+
+@pytest.mark.xdist_group("complete_lidiff")  # one worker trains the shared stages once
+def test_a_trained_lidiff_completes_a_real_scan_from_the_command_line(lidiff_runs, tmp_path, capsys) -> None:
+    result = lidiff_runs[0]  # the teacher
     out = tmp_path / "scene.ply"
     assert main(["complete", str(result.run_dir), str(SCAN), "--out", str(out), "--steps", "3"]) == 0
     scene = read_points(out)
@@ -73,29 +92,13 @@ def _kitti_scan(n: int, seed: int = 0) -> np.ndarray:
     return np.concatenate([xyz, rng.uniform(0, 1, (n, 1)).astype(np.float32)], 1)
 
 
-def test_complete_refine_on_a_kitti_format_scan_of_125k_points(tmp_path, capsys) -> None:
+@pytest.mark.xdist_group("complete_lidiff")  # one worker trains the shared stages once
+def test_complete_refine_on_a_kitti_format_scan_of_125k_points(lidiff_runs, tmp_path, capsys) -> None:
     """`distilkit complete --refine`: the LiDiff completion of a full-size scan, refined to six points per point
     (time and memory of LiDiff's sizes: `distilkit bench complete`)."""
-    data = {"num_train": 2, "num_val": 1, "num_test": 1, "scan_points": 32, "scene_points": 128, "frames": 3,
-            "beams": 8, "azimuth_steps": 128}
-    # about `distilkit complete --refine` (which runs on the CPU), not training: the stages train on the CPU
-    train = {"steps": 1, "batch_size": 2, "eval_every": 1, "metric": "cd", "device": "cpu"}
-    recipe = {"schema_version": 1, "name": "r", "seed": 0, "data": {"dataset": "synthetic-scenes", "params": data},
-              "stages": {"teacher": {"model": {"adapter": "lidiff", "params": {"channels": 8, "blocks": 1,
-                                                                                "duplicate": 4, "sample_steps": 2}},
-                                     "train": train},
-                         "teacher_1": {"model": {"adapter": "lidiff", "params": {"channels": 8, "blocks": 1,
-                                                                                  "duplicate": 4, "sample_steps": 1}},
-                                       "init": {"from": "teacher", "strict": False}, "train": {**train, "steps": 0}},
-                         "refiner": {"model": {"adapter": "lidiff-refine", "params": {"channels": 8}},
-                                     "aux": {"diffusion": {"from": "teacher_1", "inputs": {"completion": "coarse"}}},
-                                     "train": train},
-                         "refined_2": {"model": {"adapter": "lidiff-refine", "params": {"channels": 8}},
-                                       "aux": {"diffusion": {"from": "teacher", "inputs": {"completion": "coarse"}}},
-                                       "init": {"from": "refiner"}, "train": {**train, "steps": 0}}}}
     # an evaluate-only stage (teacher_1: the teacher's weights at 1 step) serves as an auxiliary model, and an
     # evaluate-only refiner scores the refinement of another model's completions
-    teacher, _, refiner, refined_2 = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    teacher, _, refiner, refined_2 = lidiff_runs
     assert refiner.summary["test"]["best"]["cd"] > 0 and refined_2.summary["test"]["best"]["cd"] > 0
     assert refined_2.summary["test"]["best"]["cd"] != refiner.summary["test"]["best"]["cd"]
     scan = tmp_path / "000000.bin"

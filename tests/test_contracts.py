@@ -17,6 +17,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict
 from torch import Tensor, nn
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: the tests read the recipe's report, not a run's)
 from distilkit.adapter import Adapter
 from distilkit.cli import main
 from distilkit.data.batch import Batch

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import tiny_recipe
 from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import GridMismatchError, RecipeError

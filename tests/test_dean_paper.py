@@ -32,15 +32,18 @@ def dean(**kw):
 
 @pytest.fixture(scope="module")
 def scpnet_unet() -> dict[str, torch.Size]:
-    """The SCPNet adapter's paper network's Cylinder3D U-Net: its parameters' names and shapes."""
+    """The SCPNet adapter's paper network's Cylinder3D U-Net: its parameters' names and shapes (built on the meta
+    device: nothing allocated or initialised)."""
     cls = ADAPTERS.get("scpnet")
-    net = cls(cls.Params(size="paper"), info()).net.cylinder_3d_spconv_seg
+    with torch.device("meta"):
+        net = cls(cls.Params(size="paper"), info()).net.cylinder_3d_spconv_seg
     return {k: p.shape for k, p in net.named_parameters() if not k.startswith(SCPNET_DENSE)}
 
 
 @pytest.mark.parametrize("features", sorted(WIDTHS))
 def test_the_paper_dean_is_the_scpnet_adapters_cylinder3d_at_its_input_width(features, scpnet_unet) -> None:
-    model = dean(features=features)
+    with torch.device("meta"):  # names and shapes only
+        model = dean(features=features)
     mine = {k[len("net.cylinder_3d_spconv_seg."):]: p.shape for k, p in model.named_parameters()}
     assert set(mine) == set(scpnet_unet)  # the same modules: no point featuriser, no completion sub-network
     width, c = WIDTHS[features], 32

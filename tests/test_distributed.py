@@ -105,8 +105,10 @@ def _worker(rank: int, size: int, init_file: str, folder: str, device: str = "cp
 
 @pytest.fixture(scope="module")
 def two_processes(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """One process's training step and evaluation, and two spawned processes' (one process group for both: a spawn
-    is two interpreters importing torch), on the device of ``--device``; read by the two tests below."""
+    """One process's training step and evaluation, and two more processes' (one process group for both), on the
+    device of ``--device``; read by the two tests below. On the CPU the two are forked from this one (what they
+    compute is in a process of their own; they skip importing torch and distilkit again, ~4 s of CPU each); on CUDA,
+    which a forked child cannot use once this process has, spawned."""
     device = request.config.getoption("--device")
     tmp = tmp_path_factory.mktemp("two_processes")
     threads = torch.get_num_threads()
@@ -116,7 +118,8 @@ def two_processes(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempP
     finally:
         torch.set_num_threads(threads)
     single_eval = scored(World(), tmp / "single_eval")
-    mp.spawn(_worker, args=(2, str(tmp / "init"), str(tmp), device), nprocs=2, join=True)
+    mp.start_processes(_worker, args=(2, str(tmp / "init"), str(tmp), device), nprocs=2, join=True,
+                       start_method="spawn" if device == "cuda" else "fork")
     return {"single": single, "outs": [torch.load(tmp / f"out{r}.pt", weights_only=True) for r in range(2)],
             "single_eval": single_eval, "evals": [torch.load(tmp / f"eval{r}.pt", weights_only=True) for r in range(2)]}
 
@@ -156,11 +159,17 @@ def torchrun_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPa
     recipe: dict[str, Any] = tiny_recipe(steps=3, device=on(request.config.getoption("--device"), gpus=2))
     for stage in recipe["stages"].values():
         stage["train"].update(batch_size=2, eval_every=3)
+    from distilkit.cli import main
+
     folder = tmp_path_factory.mktemp("torchrun")
     (folder / "r.yaml").write_text(yaml.safe_dump(recipe))
-    done = subprocess.run([sys.executable, "-m", "distilkit", "run", str(folder / "r.yaml"), "-o", str(folder / "runs"),
-                           "-q", "--nproc-per-node", "2"], capture_output=True, text=True, env=clean_env())
-    assert done.returncode == 0, done.stderr[-3000:]
+    with pytest.MonkeyPatch.context() as patch:  # the command in this process: it starts torchrun, which starts two
+        env = clean_env()
+        for key in [k for k in os.environ if k not in env]:
+            patch.delenv(key)
+        for key in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            patch.setenv(key, env[key])
+        assert main(["run", str(folder / "r.yaml"), "-o", str(folder / "runs"), "-q", "--nproc-per-node", "2"]) == 0
     return folder
 
 
@@ -182,22 +191,47 @@ def test_distilkit_run_with_two_processes_trains_with_one_writer(torchrun_run: P
 def test_two_slurm_tasks_train_as_torchrun_would_start_them(torchrun_run: Path, tmp_path: Path, device) -> None:
     """`srun -n 2 distilkit run ... --stage teacher`: two processes with Slurm's task variables (as srun sets them in
     a step) and no torchrun train one run together, and its weights equal those of the torchrun run's teacher (the
-    same recipe, device and global batch) bit for bit."""
+    same recipe, device and global batch) bit for bit. On the CPU the two are forked from this process (what they
+    are is their Slurm variables, not a fresh import of torch: ~4 s of CPU each); a recipe on CUDA, which a forked
+    child cannot use once this process has, starts them as `distilkit run` processes."""
     path = torchrun_run / "r.yaml"
-    procs = [subprocess.Popen([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "slurm"),
-                               "-q", "--stage", "teacher"],
-                              env={**clean_env(), "SLURM_STEP_ID": "0", "SLURM_NTASKS": "2", "SLURM_PROCID": str(i),
-                                   "SLURM_LOCALID": str(i), "SLURM_JOB_ID": str(4000 + os.getpid() % 1000),
-                                   "SLURM_STEP_NODELIST": "localhost"},
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
-    outs = [p.communicate(timeout=600) for p in procs]
-    assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
+    argv = ["run", str(path), "-o", str(tmp_path / "slurm"), "-q", "--stage", "teacher"]
+    envs = [{**clean_env(), "SLURM_STEP_ID": "0", "SLURM_NTASKS": "2", "SLURM_PROCID": str(i), "SLURM_LOCALID": str(i),
+             "SLURM_JOB_ID": str(4000 + os.getpid() % 1000), "SLURM_STEP_NODELIST": "localhost"} for i in range(2)]
+    if yaml.safe_load(path.read_text())["stages"]["teacher"]["train"]["device"] == "cpu":
+        logs = [tmp_path / f"task{i}.log" for i in range(2)]
+        procs = [mp.get_context("fork").Process(target=_slurm_task, args=(argv, env, log))
+                 for env, log in zip(envs, logs)]
+        for proc in procs:
+            proc.start()
+        for proc in procs:
+            proc.join(timeout=600)
+        assert all(p.exitcode == 0 for p in procs), [log.read_text()[-2000:] for log in logs if log.is_file()]
+    else:
+        popens = [subprocess.Popen([sys.executable, "-m", "distilkit", *argv], env=env, stdout=subprocess.PIPE,
+                                   stderr=subprocess.PIPE, text=True) for env in envs]
+        outs = [p.communicate(timeout=600) for p in popens]
+        assert all(p.returncode == 0 for p in popens), [o[1][-2000:] for o in outs]
     (a,) = (tmp_path / "slurm" / "tiny").glob("teacher-*")
     (b,) = (torchrun_run / "runs" / "tiny").glob("teacher-*")
     assert json.loads((a / "summary.json").read_text())["processes"] == 2
     x = torch.load(a / "checkpoints" / "last.pt", weights_only=True)["student"]
     y = torch.load(b / "checkpoints" / "last.pt", weights_only=True)["student"]
     assert all(torch.equal(x[k], y[k]) for k in y)
+
+
+def _slurm_task(argv: list[str], env: dict[str, str], log: Path) -> None:
+    """One Slurm task in a forked child: ``distilkit ARGV`` with the task's environment alone and its one thread
+    (OMP_NUM_THREADS=1, as in the environment), its output to ``log``."""
+    os.environ.clear()
+    os.environ.update(env)
+    torch.set_num_threads(1)
+    fd = os.open(log, os.O_WRONLY | os.O_CREAT)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    from distilkit.cli import main
+
+    sys.exit(main(argv))
 
 
 def test_the_first_host_of_a_slurm_node_list(monkeypatch, tmp_path) -> None:

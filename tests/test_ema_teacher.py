@@ -5,7 +5,6 @@ same bits."""
 from __future__ import annotations
 
 import signal
-import subprocess
 import sys
 import time
 
@@ -13,6 +12,7 @@ import pytest
 import torch
 import yaml
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import make_trainer, tiny_recipe
 from distilkit.cli import main
 from distilkit.engine.train.pipeline import Pipeline
@@ -103,9 +103,11 @@ def test_a_stage_without_distillation_builds_no_moving_average(tmp_path) -> None
 
 
 def test_a_killed_ema_run_resumes_to_the_same_bits(tmp_path) -> None:
-    """SIGKILL (a real one, to a ``distilkit run`` process) after the first checkpoint, then the same command again
-    (in-process): the student and the EMA teacher of ``last.pt`` equal an uninterrupted run's bit for bit (the
-    average is part of the checkpoint)."""
+    """SIGKILL (a real one, to a ``distilkit run`` process forked from this one) after the first checkpoint, then
+    the same command again (in-process): the student and the EMA teacher of ``last.pt`` equal an uninterrupted run's
+    bit for bit (the average is part of the checkpoint). All three with one thread: the same reductions in each,
+    and GNU OpenMP in a forked child hangs on more threads than one once its parent has used them."""
+    import multiprocessing
     import os
 
     recipe = ema_recipe(steps=4)
@@ -113,23 +115,28 @@ def test_a_killed_ema_run_resumes_to_the_same_bits(tmp_path) -> None:
     path = tmp_path / "r.yaml"
     path.write_text(yaml.safe_dump(recipe))
     out = tmp_path / "runs"
-    cmd = [sys.executable, "-m", "distilkit", "run", str(path), "--output", str(out), "--quiet"]
-    env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
+    argv = ["run", str(path), "--output", str(out), "--quiet"]
     run_dir = pipeline(tmp_path, recipe).run_dir("student")
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
     try:
-        t0 = time.monotonic()
-        while not (run_dir / "checkpoints" / "last.pt").is_file() and proc.poll() is None \
-                and time.monotonic() - t0 < 120:
-            time.sleep(0.005)
+        proc = multiprocessing.get_context("fork").Process(target=_run_quietly, args=(argv,))
+        proc.start()
+        try:
+            t0 = time.monotonic()
+            while not (run_dir / "checkpoints" / "last.pt").is_file() and proc.is_alive() \
+                    and time.monotonic() - t0 < 120:
+                time.sleep(0.005)
+        finally:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.join()
+        killed_at = load_checkpoint(run_dir / "checkpoints" / "last.pt")["step"]
+        assert 1 <= killed_at < 4, "the kill came after the first checkpoint and before the end"
+        # the same command again, in this process (the same threads as the killed one): the kill needs a process
+        assert main(argv) == 0
+        (clean,) = pipeline(tmp_path / "clean", recipe).run()
     finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    killed_at = load_checkpoint(run_dir / "checkpoints" / "last.pt")["step"]
-    assert 1 <= killed_at < 4, "the kill came after the first checkpoint and before the end"
-    # the same command again, in this process (the same threads as the killed one): the kill is what needs a process
-    assert main(cmd[3:]) == 0
-    (clean,) = pipeline(tmp_path / "clean", recipe).run()
+        torch.set_num_threads(threads)
     a = load_checkpoint(run_dir / "checkpoints" / "last.pt")
     b = load_checkpoint(clean.run_dir / "checkpoints" / "last.pt")
     assert a["step"] == b["step"] == 4
@@ -137,3 +144,14 @@ def test_a_killed_ema_run_resumes_to_the_same_bits(tmp_path) -> None:
         assert a[part].keys() == b[part].keys()
         assert all(torch.equal(a[part][k], b[part][k]) for k in a[part]), part
     assert not all(torch.equal(a["student"][k], a["ema_teacher"][k]) for k in a["student"])
+
+
+def _run_quietly(argv: list[str]) -> None:
+    """``distilkit ARGV`` in a forked child (one thread, as its parent set), its output thrown away."""
+    import os
+
+    torch.set_num_threads(1)
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 1)
+    os.dup2(null, 2)
+    sys.exit(main(argv))

@@ -92,11 +92,11 @@ def test_bad_export_arguments_are_named(tmp_path, capsys) -> None:
 
 def test_a_recipe_trains_on_the_folder_publishes_a_hidden_split_and_predict_and_eval_read_it(exported, tmp_path,
                                                                                             capsys, no_report) -> None:
-    """One 2-frame SCPNet run on the exported folder (rectification on) with a hidden test sequence 11 (scans only,
-    no label files: the benchmark's test split): scores come from the validation split (and the summary says so),
-    the hidden frames' predictions are published; then `distilkit predict` writes the validation sequence and the
-    hidden one in the submission format, upsampled from scale 4 to 256 x 256 x 32, and `distilkit eval` scores the
-    validation one."""
+    """One 2-frame SCPNet run (a step) on the exported folder (rectification on) with a hidden test sequence 11
+    (scans only, no label files: the benchmark's test split): scores come from the validation split (and the summary
+    says so), the hidden frames' predictions are published; then `distilkit predict` writes the validation sequence
+    and the hidden one in the submission format, upsampled from scale 4 to 256 x 256 x 32, and `distilkit eval`
+    scores the validation one."""
     import shutil
 
     from distilkit.data.classes import LEARNING_MAP_INV
@@ -109,7 +109,7 @@ def test_a_recipe_trains_on_the_folder_publishes_a_hidden_split_and_predict_and_
         shutil.copytree(exported / "sequences" / seq, root / "sequences" / seq)
     hidden = root / "sequences" / "11"
     shutil.copytree(root / "sequences" / "08", hidden, ignore=shutil.ignore_patterns("*.label"))
-    recipe = folder_recipe(root, "hidden", frames=2, steps=2, publish=["test"], train=["00"], val=["08"],
+    recipe = folder_recipe(root, "hidden", frames=2, steps=1, publish=["test"], train=["00"], val=["08"],
                            test=["11"], scale=4, input_frames=2, rectify=True)
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     scores = result.summary["test"]["best"]  # the scores block; report_split says which split it holds
@@ -150,13 +150,14 @@ def test_roles_take_an_official_split_or_sequences_and_older_names_still_read() 
 
 def test_a_stage_trains_without_a_validation_split(exported, tmp_path) -> None:
     """val: none -> no evaluation during training, the last checkpoint is the model; with no test split either,
-    nothing is scored (a stage trained on everything for a submission) and predictions are still published."""
+    nothing is scored (a stage trained on everything for a submission) and predictions are still published. Every
+    10th scan (the voxel frames 0 and 10 of each sequence): what is published and scored, not how much."""
     from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     def recipe(test):
         return folder_recipe(exported, "noval", "semantickitti-ssc", steps=2, eval_every=1, publish=["train"],
-                             train=["00", "08"], val=None, test=test, scale=4)
+                             train=["00", "08"], val=None, test=test, scale=4, stride=10)
 
     (alone,) = Pipeline(recipe_from_dict(recipe(None)), tmp_path / "runs", quiet=True).run()
     assert alone.summary["report_split"] is None and alone.summary["test"] == {} and alone.summary["last"] is None
@@ -202,11 +203,13 @@ def test_the_scan_dataset_gives_every_scan_with_its_point_labels(exported, tmp_p
 
 def test_a_multi_frame_teacher_trains_on_every_scan_and_predicts_the_benchmark_frames(exported, tmp_path,
                                                                                        no_report) -> None:
+    """Scored on sequence 08 as a test split (no validation split: its 11 scans are evaluated once after training,
+    not at a validation step and again at the best and the last checkpoint)."""
     from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     recipe = folder_recipe(exported, "scans", "semantickitti-scan", frames=2, steps=2, batch_size=2, stage="teacher",
-                           train=["00"], val=["08"], scale=4, input_frames=2)
+                           train=["00"], val=None, test=["08"], scale=4, input_frames=2)
     (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     assert 0 <= result.summary["test"]["best"]["miou"] <= 1
     out = tmp_path / "preds"
@@ -232,14 +235,16 @@ def test_point_labels_and_calibration_round_trip(tmp_path) -> None:
 
 def test_class_weighted_losses_follow_semanticposs_twelve_classes(exported, tmp_path, device, no_report) -> None:
     """JS3C-Net's weighted uncertainty loss and VoxFormer's weighted CE size their class weights by the data's class
-    table (they were SemanticKITTI's 20 whatever the data): both train on a semanticposs-ssc folder (12 classes)."""
+    table (they were SemanticKITTI's 20 whatever the data): both train on a semanticposs-ssc folder (12 classes),
+    scored on a test split (no validation split: one evaluation a stage instead of three)."""
     from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     small = {"seg_channels": 4, "embed": 4, "ssc_channels": 4, "pvi_hidden": 4}
     recipe = {"schema_version": 1, "name": "poss", "seed": 0,
               "data": {"dataset": "semanticposs-ssc",
-                       "params": {"root": str(exported), "train": ["00"], "val": ["08"], "scale": 4}},
+                       "params": {"root": str(exported), "train": ["00"], "val": None, "test": ["08"],
+                                  "scale": 4}},
               "stages": {"js3cnet": {"model": {"adapter": "js3cnet", "params": small},
                                      "train": {"steps": 1, "batch_size": 1, "eval_every": 1, "device": device.type}},
                          "weighted": {"model": {"adapter": "scpnet", "params": {"channels": 4, "point_mlp": [8],

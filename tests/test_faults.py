@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import json
 import signal
-import subprocess
 import sys
 import threading
 import time
+from typing import Iterator
 
 import pytest
 import yaml
@@ -91,21 +91,47 @@ def scores(summary: dict) -> dict:
             for k, x in summary["test"].items()}
 
 
-def _kill_when(cmd: list[str], ready, timeout: float = 120.0) -> None:
+def _run_quietly(argv: list[str]) -> None:
+    """``distilkit run ARGV`` in a process forked from this one, its output thrown away."""
     import os
 
     import torch
 
-    # the same threads as this process: reductions split over another number of threads round differently
-    env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    torch.set_num_threads(1)  # as this process (one_thread); more in a forked child can hang GNU OpenMP
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 1)
+    os.dup2(null, 2)
+    sys.exit(main(argv))
+
+
+def _kill_when(argv: list[str], ready, timeout: float = 120.0) -> None:
+    """``distilkit run ARGV`` in a process of its own, SIGKILLed once ``ready()``. Forked from this process (it
+    need not import Python's and distilkit's modules again, ~4 s of CPU), with this process's one thread: reductions
+    split over another number of threads round differently."""
+    import multiprocessing
+    import os
+
+    proc = multiprocessing.get_context("fork").Process(target=_run_quietly, args=(argv,))
+    proc.start()
     try:
         t0 = time.monotonic()
-        while not ready() and proc.poll() is None and time.monotonic() - t0 < timeout:
+        while not ready() and proc.is_alive() and time.monotonic() - t0 < timeout:
             time.sleep(0.005)
     finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.join()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread() -> Iterator[None]:
+    """One thread for the module's runs, the clean one, the killed ones and the resumed ones alike (as under
+    xdist): a child forked from a process whose GNU OpenMP ran on more threads hangs at its first parallel region."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 def _kill_recipe() -> dict:
@@ -128,8 +154,8 @@ def clean_run(tmp_path_factory: pytest.TempPathFactory):
 def test_a_run_killed_at_any_moment_resumes_to_the_same_final_metrics(tmp_path, moment: str, clean_run) -> None:
     """Three kill moments by default, all five in the slow run. Epochs are 2 steps long: a kill after the third
     step is in the middle of the second epoch (with 2 loader processes reading ahead; workers are not part of the
-    stage's identity, so the clean run is the same stage). Over 3 s: the killed `distilkit run` process (Python and
-    torch started in it, and loader processes in the mid-epoch case) is its point."""
+    stage's identity, so the clean run is the same stage). Over 3 s: the killed `distilkit run` process (forked from
+    this one, and its loader processes in the mid-epoch case) is its point."""
     recipe = _kill_recipe()
     if moment.startswith("mid-epoch"):
         recipe["stages"]["teacher"]["train"]["workers"] = 2
@@ -145,7 +171,7 @@ def test_a_run_killed_at_any_moment_resumes_to_the_same_final_metrics(tmp_path, 
              "evaluation": lambda: any(run_dir.glob("**/.*")),  # a temporary file: a write under way
              "mid-epoch, 2 loader workers": lambda: (run_dir / "metrics.jsonl").is_file()
              and '"step": 3' in (run_dir / "metrics.jsonl").read_text()}[moment]
-    _kill_when([sys.executable, "-m", "distilkit", "run", str(path), "-o", str(tmp_path / "runs"), "-q"], ready)
+    _kill_when(["run", str(path), "-o", str(tmp_path / "runs"), "-q"], ready)
     if moment != "evaluation":  # killed mid-run (the last moment may race with the end of the run)
         assert not (run_dir / "summary.json").is_file()
     assert not (run_dir / "summary.json").is_file() or json.loads((run_dir / "summary.json").read_text())

@@ -6,17 +6,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from distilkit.cli import main
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from distilkit.data import kitti_camera as kc
-
-SET = ["beams=16", "azimuth_steps=256", "gt_frames=5", "seed=3", "camera={height: 24, width: 80}"]
 
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    root = tmp_path_factory.mktemp("kitti_cam")
-    assert main(["data", "export-kitti", str(root), "--frames", "11", "--camera", "--set", *SET]) == 0
-    return root
+    """This process's exported folder with 24 x 80 camera images (tests/_camera_kitti.py: ``export-kitti --frames 11
+    --camera`` with conftest's EXPORT_SET and ``camera={height: 24, width: 80}``), shared with the other modules that
+    read it: read only (a test that changes files works on a copy)."""
+    from _camera_kitti import camera_kitti
+
+    return camera_kitti(tmp_path_factory)
 
 
 def test_images_round_trip_exactly(tmp_path) -> None:
@@ -124,12 +125,14 @@ def test_missing_and_corrupt_images_are_named(exported, tmp_path) -> None:
 
 
 def test_a_camera_model_trains_on_the_folder(exported, tmp_path, device) -> None:
+    """A proposal stage and a VoxFormer on its proposals, a step of two scenes each, on every 10th scan (the voxel
+    frames 0 and 10 of each sequence: two scenes to train on and two to score)."""
     from distilkit.engine.train.pipeline import Pipeline
     from distilkit.recipe import recipe_from_dict
 
     recipe = {"schema_version": 1, "name": "cam", "seed": 0,
               "data": {"dataset": "semantickitti-ssc",
-                       "params": {"root": str(exported), "train": ["00"], "val": ["08"], "scale": 4,
+                       "params": {"root": str(exported), "train": ["00"], "val": ["08"], "scale": 4, "stride": 10,
                                   "camera": {"height": 24, "width": 80}}},
               "stages": {"proposal": {"model": {"adapter": "voxformer-proposal"},  # a step of 2 scenes each
                                       "train": {"steps": 1, "batch_size": 2, "eval_every": 1, "metric": "iou",

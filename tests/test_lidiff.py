@@ -3,10 +3,13 @@ number of steps against naive forms of their formulas, and a run."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from distilkit.data.batch import Batch
 from distilkit.engine.train.pipeline import Pipeline
 from distilkit.recipe import recipe_from_dict
@@ -254,17 +257,45 @@ def test_classifier_free_guidance_extrapolates_from_the_unconditional_prediction
     assert torch.allclose(m.predict_noise(x, t, c, guidance=3.5), torch.full((1, 4, 3), eps_u + 3.5 * (eps_c - eps_u)))
 
 
-def test_a_lidiff_teacher_trains_and_is_scored_by_the_completion_metric(tmp_path, device) -> None:
+@pytest.fixture(scope="module")
+def lidiff_runs(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> tuple[dict, Path]:
+    """One recipe ("lidiff") for the module's run tests, run once: a LiDiff teacher (2 steps, on ``--device``), the
+    ScoreLiDAR students distilled from it with VSD + structural (``student``) and with Distillation-DPO (``dpo``),
+    and an evaluate-only stage (``fast``, on the CPU) that scores the teacher's weights at one sampler step. (The
+    stages' results by name, the output folder.) About 3 s: it stands for the three runs the tests made before, each
+    of which trained the same teacher."""
+    device = request.config.getoption("--device")  # the tests that read the trained stages take the device fixture
+    train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd", "device": device}
+    student = {"model": {"adapter": "lidiff", "params": {**SMALL, "generate_steps": 1, "sample_steps": 1}},
+               "init": {"from": "teacher", "strict": False}, "teacher": {"from": "teacher"}, "task_losses": [],
+               "optimizer": {"name": "sgd", "lr": 1e-4}, "train": train}
     recipe = {"schema_version": 1, "name": "lidiff", "seed": 0,
               "data": {"dataset": "synthetic-scenes", "params": DATA},
-              "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL},
-                                     "train": {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd",
-                                               "device": device.type}}}}
-    (result,) = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+              "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL}, "train": train},
+                         "student": {**student, "distill": [
+                             {"name": "vsd", "params": {"aux": "lora", "rank": 2, "aux_lr": 0.01},
+                              "taps": {"student": "samples"}},
+                             {"name": "structural", "params": {"k": 8}, "taps": {"student": "samples"}}]},
+                         "dpo": {**student, "distill": [
+                             {"name": "distillation_dpo", "params": {"aux_lr": 0.01},
+                              "taps": {"student": "samples", "noise": "start_noise"}}]},
+                         # what an evaluate-only stage reads and scores, not what a device computes: on the CPU
+                         # whatever --device says
+                         "fast": {"model": {"adapter": "lidiff", "params": {**SMALL, "sample_steps": 1}},
+                                  "init": {"from": "teacher", "strict": False},
+                                  "train": {**train, "steps": 0, "device": "cpu"}}}}
+    root = tmp_path_factory.mktemp("lidiff_runs")
+    return {r.name: r for r in Pipeline(recipe_from_dict(recipe), root / "runs", quiet=True).run()}, root
+
+
+@pytest.mark.xdist_group("lidiff_runs")  # one worker runs the shared recipe
+def test_a_lidiff_teacher_trains_and_is_scored_by_the_completion_metric(lidiff_runs, device) -> None:
+    results, root = lidiff_runs
+    result = results["teacher"]
     scores = result.summary["test"]["best"]
     assert scores["cd"] > 0 and 0 < scores["jsd"] <= np.sqrt(np.log(2)) + 1e-9
     assert result.summary["input"] == "3 steps" and result.summary["metric"] == {"name": "completion", "key": "cd"}
-    assert "| CD best |" in (tmp_path / "runs" / "lidiff" / "report.md").read_text()
+    assert "| CD best |" in (root / "runs" / "lidiff" / "report.md").read_text()
 
 
 def test_a_lidiff_stage_without_a_metric_is_selected_by_chamfer_and_a_named_miou_is_refused() -> None:
@@ -283,31 +314,14 @@ def test_a_lidiff_stage_without_a_metric_is_selected_by_chamfer_and_a_named_miou
         resolve(recipe_from_dict(recipe))
 
 
-def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path, device) -> None:
-    """Teacher pre-training, then a 1-step student initialised from it: VSD (LoRA aux, own SGD) + structural."""
+@pytest.mark.xdist_group("lidiff_runs")
+def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(lidiff_runs, device) -> None:
+    """Teacher pre-training, then students initialised from it: VSD (LoRA aux, own SGD) + structural, and
+    Distillation-DPO."""
     from distilkit.weights import load_checkpoint
 
-    train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd", "device": device.type}
-    recipe = {"schema_version": 1, "name": "scorelidar", "seed": 0,
-              "data": {"dataset": "synthetic-scenes", "params": DATA},
-              "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL}, "train": train},
-                         "student": {"model": {"adapter": "lidiff", "params": {**SMALL, "generate_steps": 1,
-                                                                                   "sample_steps": 1}},
-                                     "init": {"from": "teacher", "strict": False}, "teacher": {"from": "teacher"},
-                                     "task_losses": [],
-                                     "distill": [{"name": "vsd", "params": {"aux": "lora", "rank": 2, "aux_lr": 0.01},
-                                                  "taps": {"student": "samples"}},
-                                                 {"name": "structural", "params": {"k": 8},
-                                                  "taps": {"student": "samples"}}],
-                                     "optimizer": {"name": "sgd", "lr": 1e-4}, "train": train},
-                         "dpo": {"model": {"adapter": "lidiff", "params": {**SMALL, "generate_steps": 1,
-                                                                               "sample_steps": 1}},
-                                 "init": {"from": "teacher", "strict": False}, "teacher": {"from": "teacher"},
-                                 "task_losses": [],
-                                 "distill": [{"name": "distillation_dpo", "params": {"aux_lr": 0.01},
-                                              "taps": {"student": "samples", "noise": "start_noise"}}],
-                                 "optimizer": {"name": "sgd", "lr": 1e-4}, "train": train}}}
-    teacher, student, dpo = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+    results, _ = lidiff_runs
+    teacher, student, dpo = results["teacher"], results["student"], results["dpo"]
     log = [__import__("json").loads(x) for x in (student.run_dir / "metrics.jsonl").read_text().splitlines()]
     steps = [r for r in log if "loss" in r]
     assert steps and all({"kd_vsd", "kd_structural", "vsd_aux_loss"} <= set(r) for r in steps)
@@ -333,15 +347,10 @@ def test_scorelidar_student_distils_with_vsd_and_the_structural_loss(tmp_path, d
         assert any(not torch.equal(v, t_ckpt["student"][k]) for k, v in copy.items())
 
 
-def test_an_evaluate_only_stage_scores_a_trained_model_at_other_sampler_steps(tmp_path) -> None:
-    # what an evaluate-only stage reads and scores, not what a device computes: on the CPU whatever --device says
-    train = {"steps": 2, "batch_size": 2, "eval_every": 2, "metric": "cd", "device": "cpu"}
-    recipe = {"schema_version": 1, "name": "steps", "seed": 0,
-              "data": {"dataset": "synthetic-scenes", "params": DATA},
-              "stages": {"teacher": {"model": {"adapter": "lidiff", "params": SMALL}, "train": train},
-                         "fast": {"model": {"adapter": "lidiff", "params": {**SMALL, "sample_steps": 1}},
-                                  "init": {"from": "teacher", "strict": False}, "train": {**train, "steps": 0}}}}
-    teacher, fast = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
+@pytest.mark.xdist_group("lidiff_runs")
+def test_an_evaluate_only_stage_scores_a_trained_model_at_other_sampler_steps(lidiff_runs) -> None:
+    results, _ = lidiff_runs
+    teacher, fast = results["teacher"], results["fast"]
     assert fast.summary["steps"] == 0 and fast.summary["input"] == "1 step"
     assert not (fast.run_dir / "checkpoints" / "best.pt").exists()  # nothing trained: the init weights are scored
     t, f = teacher.summary["test"]["best"], fast.summary["test"]["best"]

@@ -99,22 +99,42 @@ def release_layout(state: dict[str, torch.Tensor], prefixes: dict[str, str]) -> 
     return out
 
 
+@pytest.fixture(scope="module")
+def diff_net() -> tuple[torch.nn.Module, dict[str, torch.Tensor]]:
+    """LiDiff's denoiser at the paper's size (33 M parameters, built once for the module: the tests read it, each in
+    eval mode) and its weights in the release's layout (callers copy before changing them)."""
+    model = lidiff(duplicate=4).eval()
+    return model, release_layout(model.state_dict(), {"partial_enc.": 0, "model.": 0})
+
+
+def zeroed_copy(model: torch.nn.Module) -> torch.nn.Module:
+    """``model`` with every weight and buffer zero: a file that loads into it with the same forward set them all."""
+    import copy
+
+    out = copy.deepcopy(model)
+    for value in out.state_dict().values():
+        value.zero_()
+    return out
+
+
 def scenes(b: int = 2, n: int = 48, k: int = 4):
     g = torch.Generator().manual_seed(3)
     scan = torch.randn(b, n, 3, generator=g) * torch.tensor([8.0, 8.0, 1.0])
     return scan, scan.repeat(1, k, 1) + 0.3 * torch.randn(b, n * k, 3, generator=g)
 
 
-def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_named(tmp_path, device) -> None:
-    model = lidiff(duplicate=4).eval()
+@pytest.mark.xdist_group("lidiff_paper")  # one worker builds the shared network
+def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_named(tmp_path, device,
+                                                                                     diff_net) -> None:
+    model, release = diff_net
+    model.eval()
     state = model.state_dict()
     assert any(k.startswith("net.partial_enc.stem.0.weight") for k in state) and "net.model.up1.0.net.0.weight" in state
-    ckpt = {"state_dict": release_layout(state, {"partial_enc.": 0, "model.": 0}), "epoch": 9,
-            "hyper_parameters": {"train": {"uncond_prob": 0.1}}}
+    ckpt = {"state_dict": dict(release), "epoch": 9, "hyper_parameters": {"train": {"uncond_prob": 0.1}}}
     assert ckpt["state_dict"]["model.stage1.0.net.0.kernel"].shape == (8, 32, 32)  # ME's (K, in, out)
     assert ckpt["state_dict"]["model.up1.1.0.downsample.0.kernel"].shape == (384, 256)  # 1x1x1: (in, out)
     torch.save(ckpt, tmp_path / "diff_net.ckpt")
-    loaded = lidiff(duplicate=4).eval()
+    loaded = zeroed_copy(model)
     from distilkit.weights import load_weights
 
     assert load_weights(loaded, type(loaded).read_weights(str(tmp_path / "diff_net.ckpt")), True, "test") == []
@@ -143,23 +163,24 @@ def test_lidiffs_diff_net_ckpt_loads_with_the_same_forward_and_a_wrong_one_is_na
         load_weights(model, type(model).read_weights(str(tmp_path / "bad.ckpt")), True, "bad.ckpt")
 
 
-@pytest.mark.parametrize("shape,why", [((27 * 4 * 32,), r"\(3456,\)"), ((9, 3, 32), "9 offsets is not a cube")])
-def test_a_malformed_minkowski_kernel_is_named_and_a_nan_refused(tmp_path, shape, why) -> None:
+@pytest.mark.xdist_group("lidiff_paper")
+def test_a_malformed_minkowski_kernel_is_named_and_a_nan_refused(tmp_path, diff_net) -> None:
+    """Each malformed kernel (a flat one, a non-cube of offsets) on the one network of the module."""
     from distilkit.weights import load_weights
     from distilkit.engine.assemble.checks import fit_problem
 
-    model = lidiff(duplicate=4)
-    state = release_layout(model.state_dict(), {"partial_enc.": 0, "model.": 0})
-    state["model.stem.0.kernel"] = torch.zeros(shape)
-    torch.save({"state_dict": state}, tmp_path / "bad.ckpt")
-    with pytest.raises(DataError, match=r"model\.stem\.0\.kernel: .*" + why):
-        type(model).read_weights(str(tmp_path / "bad.ckpt"))
+    model, release = diff_net
 
     class Spec:  # the resolved model spec validate passes
         cls = type(model)
 
-    assert "model.stem.0.kernel" in fit_problem(tmp_path / "bad.ckpt", Spec, None, True)
-    state = release_layout(model.state_dict(), {"partial_enc.": 0, "model.": 0})
+    for shape, why in [((27 * 4 * 32,), r"\(3456,\)"), ((9, 3, 32), "9 offsets is not a cube")]:
+        state = {**release, "model.stem.0.kernel": torch.zeros(shape)}
+        torch.save({"state_dict": state}, tmp_path / "bad.ckpt")
+        with pytest.raises(DataError, match=r"model\.stem\.0\.kernel: .*" + why):
+            type(model).read_weights(str(tmp_path / "bad.ckpt"))
+        assert "model.stem.0.kernel" in fit_problem(tmp_path / "bad.ckpt", Spec, None, True)
+    state = {**release, "model.stage2.0.net.0.kernel": release["model.stage2.0.net.0.kernel"].clone()}
     state["model.stage2.0.net.0.kernel"][3, 1, 2] = float("nan")
     state["model.stage2.0.net.0.kernel"][0, 0, 0] = float("inf")
     torch.save({"state_dict": state}, tmp_path / "nan.ckpt")
@@ -171,7 +192,7 @@ def test_a_malformed_minkowski_kernel_is_named_and_a_nan_refused(tmp_path, shape
 def test_lidiffs_refine_net_ckpt_loads_with_the_same_forward(tmp_path) -> None:
     model = lidiff(adapter="lidiff-refine").eval()
     torch.save({"state_dict": release_layout(model.state_dict(), {"model_refine.": 0})}, tmp_path / "refine_net.ckpt")
-    loaded = lidiff(adapter="lidiff-refine").eval()
+    loaded = zeroed_copy(model)
     from distilkit.weights import load_weights
 
     assert load_weights(loaded, type(loaded).read_weights(str(tmp_path / "refine_net.ckpt")), True, "test") == []

@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 import torch
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import tiny_recipe
 from distilkit.engine.train.distributed import World
 from distilkit.weights import load_checkpoint

@@ -14,6 +14,7 @@ import pytest
 import torch
 import yaml
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import ROOT, folder_recipe, tiny_recipe
 from distilkit.cli import BENCH_NAMES, EXAMPLES, build_parser, main
 from distilkit.engine.train.pipeline import Pipeline
@@ -29,8 +30,11 @@ def write(tmp_path: Path, recipe: dict, name: str = "r.yaml") -> Path:
 @pytest.fixture(scope="module")
 def tiny_runs(tmp_path_factory: pytest.TempPathFactory):
     """One finished teacher + DSKD student run of the tiny recipe (a step each), shared by the tests that only read
-    it: its teacher's checkpoint, the student exported, the results table."""
-    return Pipeline(recipe_from_dict(tiny_recipe(steps=1)), tmp_path_factory.mktemp("runs"), quiet=True).run()
+    it: its teacher's checkpoint, the student exported, the results table (tests/_tiny_runs.py: trained once a
+    process, with tests/test_pipeline.py's that read it)."""
+    from _tiny_runs import tiny_runs
+
+    return tiny_runs(tmp_path_factory)[1]
 
 
 # -- 1. validate checks what a run will need ------------------------------------------------------------------------
@@ -43,6 +47,7 @@ def test_validate_names_a_missing_data_folder_once_and_exits_2(tmp_path, capsys)
     assert out.err.count("memory not estimated") == 1 and "data.params (train)" in out.err
 
 
+@pytest.mark.xdist_group("tiny_runs")  # tests/_tiny_runs.py: one worker trains it once
 def test_validate_names_a_missing_an_unreadable_and_a_misfit_checkpoint(tmp_path, capsys, tiny_runs) -> None:
     recipe = tiny_recipe(steps=1, distill=False)
     student = recipe["stages"]["teacher"]
@@ -135,6 +140,7 @@ def test_an_unknown_key_gets_the_nearest_valid_one(tmp_path, capsys, where: str,
 
 # -- 5. distilkit export ------------------------------------------------------------------------------------------
 
+@pytest.mark.xdist_group("tiny_runs")  # tests/_tiny_runs.py: one worker trains it once
 def test_export_writes_the_student_alone_loadable_by_torch_and_by_init(tmp_path, capsys, tiny_runs) -> None:
     from distilkit.engine.infer.export import build_exported
     from distilkit.engine.assemble.runs import load_run
@@ -207,6 +213,7 @@ def test_adapter_parameters_are_documented_where_a_user_looks(tmp_path, capsys) 
 
 # -- 2. readable at 80 columns ----------------------------------------------------------------------------------
 
+@pytest.mark.xdist_group("tiny_runs")  # tests/_tiny_runs.py: one worker trains it once
 def test_the_results_table_and_the_progress_bar_keep_every_number_whole_at_80_columns(tiny_runs) -> None:
     from rich.console import Console
 

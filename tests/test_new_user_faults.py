@@ -3,10 +3,10 @@ silently accepted, messages that name the right thing, runs that stop with their
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import shutil
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -183,21 +183,35 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+def _sweep(folder: Path) -> None:
+    """`distilkit sweep --jobs 2` of ``folder``'s sweep, in a process forked from this one (its own process, which
+    the test signals; it need not import torch and distilkit again, ~4 s): its output to ``folder/sweep.log``."""
+    import torch
+
+    os.chdir(folder)
+    os.environ["OMP_NUM_THREADS"] = "1"  # its runs'
+    torch.set_num_threads(1)  # its own: GNU OpenMP in a forked child hangs on more once its parent has used them
+    log = os.open(folder / "sweep.log", os.O_WRONLY | os.O_CREAT)
+    os.dup2(log, 1)
+    os.dup2(log, 2)
+    sys.exit(main(["sweep", str(folder / "sweep.yaml"), "--jobs", "2", "-o", str(folder / "runs"), "-q"]))
+
+
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="finds the sweep's runs through /proc (Linux)")
 @pytest.mark.parametrize("how", ["SIGTERM", "SIGKILL"])
 def test_a_stopped_sweep_leaves_no_run_training(tmp_path, how: str) -> None:
     """SIGTERM to `distilkit sweep --jobs 2` stops its runs (their checkpoints written); SIGKILL leaves them
     orphaned, and they notice and stop on their own. Over 3 s: a sweep process and its two run processes, trained
-    until signalled, are its point."""
+    until signalled, are its point (the sweep is forked from this process, its runs are `distilkit run` processes
+    as a user's sweep starts them)."""
     recipe = tiny_recipe(steps=2000, distill=False)
     recipe["stages"]["teacher"]["train"].update(eval_every=2000, checkpoint_every=1000)
     (tmp_path / "base.yaml").write_text(yaml.safe_dump(recipe))
     (tmp_path / "sweep.yaml").write_text(yaml.safe_dump({
         "schema_version": 1, "name": "orphans", "recipe": "base.yaml", "stage": "teacher", "seeds": [0, 1],
         "variants": {"a": {"label": "a"}}}))
-    proc = subprocess.Popen([sys.executable, "-m", "distilkit", "sweep", str(tmp_path / "sweep.yaml"), "--jobs", "2",
-                             "-o", str(tmp_path / "runs"), "-q"], cwd=tmp_path, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    proc = multiprocessing.get_context("fork").Process(target=_sweep, args=(tmp_path,))
+    proc.start()
     deadline = time.time() + 120
     runs: list[int] = []
     while time.time() < deadline and len(runs) < 2:
@@ -208,11 +222,12 @@ def test_a_stopped_sweep_leaves_no_run_training(tmp_path, how: str) -> None:
     def training() -> int:  # runs that logged a step: they are in their training loop (no fixed sleep)
         return sum('"loss"' in p.read_text() for p in (tmp_path / "runs").rglob("metrics.jsonl"))
 
-    while time.time() < deadline and training() < 2 and proc.poll() is None:
+    while time.time() < deadline and training() < 2 and proc.is_alive():
         time.sleep(0.05)
     assert training() == 2, "the sweep's two runs did not start training"
-    proc.send_signal(signal.SIGTERM if how == "SIGTERM" else signal.SIGKILL)
-    proc.wait(timeout=120)
+    os.kill(proc.pid, signal.SIGTERM if how == "SIGTERM" else signal.SIGKILL)
+    proc.join(timeout=120)
+    assert proc.exitcode is not None, "the sweep did not end"
     deadline = time.time() + 60
     while time.time() < deadline and any(_alive(p) for p in runs):
         time.sleep(0.2)

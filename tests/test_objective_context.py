@@ -12,6 +12,7 @@ import torch
 from pydantic import BaseModel, ConfigDict
 from torch import Tensor, nn
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import tiny_recipe
 from distilkit.data.batch import Batch
 from distilkit.weights import load_checkpoint

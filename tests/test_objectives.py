@@ -7,6 +7,7 @@ import torch
 
 import distilkit.losses as L
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import ROOT, tiny_recipe
 from distilkit.data.batch import Batch
 from distilkit.weights import load_checkpoint

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import tiny_recipe
 from distilkit.engine.train.optim import CosineParams, StepParams, cosine, lr_factor, step_decay, weight_factor
 from distilkit.engine.train.pipeline import Pipeline

@@ -77,10 +77,11 @@ def test_changing_the_teacher_changes_the_student_identity(tmp_path) -> None:
 @pytest.fixture(scope="module")
 def one_step_runs(tmp_path_factory) -> "Path":
     """The folder of a finished tiny teacher-and-student run of one step each (``tiny_recipe(steps=1)``), trained
-    once for the tests that read it (a test that changes it works on a copy)."""
-    root = tmp_path_factory.mktemp("one_step")
-    assert [r.reused for r in pipeline(root, tiny_recipe(steps=1)).run()] == [False, False]
-    return root
+    once a process for the tests that read it (tests/_tiny_runs.py; it asserts that both stages were trained, not
+    reused; a test that changes it works on a copy)."""
+    from _tiny_runs import tiny_runs
+
+    return tiny_runs(tmp_path_factory)[0]
 
 
 def copy_of(runs, tmp_path):
@@ -90,7 +91,7 @@ def copy_of(runs, tmp_path):
     return tmp_path
 
 
-@pytest.mark.xdist_group("pipeline_one_step")
+@pytest.mark.xdist_group("tiny_runs")  # tests/_tiny_runs.py
 def test_teacher_is_frozen_and_unchanged_by_a_step(one_step_runs, device) -> None:
     """Three training steps of a distilled student on the device of --device: the student moves, the teacher not."""
     pipe = pipeline(one_step_runs, tiny_recipe(steps=1))  # the shared finished run: its teacher is read only
@@ -168,7 +169,7 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path) -> None:
 
 
 def test_js3cnet_dskd_recipe_runs(tmp_path) -> None:
-    results = pipeline(tmp_path, tiny_recipe(adapter="js3cnet")).run()
+    results = pipeline(tmp_path, tiny_recipe(steps=1, adapter="js3cnet")).run()
     assert [r.summary["status"] for r in results] == ["finished", "finished"]
 
 
@@ -198,7 +199,7 @@ def test_generator_and_distilkit_versions_are_part_of_the_identity(tmp_path, mon
     assert all(pipeline(tmp_path, tiny_recipe()).hashes[k] != base[k] for k in base)
 
 
-@pytest.mark.xdist_group("pipeline_one_step")
+@pytest.mark.xdist_group("tiny_runs")  # tests/_tiny_runs.py
 def test_rerun_retrains_the_stage_and_its_students_and_keeps_the_old_run(one_step_runs, tmp_path) -> None:
     """On a copy of the shared finished run: ``--rerun teacher`` retrains both stages and keeps the old folders."""
     tmp_path = copy_of(one_step_runs, tmp_path)

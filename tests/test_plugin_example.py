@@ -6,6 +6,7 @@ import sys
 
 import yaml
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import ROOT
 from distilkit import registry
 from distilkit.engine.train.pipeline import Pipeline
@@ -30,6 +31,7 @@ def test_entry_point_plugin_runs_its_recipe(tmp_path, monkeypatch) -> None:
     recipe = yaml.safe_load((EXAMPLE / "recipe.yaml").read_text())
     for stage in recipe["stages"].values():  # about loading a plugin: the CPU, not the recipe's auto (a GPU)
         stage.setdefault("train", {}).update(steps=1, device="cpu")
+    recipe["data"]["params"]["num_test"] = 1  # not the default 32 test scenes, scored twice a stage
     results = Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
     mine = results[-1]
     assert mine.summary["adapter"] == "tiny-ssc" and mine.summary["objectives"] == ["dskd×100"]

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import tiny_recipe
 from distilkit.engine.train.pipeline import Pipeline
 from distilkit.objectives.dskd import DSKD

@@ -10,6 +10,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import TINY_DATA
 from distilkit.data.datasets import build_synthetic, collate_street, synthetic_info
 from distilkit.data.params import SyntheticParams

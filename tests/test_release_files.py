@@ -14,6 +14,7 @@ import pytest
 import torch
 import yaml
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import make_trainer, tiny_recipe
 from distilkit.cli import main
 from distilkit.errors import DataError

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
+from typing import Iterator
 
 import numpy as np
 import pytest
@@ -17,19 +19,26 @@ from distilkit.recipe import recipe_from_dict
 pytestmark = pytest.mark.plots  # these tests look at the rendered pictures
 
 
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory):
-    """A teacher and its student. The teacher's pictures, which no test looks at (it is compared by its summary and
-    rendered for real by `distilkit report` below), are drawn without rendering (tests/conftest.py's stand-in); the
-    student's and the recipe's are rendered by the run itself."""
+@contextmanager
+def unrendered() -> Iterator[None]:
+    """Pictures drawn without rendering (tests/conftest.py's stand-in: every report path runs, up to the drawing)
+    for what no test looks at, in these tests that otherwise render."""
     import conftest
 
-    out = tmp_path_factory.mktemp("runs")
     renders, conftest._RENDERS[0] = conftest._RENDERS[0], False
     try:
-        Pipeline(recipe_from_dict(tiny_recipe(steps=2)), out, quiet=True).run(only=["teacher"])
+        yield
     finally:
         conftest._RENDERS[0] = renders
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory):
+    """A teacher and its student. The teacher's pictures, which no test looks at (it is compared by its summary),
+    are drawn without rendering; the student's and the recipe's are rendered by the run itself."""
+    out = tmp_path_factory.mktemp("runs")
+    with unrendered():
+        Pipeline(recipe_from_dict(tiny_recipe(steps=2)), out, quiet=True).run(only=["teacher"])
     teacher, student = Pipeline(recipe_from_dict(tiny_recipe(steps=2)), out, quiet=True).run()
     assert teacher.reused and not student.reused
     return teacher.run_dir, student.run_dir
@@ -74,7 +83,8 @@ def test_report_command_rerenders_from_the_run_folder(runs, capsys) -> None:
     (student / "bev.png").unlink()
     assert main(["report", str(student)]) == 0
     assert (student / "report.md").read_text() == before and (student / "bev.png").is_file()
-    assert main(["report", str(student.parent)]) == 0  # every run under a recipe's folder
+    with unrendered():  # what is looked at here: which reports it writes (the pictures: rendered just above)
+        assert main(["report", str(student.parent)]) == 0  # every run under a recipe's folder
     assert str(student / "report.md") in capsys.readouterr().out
 
 

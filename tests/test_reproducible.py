@@ -21,12 +21,14 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
 import torch
 import yaml
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from distilkit.weights import load_checkpoint
 
 RECIPE = {
@@ -100,13 +102,13 @@ def test_importing_distilkit_sets_the_libraries_reproducibility_before_torch_loa
     mkl = torch.backends.mkl.is_available()  # and then what MKL itself says it ran with
     env = {k: v for k, v in os.environ.items() if k not in ("MKL_CBWR", "CUBLAS_WORKSPACE_CONFIG",
                                                              "DISTILKIT_DETERMINISTIC")}
-    on = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    started = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, env={**env, **extra})  # at once: three fresh imports of torch
+               for extra in ({}, {"DISTILKIT_DETERMINISTIC": "0"}, {"MKL_CBWR": "AVX2"})]  # last: a user's own kept
+    on, off, mine = (SimpleNamespace(stdout=out, stderr=err) for out, err in (p.communicate(timeout=600)
+                                                                            for p in started))
     assert on.stdout.split() == ["AUTO,STRICT", ":4096:8", "True", "AUTO,STRICT" if mkl else "None"], on.stderr
-    off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         env={**env, "DISTILKIT_DETERMINISTIC": "0"})
     assert off.stdout.split() == ["None", "None", "False", "off" if mkl else "None"], off.stderr
-    mine = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          env={**env, "MKL_CBWR": "AVX2"})  # a user's own setting is kept
     assert mine.stdout.split()[::3] == ["AVX2", "AVX2" if mkl else "None"]
 
 
@@ -157,7 +159,7 @@ def test_a_stage_names_the_ops_that_made_it_not_repeatable(tmp_path: Path, monke
     from distilkit.engine.train.trainer import Trainer
     from distilkit.recipe import recipe_from_dict
 
-    plain = Pipeline(recipe_from_dict(tiny_recipe(distill=False, device=device)), tmp_path / "plain").run()[0]
+    plain = Pipeline(recipe_from_dict(tiny_recipe(steps=1, distill=False, device=device)), tmp_path / "plain").run()[0]
     summary = json.loads((plain.run_dir / "summary.json").read_text())
     assert "nondeterministic_ops" not in summary, f"ops without a deterministic variant on the {device.type}: " \
                                                   f"{summary['nondeterministic_ops']}"
@@ -179,7 +181,7 @@ def test_a_stage_names_the_ops_that_made_it_not_repeatable(tmp_path: Path, monke
 
     monkeypatch.setattr(Trainer, "loss_terms", with_put)
     monkeypatch.setattr("distilkit.engine.train.stage.mkl_cbwr", lambda: "AVX2")  # a user's MKL_CBWR=AVX2
-    result = Pipeline(recipe_from_dict(tiny_recipe(distill=False, device=device)), tmp_path / "put").run()[0]
+    result = Pipeline(recipe_from_dict(tiny_recipe(steps=1, distill=False, device=device)), tmp_path / "put").run()[0]
     assert json.loads((result.run_dir / "summary.json").read_text())["nondeterministic_ops"] == ["put_"]
     out = capsys.readouterr().out
     assert f"stage teacher: put_ has no deterministic variant on the {device.type}; this run is not bitwise " \

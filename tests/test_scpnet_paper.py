@@ -36,6 +36,13 @@ def test_a_converted_spconv1_kernel_computes_the_same_convolution(kernel) -> Non
     assert torch.equal(spconv2_to_spconv1(conv.weight.data), w1)
 
 
+@pytest.fixture(scope="module")
+def paper_net() -> torch.nn.Module:
+    """One SCPNet at the paper's size (58 M parameters) for the module's tests: they only read its weights or train it
+    a step (each test sets its own mode)."""
+    return scpnet()
+
+
 def scpnet(**kw):
     from distilkit.data.params import SyntheticParams
     from distilkit.data.datasets import synthetic_info
@@ -46,17 +53,23 @@ def scpnet(**kw):
 
 
 def batch():
+    """One tiny synthetic scene (its 32 x 32 x 4 grid reaches every level of the U-Net, which pools by 16 x 16 x 4)."""
     from distilkit.data.params import SyntheticParams
     from distilkit.registry import DATASETS
 
     entry = DATASETS.entry("synthetic-lidar")
     params = SyntheticParams(**TINY_DATA)
     ds = entry.obj(params, "train")
-    return entry.meta["collate"]([ds[0], ds[1]])
+    return entry.meta["collate"]([ds[0]])
 
 
-def test_the_releases_state_dict_loads_with_the_same_forward_and_a_wrong_one_is_named(tmp_path) -> None:
-    model = scpnet().eval()
+@pytest.mark.xdist_group("scpnet_paper")  # one worker builds the shared network
+def test_the_releases_state_dict_loads_with_the_same_forward_and_a_wrong_one_is_named(tmp_path, paper_net) -> None:
+    """The file loads into a copy of the network whose every weight and buffer is zero first: the same forward means
+    the load set them all."""
+    import copy
+
+    model = paper_net.eval()
     state = model.state_dict()
     release = {}
     for key, value in state.items():  # the release's layout: bare keys, spconv 1.x kernels
@@ -69,7 +82,9 @@ def test_the_releases_state_dict_loads_with_the_same_forward_and_a_wrong_one_is_
     assert release["cylinder_3d_spconv_seg.a_conv3.0.weight"].shape == (32, 32, 5, 5, 5)  # dense, untouched
     assert release["cylinder_3d_generator.PPmodel.1.weight"].shape == (64, 7)
     torch.save(release, tmp_path / "scpnet.pt")
-    loaded = scpnet().eval()
+    loaded = copy.deepcopy(model)
+    for value in loaded.state_dict().values():
+        value.zero_()
     from distilkit.weights import load_weights
 
     assert load_weights(loaded, type(loaded).read_weights(str(tmp_path / "scpnet.pt")), True, "test") == []
@@ -86,11 +101,13 @@ def test_the_releases_state_dict_loads_with_the_same_forward_and_a_wrong_one_is_
         load_weights(loaded, type(loaded).read_weights(str(tmp_path / "bad.pt")), True, "bad.pt")
 
 
-def test_the_paper_network_trains_and_keeps_its_taps_consistent() -> None:
-    model = scpnet().train()
+@pytest.mark.xdist_group("scpnet_paper")
+def test_the_paper_network_trains_and_keeps_its_taps_consistent(paper_net) -> None:
+    model = paper_net.train()
+    model.zero_grad(set_to_none=True)
     out = model(batch())
     logits, completion = out["logits"], out["completion"]
-    assert logits.shape == (2, 20, 16, 16, 2) or logits.shape[1:2] == (20,)
+    assert logits.shape == (1, 20, 32, 32, 4)  # the batch of one on the 32 x 32 x 4 grid, 20 classes
     active = torch.zeros(logits.shape[:1] + logits.shape[2:], dtype=torch.bool)
     active[tuple(completion.coords.long().T)] = True
     assert (logits.detach().abs().sum(1)[~active] == 0).all()  # the release's dense logits: 0 outside

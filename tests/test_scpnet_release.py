@@ -63,7 +63,8 @@ def test_the_release_voxels_follow_its_dataloader() -> None:
 
 
 def release_state(model: torch.nn.Module, seed: int) -> dict[str, torch.Tensor]:
-    """Random weights in the release's layout: bare keys, spconv 1.x kernels, batch norms with running statistics."""
+    """Random weights in the release's layout: bare keys, spconv 1.x kernels, batch norms with running statistics,
+    drawn in a checkpoint's precision (float32). ``model``: its keys and shapes (on any device, meta included)."""
     from distilkit.sparse.convert import spconv2_to_spconv1
 
     g = torch.Generator().manual_seed(seed)
@@ -74,17 +75,16 @@ def release_state(model: torch.nn.Module, seed: int) -> dict[str, torch.Tensor]:
             out[name] = torch.tensor(7)
             continue
         if name.endswith("running_var"):
-            v = 0.5 + torch.rand(value.shape, generator=g, dtype=torch.float64)
+            v = 0.5 + torch.rand(value.shape, generator=g)
         elif name.endswith("running_mean") or name.endswith("bias"):
-            v = 0.3 * torch.randn(value.shape, generator=g, dtype=torch.float64)
+            v = 0.3 * torch.randn(value.shape, generator=g)
         elif name.endswith(".weight") and value.dim() == 1:  # batch norm scales
-            v = 1 + 0.2 * torch.randn(value.shape, generator=g, dtype=torch.float64)
+            v = 1 + 0.2 * torch.randn(value.shape, generator=g)
         else:
             fan_in = value[0].numel() if value.dim() > 1 else 1
-            v = torch.randn(value.shape, generator=g, dtype=torch.float64) * (1.5 / fan_in) ** 0.5
+            v = torch.randn(value.shape, generator=g) * (1.5 / fan_in) ** 0.5
         sparse = name.startswith("cylinder_3d_spconv_seg.") and value.dim() == 5 and \
             not name.split(".")[1].startswith(("a_conv", "ch_conv", "res_"))
-        v = v.float()  # a checkpoint's precision
         out[name] = spconv2_to_spconv1(v) if sparse else v
     return out
 
@@ -98,8 +98,9 @@ def leaky(x: torch.Tensor) -> torch.Tensor:
     return F.leaky_relu(x, 0.01)
 
 
-def reference(r: dict, pts: torch.Tensor, shared: bool) -> torch.Tensor:
-    """The release's forward in float64 (eval mode), from its state dict ``r``; ``shared``: SCPNet's shared keys."""
+def reference_dense(r: dict, pts: torch.Tensor) -> tuple[dict, torch.Tensor, list]:
+    """The release's forward in float64 up to its sparse U-Net: (``r`` in float64, the U-Net's input features, their
+    sites) — the featuriser, the voxel pooling and the dense completion."""
     r = {k: v.double() for k, v in r.items()}
     keep, ind, feats = release_voxels_numpy(pts[:, :3].numpy(), GRID)
     x = torch.from_numpy(np.concatenate([feats, pts[torch.from_numpy(keep), 3:4].numpy()], 1)).double()
@@ -130,6 +131,15 @@ def reference(r: dict, pts: torch.Tensor, shared: bool) -> torch.Tensor:
     active = y[0].abs().sum(0).nonzero().tolist()
     coords = [(0, *c) for c in active]
     feats0 = torch.stack([y[0, :, c[1], c[2], c[3]] for c in coords])
+    return r, feats0, coords
+
+
+def reference(r: dict, pts: torch.Tensor, shared: bool, dense: tuple | None = None) -> torch.Tensor:
+    """The release's forward in float64 (eval mode), from its state dict ``r``; ``shared``: SCPNet's shared keys.
+    ``dense``: :func:`reference_dense`'s result for ``r`` and ``pts`` where already computed (it does not depend on
+    ``shared``)."""
+    r, feats0, coords = dense if dense is not None else reference_dense(r, pts)
+    s = "cylinder_3d_spconv_seg."
     net = Spconv1()
 
     def k(base: str, i: int) -> str:
@@ -185,14 +195,21 @@ def adapter(semantics: str) -> torch.nn.Module:
 @pytest.fixture(scope="module")
 def release(tmp_path_factory: pytest.TempPathFactory):
     """One release checkpoint (random weights, seed 3) for both key semantics (their state dicts have the same keys
-    and shapes), the file it is saved in, and the reference's logits with SCPNet's shared keys and without
-    (``shared`` True / False), each computed once."""
+    and shapes), the file it is saved in as the adapter reads it, and the reference's logits with SCPNet's shared
+    keys and without (``shared`` True / False), each computed once (their dense part, which the keys do not touch,
+    once for both)."""
     torch.manual_seed(0)
-    state = release_state(adapter("spconv1"), seed=3)
+    with torch.device("meta"):  # its keys and shapes only: nothing allocated
+        layout = adapter("spconv1")
+    state = release_state(layout, seed=3)
     path = tmp_path_factory.mktemp("scpnet_release") / "scpnet_release.pt"
     torch.save(state, path)
     pts = points().double()
-    return state, path, {shared: reference(state, pts, shared=shared) for shared in (True, False)}
+    dense = reference_dense(state, pts)  # the same up to the U-Net for both
+    from distilkit_adapters.scpnet.adapter import SCPNetAdapter
+
+    weights = SCPNetAdapter.read_weights(str(path))  # the file as the adapter reads it (both semantics load it)
+    return state, weights, {shared: reference(state, pts, shared=shared, dense=dense) for shared in (True, False)}
 
 
 @pytest.mark.xdist_group("scpnet_release")  # one worker builds the shared checkpoint and references
@@ -202,13 +219,12 @@ def test_a_release_checkpoint_gives_the_releases_logits(semantics, release, devi
     reference's of its semantics (spconv1: shared keys) to 1e-9 on the same active sites, more than 300; the other
     semantics' reference differs."""
     from distilkit.weights import load_weights
-    from distilkit_adapters.scpnet.adapter import SCPNetAdapter
 
-    state, path, references = release
+    state, weights, references = release
     torch.manual_seed(0)
     model = adapter(semantics)
     assert state["cylinder_3d_spconv_seg.upBlock0.conv3.weight"].shape == (3, 3, 3, 512, 512)
-    assert load_weights(model, SCPNetAdapter.read_weights(str(path)), True, "release") == []
+    assert load_weights(model, weights, True, "release") == []
     model = model.double().eval().to(device)
     pts = points().double()
     with torch.no_grad():

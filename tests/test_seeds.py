@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from conftest import tiny_recipe
 from distilkit.cli import main
 from distilkit.engine.assemble.resolve import resolve

@@ -13,11 +13,13 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
 import yaml
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from test_sweep import write_sweep
 from distilkit.cli import main
 
@@ -295,12 +297,32 @@ def test_without_submitit_the_slurm_launcher_names_the_extra(tmp_path, monkeypat
     assert len(err.strip().splitlines()) == 1, err
 
 
+def _forked_run(argv: list[str]) -> SimpleNamespace:
+    """``distilkit ARGV`` in a process forked from this one, with one thread (as RunJob gives its run, and as GNU
+    OpenMP needs in a forked child); a handle with what RunJob reads of a ``subprocess.Popen``."""
+    pid = os.fork()
+    if pid == 0:  # the child: the run, then out without this process's exit handlers
+        code = 1
+        try:
+            import torch
+
+            torch.set_num_threads(1)
+            code = main(argv)
+        except BaseException:  # noqa: BLE001  what a process would print
+            import traceback
+
+            traceback.print_exc()
+        finally:
+            os._exit(code)
+    return SimpleNamespace(pid=pid, returncode=None, send_signal=lambda signum: os.kill(pid, signum))
+
+
 def test_the_requeue_handler_stops_the_run_with_its_checkpoint_and_the_requeued_body_ends_with_the_same_bits(
         tmp_path) -> None:
     """RunJob.checkpoint as submitit calls it on SIGTERM, against a real `distilkit run`: the run that did not get the
     signal itself is sent one, stops after its step with last.pt, and the body handed back for the requeue resumes
     it to the bits of an uninterrupted run (made in this process: the bits do not depend on it). Over 3 s: two
-    `distilkit run` processes (each starts Python and torch) are its point."""
+    `distilkit run` processes are its point (the first forked from this one, the requeued one started by RunJob)."""
     import time
 
     import torch
@@ -314,8 +336,7 @@ def test_the_requeue_handler_stops_the_run_with_its_checkpoint_and_the_requeued_
     (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
     argv = ["run", str(tmp_path / "r.yaml"), "--output", str(tmp_path / "a"), "--quiet"]
     job = RunJob(argv, grace=0.1)  # the run did not get the signal itself: the grace is only waited out
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    job._child = subprocess.Popen([sys.executable, "-m", "distilkit", *argv], env=env)
+    job._child = _forked_run(argv)
     deadline = time.monotonic() + 120
     while not list((tmp_path / "a").rglob("last.pt")) and time.monotonic() < deadline:
         time.sleep(0.02)

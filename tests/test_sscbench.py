@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from _sscbench import CAM_TO_VELO, DRIVE, P_RECT, R_RECT, SHAPE, write_folder, write_prediction
 from conftest import folder_recipe
 from distilkit.cli import main

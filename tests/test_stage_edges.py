@@ -13,6 +13,7 @@ import yaml
 from torch import nn
 
 import test_contracts as tc
+from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
 from distilkit.cli import main
 from distilkit.data.batch import Batch
 from distilkit.engine.train.pipeline import Pipeline

@@ -96,9 +96,24 @@ def describe(res: Any) -> tuple[str, list[str]]:
     return stages, [f"model of {', '.join(names)} — {line}" for line, names in seen.items()] + sparse_lines(res)
 
 
+_SPARSE_MODELS: dict[int, tuple[Any, dict[str, tuple[bool, bool]]]] = {}  # id(res) -> (weakref to res, answer)
+
+
 def _sparse_models(res: Any) -> dict[str, tuple[bool, bool]]:
     """Per stage: whether its student, and whether a model it only runs forward (its teacher, its auxiliary
-    models), hold sparse convolutions (each model built once, on the meta device)."""
+    models), hold sparse convolutions (each model built once, on the meta device; the answer kept for the resolved
+    recipe while it lives, so validate's problems and its description build each model once)."""
+    import weakref
+
+    kept = _SPARSE_MODELS.get(id(res))
+    if kept is not None and kept[0]() is res:
+        return kept[1]
+    answer = _sparse_models_of(res)
+    _SPARSE_MODELS[id(res)] = (weakref.ref(res, lambda _, key=id(res): _SPARSE_MODELS.pop(key, None)), answer)
+    return answer
+
+
+def _sparse_models_of(res: Any) -> dict[str, tuple[bool, bool]]:
     from distilkit.sparse import uses_sparse
 
     sparse: dict[int, bool] = {}

@@ -341,11 +341,12 @@ class StageRun:
         return model, checkpoint_step(self.run_dir, "best")
 
     def score(self, split: str, best: tuple[Any, int] | None) -> dict[str, Any]:
-        """Scores on ``split`` of the best-validation checkpoint and of the last one."""
+        """Scores on ``split`` of the best-validation checkpoint and of the last one (once where the best is the
+        last step: the same weights)."""
         assert self.trainer is not None
         dataset = self.split(split)
         out: dict[str, Any] = {"last": self.evaluate(dataset), "last_step": self.trainer.total_steps}
-        if best is not None:
+        if best is not None and best[1] != self.trainer.total_steps:
             out["best"], out["best_step"] = self.evaluate(dataset, best[0]), best[1]
         else:
             out["best"], out["best_step"] = out["last"], self.trainer.total_steps
