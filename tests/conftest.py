@@ -47,14 +47,32 @@ def device(request: pytest.FixtureRequest) -> "torch.device":
     return torch.device(request.config.getoption("--device"))
 
 
+# markers by file, for a quick run of what a change touches: `python -m pytest -m "not slow and not network and not
+# processes"` (README); the README's command runs them all. network: the papers' networks whole (their parity with
+# the releases, float64 and bf16); processes: tests whose point is a process of its own (killed, signalled, two at
+# once, torchrun, Slurm, a sweep's jobs, a fresh interpreter's imports)
+BY_FILE = {
+    "network": {"test_scpnet_paper.py", "test_scpnet_release.py", "test_js3cnet_paper.py",
+                "test_js3cnet_release.py", "test_lidiff_paper.py", "test_lidiff_release.py",
+                "test_voxformer_paper.py", "test_voxformer_release.py", "test_dean_paper.py", "test_amp.py"},
+    "processes": {"test_faults.py", "test_distributed.py", "test_slurm_plan.py", "test_slurm_real.py",
+                  "test_new_user_faults.py", "test_ema_teacher.py", "test_sweep.py", "test_reproducible.py",
+                  "test_gpu_check.py", "test_trackers.py"},
+}
+
+
 @pytest.hookimpl(tryfirst=True)  # before pytest's own -m selection reads the markers
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Mark ``device`` every test that takes the ``device`` fixture, so that the GPU check runs just those
-    (``pytest -m "device and not slow" --device cuda``) — but not a test marked ``gpus(n)`` under ``--device cuda``
-    on a machine with fewer GPUs: it computes on the CPU there (the two-process tests on one GPU)."""
+    """Mark each test of a file in ``BY_FILE`` with its marker, and ``device`` every test that takes the ``device``
+    fixture, so that the GPU check runs just those (``pytest -m "device and not slow" --device cuda``) — but not a
+    test marked ``gpus(n)`` under ``--device cuda`` on a machine with fewer GPUs: it computes on the CPU there (the
+    two-process tests on one GPU)."""
     cuda = config.getoption("--device") == "cuda"
     gpus = None
     for item in items:
+        for name, files in BY_FILE.items():
+            if item.path.name in files:
+                item.add_marker(getattr(pytest.mark, name))
         if "device" not in getattr(item, "fixturenames", ()):
             continue
         needs = item.get_closest_marker("gpus")

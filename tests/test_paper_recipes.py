@@ -68,8 +68,13 @@ def test_every_paper_recipe_validates_and_says_which_networks_it_builds(folder, 
     assert "scpnet: CPU stand-in" in capsys.readouterr().out
 
 
+# SCPNet's two-step run holds 7.6 GiB: on the full-grid brackets' worker, never beside SCPNet's full-grid step (14.7
+# GiB resident in a process of its own): the two together are more than 22 of this 2-core machine's 24 GiB
+REDUCED = [pytest.param(p, marks=pytest.mark.xdist_group("full_grid")) if p.stem == "scpnet" else p for p in PAPER]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("path", PAPER, ids=[p.stem for p in PAPER])
+@pytest.mark.parametrize("path", REDUCED, ids=[p.stem for p in PAPER])
 def test_a_paper_recipe_validates_with_its_memory_estimate_and_runs_two_steps_at_a_reduced_size(
         path, folder, tmp_path, capsys, device) -> None:
     sets = overrides(path.stem, folder, small=True, device=device.type) + [
