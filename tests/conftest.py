@@ -95,6 +95,25 @@ def on(device, gpus: int = 1) -> str:
     return device if device == "cpu" or torch.cuda.device_count() >= gpus else "cpu"
 
 
+def can_fork() -> bool:
+    """Whether a child forked from this process can train. Not on a machine with a GPU: there PyTorch's autograd
+    starts its device threads at the first backward (whichever device it ran on) and then refuses to run in a forked
+    child ("Unable to handle autograd's threading in combination with fork-based multiprocessing"), and a child of a
+    process that used CUDA gets "CUDA error: initialization error" (Adam asks CUDA whether it is capturing a graph).
+    Both seen on an H200 (torch 2.11); the tests that fork to skip re-importing torch spawn there instead."""
+    import torch
+
+    return not torch.cuda.is_available()
+
+
+def process_context():
+    """The multiprocessing context of a test's child process: fork where :func:`can_fork`, else spawn (the target
+    must be a module-level function of an importable module; it imports torch and distilkit again, ~4 s)."""
+    import multiprocessing
+
+    return multiprocessing.get_context("fork" if can_fork() else "spawn")
+
+
 FIXTURES = Path(__file__).resolve().parent / "fixtures"  # copied in; tests never read outside the repo
 
 EXPORT_SET = ["beams=16", "azimuth_steps=256", "gt_frames=5", "seed=3"]  # a small exported SemanticKITTI folder

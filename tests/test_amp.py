@@ -100,10 +100,13 @@ def test_one_bf16_step_of_each_paper_network_is_float32_within_a_percent(name, s
     assert trainer.stage.spec.train.precision == "bf16"
     batch = trainer.first_batch()
     trainer.student.train()
-    draws = torch.get_rng_state()
+    cuda = device.type == "cuda"  # LiDiff draws its noise on the batch's device: CUDA's generator too
+    draws = torch.get_rng_state(), torch.cuda.get_rng_state(device) if cuda else None
     with torch.no_grad():
         fp32 = float(torch.stack(list(at_precision(trainer, "fp32").loss_terms(batch).values())).sum())
-    torch.set_rng_state(draws)  # the bf16 step draws what the float32 forward drew (LiDiff's t and noise)
+    torch.set_rng_state(draws[0])  # the bf16 step draws what the float32 forward drew (LiDiff's t and noise)
+    if cuda:
+        torch.cuda.set_rng_state(draws[1], device)
     loss = {"fp32": fp32, "bf16": at_precision(trainer, "bf16").train_step(batch, 0)["loss"]}
     assert loss["bf16"] != loss["fp32"]  # the models did run in bf16
     assert abs(loss["bf16"] - loss["fp32"]) <= TOLERANCE * abs(loss["fp32"]), loss

@@ -18,7 +18,7 @@ import torch
 import torch.multiprocessing as mp
 import yaml
 
-from conftest import make_trainer, on, tiny_recipe
+from conftest import can_fork, make_trainer, on, process_context, tiny_recipe
 from distilkit.engine.train.distributed import World, leave
 from distilkit.engine.assemble.runs import build_model, freeze
 from distilkit.engine.train.pipeline import Pipeline
@@ -51,9 +51,16 @@ def camera_registered() -> Iterator[None]:
 
 def one_step(world: World, folder: Path, device: str = "cpu") -> dict[str, dict[str, torch.Tensor]]:
     """One training step of a distilled student (CE + KD + FitNets with its linear connector) on global batch 0;
-    the gradients it took and the weights after it, by qualified name."""
-    with camera_registered():
-        return _one_step(world, folder, device)
+    the gradients it took and the weights after it, by qualified name. On CUDA without TF32: cuDNN's convolutions
+    use it by default (torch.backends.cudnn.allow_tf32), and its 10-bit products over a batch of 4 and of 2 round
+    differently; what is compared here is the processes' reduction, not TF32."""
+    flags = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        with camera_registered():
+            return _one_step(world, folder, device)
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = flags
 
 
 def _one_step(world: World, folder: Path, device: str) -> dict[str, dict[str, torch.Tensor]]:
@@ -106,9 +113,9 @@ def _worker(rank: int, size: int, init_file: str, folder: str, device: str = "cp
 @pytest.fixture(scope="module")
 def two_processes(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """One process's training step and evaluation, and two more processes' (one process group for both), on the
-    device of ``--device``; read by the two tests below. On the CPU the two are forked from this one (what they
-    compute is in a process of their own; they skip importing torch and distilkit again, ~4 s of CPU each); on CUDA,
-    which a forked child cannot use once this process has, spawned."""
+    device of ``--device``; read by the two tests below. The two are forked from this one (what they compute is in
+    a process of their own; they skip importing torch and distilkit again, ~4 s of CPU each), spawned on a machine
+    with a GPU, where a forked child cannot train (conftest.can_fork)."""
     device = request.config.getoption("--device")
     tmp = tmp_path_factory.mktemp("two_processes")
     threads = torch.get_num_threads()
@@ -119,7 +126,7 @@ def two_processes(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempP
         torch.set_num_threads(threads)
     single_eval = scored(World(), tmp / "single_eval")
     mp.start_processes(_worker, args=(2, str(tmp / "init"), str(tmp), device), nprocs=2, join=True,
-                       start_method="spawn" if device == "cuda" else "fork")
+                       start_method="fork" if can_fork() else "spawn")
     return {"single": single, "outs": [torch.load(tmp / f"out{r}.pt", weights_only=True) for r in range(2)],
             "single_eval": single_eval, "evals": [torch.load(tmp / f"eval{r}.pt", weights_only=True) for r in range(2)]}
 
@@ -131,8 +138,10 @@ def test_two_processes_take_the_same_step_as_one_on_the_global_batch(two_process
     single, outs = two_processes["single"], two_processes["outs"]
     for name, grad in single["grads"].items():
         for out in outs:
-            torch.testing.assert_close(out["grads"][name], grad, rtol=1e-5, atol=1e-7, msg=name)
-            torch.testing.assert_close(out["weights"][name], single["weights"][name], rtol=1e-5, atol=1e-7, msg=name)
+            torch.testing.assert_close(out["grads"][name], grad, rtol=1e-5, atol=1e-7,
+                                       msg=lambda m, n=name: f"gradient of {n}: {m}")
+            torch.testing.assert_close(out["weights"][name], single["weights"][name], rtol=1e-5, atol=1e-7,
+                                       msg=lambda m, n=name: f"{n} after the step: {m}")
     assert any(g.abs().sum() > 0 for g in single["grads"].values())
 
 
@@ -192,15 +201,15 @@ def test_two_slurm_tasks_train_as_torchrun_would_start_them(torchrun_run: Path, 
     """`srun -n 2 distilkit run ... --stage teacher`: two processes with Slurm's task variables (as srun sets them in
     a step) and no torchrun train one run together, and its weights equal those of the torchrun run's teacher (the
     same recipe, device and global batch) bit for bit. On the CPU the two are forked from this process (what they
-    are is their Slurm variables, not a fresh import of torch: ~4 s of CPU each); a recipe on CUDA, which a forked
-    child cannot use once this process has, starts them as `distilkit run` processes."""
+    are is their Slurm variables, not a fresh import of torch: ~4 s of CPU each; spawned on a machine with a GPU,
+    conftest.can_fork); a recipe on CUDA starts them as `distilkit run` processes."""
     path = torchrun_run / "r.yaml"
     argv = ["run", str(path), "-o", str(tmp_path / "slurm"), "-q", "--stage", "teacher"]
     envs = [{**clean_env(), "SLURM_STEP_ID": "0", "SLURM_NTASKS": "2", "SLURM_PROCID": str(i), "SLURM_LOCALID": str(i),
              "SLURM_JOB_ID": str(4000 + os.getpid() % 1000), "SLURM_STEP_NODELIST": "localhost"} for i in range(2)]
     if yaml.safe_load(path.read_text())["stages"]["teacher"]["train"]["device"] == "cpu":
         logs = [tmp_path / f"task{i}.log" for i in range(2)]
-        procs = [mp.get_context("fork").Process(target=_slurm_task, args=(argv, env, log))
+        procs = [process_context().Process(target=_slurm_task, args=(argv, env, log))
                  for env, log in zip(envs, logs)]
         for proc in procs:
             proc.start()
@@ -221,7 +230,7 @@ def test_two_slurm_tasks_train_as_torchrun_would_start_them(torchrun_run: Path, 
 
 
 def _slurm_task(argv: list[str], env: dict[str, str], log: Path) -> None:
-    """One Slurm task in a forked child: ``distilkit ARGV`` with the task's environment alone and its one thread
+    """One Slurm task in a child process: ``distilkit ARGV`` with the task's environment alone and its one thread
     (OMP_NUM_THREADS=1, as in the environment), its output to ``log``."""
     os.environ.clear()
     os.environ.update(env)

@@ -13,7 +13,7 @@ import torch
 import yaml
 
 from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
-from conftest import make_trainer, tiny_recipe
+from conftest import make_trainer, process_context, tiny_recipe
 from distilkit.cli import main
 from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import RecipeError
@@ -107,7 +107,6 @@ def test_a_killed_ema_run_resumes_to_the_same_bits(tmp_path) -> None:
     the same command again (in-process): the student and the EMA teacher of ``last.pt`` equal an uninterrupted run's
     bit for bit (the average is part of the checkpoint). All three with one thread: the same reductions in each,
     and GNU OpenMP in a forked child hangs on more threads than one once its parent has used them."""
-    import multiprocessing
     import os
 
     recipe = ema_recipe(steps=4)
@@ -120,7 +119,7 @@ def test_a_killed_ema_run_resumes_to_the_same_bits(tmp_path) -> None:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        proc = multiprocessing.get_context("fork").Process(target=_run_quietly, args=(argv,))
+        proc = process_context().Process(target=_run_quietly, args=(argv,))  # spawned on a GPU machine
         proc.start()
         try:
             t0 = time.monotonic()
@@ -147,7 +146,7 @@ def test_a_killed_ema_run_resumes_to_the_same_bits(tmp_path) -> None:
 
 
 def _run_quietly(argv: list[str]) -> None:
-    """``distilkit ARGV`` in a forked child (one thread, as its parent set), its output thrown away."""
+    """``distilkit ARGV`` in a child process (one thread, as its parent set), its output thrown away."""
     import os
 
     torch.set_num_threads(1)

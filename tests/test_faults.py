@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
-from conftest import tiny_recipe
+from conftest import process_context, tiny_recipe
 from distilkit.cli import main
 from distilkit.weights import load_checkpoint
 from distilkit.engine.store.lock import lock_path, stage_lock
@@ -92,7 +92,7 @@ def scores(summary: dict) -> dict:
 
 
 def _run_quietly(argv: list[str]) -> None:
-    """``distilkit run ARGV`` in a process forked from this one, its output thrown away."""
+    """``distilkit run ARGV`` in a child process (forked from this one where it can be), its output thrown away."""
     import os
 
     import torch
@@ -106,12 +106,12 @@ def _run_quietly(argv: list[str]) -> None:
 
 def _kill_when(argv: list[str], ready, timeout: float = 120.0) -> None:
     """``distilkit run ARGV`` in a process of its own, SIGKILLed once ``ready()``. Forked from this process (it
-    need not import Python's and distilkit's modules again, ~4 s of CPU), with this process's one thread: reductions
-    split over another number of threads round differently."""
-    import multiprocessing
+    need not import Python's and distilkit's modules again, ~4 s of CPU; spawned on a machine with a GPU, where a
+    forked child cannot train: conftest.can_fork), with this process's one thread: reductions split over another
+    number of threads round differently."""
     import os
 
-    proc = multiprocessing.get_context("fork").Process(target=_run_quietly, args=(argv,))
+    proc = process_context().Process(target=_run_quietly, args=(argv,))
     proc.start()
     try:
         t0 = time.monotonic()

@@ -3,7 +3,6 @@ silently accepted, messages that name the right thing, runs that stop with their
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import shutil
 import signal
@@ -17,7 +16,7 @@ import yaml
 
 from _camera_kitti import camera_kitti
 from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here reads a run's report)
-from conftest import FIXTURES, folder_recipe, tiny_recipe
+from conftest import FIXTURES, folder_recipe, process_context, tiny_recipe
 from distilkit.cli import main
 from distilkit.data.pointfiles import read_points
 from distilkit.errors import DataError
@@ -185,7 +184,7 @@ def _alive(pid: int) -> bool:
 
 def _sweep(folder: Path) -> None:
     """`distilkit sweep --jobs 2` of ``folder``'s sweep, in a process forked from this one (its own process, which
-    the test signals; it need not import torch and distilkit again, ~4 s): its output to ``folder/sweep.log``."""
+    the test signals; it need not import torch and distilkit again, ~4 s; spawned on a machine with a GPU): its output to ``folder/sweep.log``."""
     import torch
 
     os.chdir(folder)
@@ -210,7 +209,7 @@ def test_a_stopped_sweep_leaves_no_run_training(tmp_path, how: str) -> None:
     (tmp_path / "sweep.yaml").write_text(yaml.safe_dump({
         "schema_version": 1, "name": "orphans", "recipe": "base.yaml", "stage": "teacher", "seeds": [0, 1],
         "variants": {"a": {"label": "a"}}}))
-    proc = multiprocessing.get_context("fork").Process(target=_sweep, args=(tmp_path,))
+    proc = process_context().Process(target=_sweep, args=(tmp_path,))  # spawned on a GPU machine
     proc.start()
     deadline = time.time() + 120
     runs: list[int] = []

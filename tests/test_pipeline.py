@@ -254,16 +254,22 @@ def test_scores_are_reported_on_the_test_split_at_best_and_last(tmp_path) -> Non
 
 
 def test_cuda_rng_state_round_trips_through_a_checkpoint(tmp_path, monkeypatch) -> None:
-    """No GPU here: the CUDA generator functions are replaced by fakes holding two devices' states."""
+    """No GPU here: the CUDA generator functions are replaced by fakes holding two devices' states. A process that
+    has not used CUDA (a CPU run on a machine with a GPU) saves none: asking would start a CUDA context, and fails in
+    a forked child of a process that used CUDA (seen on an H200)."""
     from distilkit.engine.train.randomness import rng_state, set_rng_state
     from distilkit.files import atomic_torch_save
 
     states = [torch.arange(8, dtype=torch.uint8), torch.arange(8, 16, dtype=torch.uint8)]
     restored: list[list[torch.Tensor]] = []
+    asked: list[int] = []
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
-    monkeypatch.setattr(torch.cuda, "get_rng_state_all", lambda: [s.clone() for s in states])
+    monkeypatch.setattr(torch.cuda, "get_rng_state_all", lambda: asked.append(1) or [s.clone() for s in states])
     monkeypatch.setattr(torch.cuda, "set_rng_state_all", lambda s: restored.append(list(s)))
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: False)
+    assert rng_state()["cuda"] == [] and not asked  # CUDA not used by this process: not asked
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: True)
     atomic_torch_save(tmp_path / "c.pt", {"student": {}, "rng": rng_state()})
     loaded = load_checkpoint(tmp_path / "c.pt")  # weights_only loading keeps the CUDA states
     set_rng_state(loaded["rng"])

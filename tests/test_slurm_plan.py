@@ -297,9 +297,15 @@ def test_without_submitit_the_slurm_launcher_names_the_extra(tmp_path, monkeypat
     assert len(err.strip().splitlines()) == 1, err
 
 
-def _forked_run(argv: list[str]) -> SimpleNamespace:
+def _forked_run(argv: list[str]) -> Any:
     """``distilkit ARGV`` in a process forked from this one, with one thread (as RunJob gives its run, and as GNU
-    OpenMP needs in a forked child); a handle with what RunJob reads of a ``subprocess.Popen``."""
+    OpenMP needs in a forked child); a handle with what RunJob reads of a ``subprocess.Popen``. On a machine with a
+    GPU, where a forked child cannot train (conftest.can_fork), a ``distilkit`` process started as RunJob starts it."""
+    from conftest import can_fork
+
+    if not can_fork():
+        return subprocess.Popen([sys.executable, "-m", "distilkit", *argv],
+                                env={**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
     pid = os.fork()
     if pid == 0:  # the child: the run, then out without this process's exit handlers
         code = 1

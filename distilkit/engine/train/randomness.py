@@ -11,9 +11,11 @@ import torch
 
 
 def rng_state() -> dict[str, Any]:
-    """Every generator a run draws from: torch (CPU and each CUDA device), numpy and Python."""
+    """Every generator a run draws from: torch (CPU and each CUDA device), numpy and Python. CUDA's only where
+    this process has initialised CUDA: a run that never used it has drawn nothing there, and asking would start a
+    CUDA context (seconds, memory) — or fail in a child forked from a process that had one."""
     np_state = np.random.get_state()
-    cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []
+    cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else []
     return {
         "cuda": cuda,
         "torch": torch.get_rng_state(),
