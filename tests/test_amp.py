@@ -6,7 +6,6 @@ products into a float32 sum)."""
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 
 import pytest
@@ -79,7 +78,8 @@ def at_precision(trainer, precision: str):
 
 
 @pytest.mark.parametrize("name, stage", FAMILIES, ids=[f"{n}-{s}" for n, s in FAMILIES])
-def test_one_bf16_step_of_each_paper_network_is_float32_within_a_percent(name, stage, folder, device) -> None:
+def test_one_bf16_step_of_each_paper_network_is_float32_within_a_percent(name, stage, folder, device,
+                                                                         tmp_path) -> None:
     """A bf16 trainer's first step runs (forward, backward, optimizer step) and its loss is the float32 loss of the
     same weights, batch and random draws within 1 % (float32's: the trainer's loss at fp32 before that step, which is
     the loss an fp32 step reports). SCPNet's case takes about 4 s on a 2-core CPU: two 58 M-parameter networks (the
@@ -96,7 +96,7 @@ def test_one_bf16_step_of_each_paper_network_is_float32_within_a_percent(name, s
         sets.append("stages.student.model.params.geometry=ground-truth")
     res = resolve(load_recipe(path, parse_overrides(sets)), str(path))
     assert res.stages[stage].student.cls.network(res.stages[stage].student.params).startswith("the paper's")
-    trainer = probe_trainer(res, stage, _one_scene(res.data_params), Path(tempfile.mkdtemp()))
+    trainer = probe_trainer(res, stage, _one_scene(res.data_params), tmp_path)
     assert trainer.stage.spec.train.precision == "bf16"
     batch = trainer.first_batch()
     trainer.student.train()

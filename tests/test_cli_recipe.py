@@ -269,12 +269,20 @@ def test_set_overrides_recipe_fields_by_dotted_path_and_is_validated_like_the_fi
     assert main(["validate", str(path), "--no-memory", "--set", "stages.student.distill.0.weight=3"]) == 0
 
 
-def test_bench_loader_times_the_same_steps_with_and_without_workers(capsys, no_full_collections) -> None:
+def test_bench_loader_times_the_same_steps_with_and_without_workers(capsys, no_full_collections, monkeypatch) -> None:
+    """... and leaves nothing behind: the folder of its run and data is removed at the end."""
+    import distilkit.bench.base as base
     from distilkit.bench import run_bench
 
+    made = []
+    real = base.scratch_dir
+    monkeypatch.setattr(base, "scratch_dir", lambda prefix: made.append(real(prefix)) or made[-1])
+    monkeypatch.setattr("distilkit.bench.training.scratch_dir", base.scratch_dir)
     (row,) = run_bench(["loader"], quick=True, repeat=1)
     assert "loader: 2 workers vs none" in capsys.readouterr().out
     assert row["fast_ms"] > 0 and row["naive_ms"] > 0 and math.isfinite(row["value"])
+    assert made and all(p.parent.name.startswith("distilkit-bench-") and not p.parent.exists() for p in made)
+    assert base.SCRATCH == []
 
 
 def test_bench_camera_times_the_camera_student_with_and_without_rgo2d(capsys, no_full_collections) -> None:

@@ -35,11 +35,12 @@ def terms_at(res, stage: str, params, precision: str) -> dict[str, torch.Tensor]
 
     spec = res.stages[stage].spec
     res.stages[stage].spec = spec.model_copy(update={"train": spec.train.model_copy(update={"precision": precision})})
-    trainer = probe_trainer(res, stage, params, Path(tempfile.mkdtemp()))
-    batch = trainer.first_batch()
-    trainer.student.train()
-    torch.manual_seed(1)
-    return {k: v.detach() for k, v in trainer.loss_terms(batch).items()}
+    with tempfile.TemporaryDirectory() as scratch:  # the probe's run folder, removed after
+        trainer = probe_trainer(res, stage, params, Path(scratch))
+        batch = trainer.first_batch()
+        trainer.student.train()
+        torch.manual_seed(1)
+        return {k: v.detach() for k, v in trainer.loss_terms(batch).items()}
 
 
 def check(terms: dict[str, dict[str, torch.Tensor]], name: str) -> None:

@@ -11,6 +11,7 @@ Peak memory is the growth of the process's peak resident set (Linux ``VmHWM``, r
 from __future__ import annotations
 
 import gc
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,15 @@ from typing import Any, Callable
 
 import torch
 from torch import Tensor
+
+
+SCRATCH: list[Path] = []  # the temporary folder of the running ``run_bench`` (removed when it ends)
+
+
+def scratch_dir(prefix: str) -> Path:
+    """A new folder for a benchmark's files (an exported scan, a run's data): inside the running ``run_bench``'s
+    temporary folder, which is removed when it ends; outside one, a new temporary folder of the caller's."""
+    return Path(tempfile.mkdtemp(prefix=prefix, dir=SCRATCH[-1] if SCRATCH else None))
 
 
 @dataclass

@@ -3,12 +3,11 @@ on a folder that ``distilkit data export-kitti`` writes."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from distilkit.bench.base import Case, register
+from distilkit.bench.base import Case, register, scratch_dir
 
 
 @register("kitti")
@@ -29,11 +28,9 @@ def kitti_cases(device: torch.device, quick: bool) -> list[Case]:
     from distilkit.metrics.official import evaluate_folder
     from distilkit.structures import VoxelGrid
 
-    import tempfile
-
     import numpy as np
 
-    root = Path(tempfile.mkdtemp(prefix="distilkit-bench-kitti-"))
+    root = scratch_dir("kitti-")
     beams, steps = (32, 1024) if quick else (64, 2048)
     export_kitti(root, SyntheticParams(beams=beams, azimuth_steps=steps, gt_frames=4), ["08"], frames=6, stride=5)
     seq = root / "sequences" / "08"

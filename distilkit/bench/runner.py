@@ -3,9 +3,12 @@ one table — fast and naive milliseconds, peak memory, speed-up and the relativ
 
 from __future__ import annotations
 
+import tempfile
+from pathlib import Path
+
 import torch
 
-from distilkit.bench.base import BENCHES, time_fb
+from distilkit.bench.base import BENCHES, SCRATCH, time_fb
 
 
 def _fmt_mem(b: int | None) -> str:
@@ -13,6 +16,17 @@ def _fmt_mem(b: int | None) -> str:
 
 
 def run_bench(names: list[str], device: str = "cpu", quick: bool = False, repeat: int | None = None) -> list[dict]:
+    """Each benchmark of ``names`` (every one: empty) timed and printed as one table; its rows. What the benchmarks
+    write (exported scans, their runs' data: ``scratch_dir``) goes to one temporary folder, removed at the end."""
+    with tempfile.TemporaryDirectory(prefix="distilkit-bench-", ignore_cleanup_errors=True) as root:
+        SCRATCH.append(Path(root))
+        try:
+            return _run_bench(names, device, quick, repeat)
+        finally:
+            SCRATCH.pop()
+
+
+def _run_bench(names: list[str], device: str, quick: bool, repeat: int | None) -> list[dict]:
     from rich.table import Table
 
     from distilkit.console import make_console

@@ -12,15 +12,13 @@ path, each with its GFLOP/s beside the GPU's GEMM rate.
 
 from __future__ import annotations
 
-import tempfile
 import time
-from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from distilkit.bench.base import Case, register
+from distilkit.bench.base import Case, register, scratch_dir
 
 
 def scan_occupancy(quick: bool) -> Tensor:
@@ -31,7 +29,7 @@ def scan_occupancy(quick: bool) -> Tensor:
     from distilkit.data.params import SemanticKittiParams, SyntheticParams
     from distilkit.structures import VoxelGrid
 
-    root = Path(tempfile.mkdtemp(prefix="distilkit-bench-sparse-"))
+    root = scratch_dir("sparse-")
     beams, steps, frames = (32, 1024, 1) if quick else (64, 2048, 5)
     export_kitti(root, SyntheticParams(beams=beams, azimuth_steps=steps, gt_frames=4), ["08"], frames=6, stride=5)
     sample = SemanticKittiDataset(SemanticKittiParams(root=str(root), val=["08"], input_frames=frames), "val")[0]

@@ -4,12 +4,11 @@ RGO²D."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from distilkit.bench.base import Case, register
+from distilkit.bench.base import Case, register, scratch_dir
 from distilkit.repro import set_deterministic
 
 
@@ -19,8 +18,6 @@ def determinism_cases(device: torch.device, quick: bool) -> list[Case]:
     student and of recipes/js3cnet_dskd.yaml's JS3C-Net student (batch 2, two scenes of their data), with PyTorch's
     deterministic algorithms off ('fast') and on ('naive'), alternately on the same trainer. MKL's strict mode
     (``MKL_CBWR``) is read when the process starts and is not toggled here."""
-    import tempfile
-
     from distilkit.data.probe import _one_scene
     from distilkit.engine.memory.probe import probe_trainer
     from distilkit.engine.assemble.resolve import resolve
@@ -37,7 +34,7 @@ def determinism_cases(device: torch.device, quick: bool) -> list[Case]:
                                                                                               "device": device.type}}}}
         res = resolve(recipe_from_dict(recipe, "bench"), "bench")
         params = _one_scene(res.data_params).model_copy(update={"num_train": 2})
-        trainer = probe_trainer(res, "s", params, Path(tempfile.mkdtemp(prefix="distilkit-bench-")), batch_size=2)
+        trainer = probe_trainer(res, "s", params, scratch_dir("run-"), batch_size=2)
         batch = trainer.first_batch()
         trainer.student.train()
 
@@ -61,8 +58,6 @@ def loader_cases(device: torch.device, quick: bool) -> list[Case]:
     the stage's loader with 2 worker processes ('fast') and with none ('naive'): the batches are read and collated
     in the workers while the step runs. Each timing covers the loader's start and one epoch of steps (6; the quick
     mode: 2 steps on an 8-times smaller grid of smaller scans)."""
-    import tempfile
-
     from distilkit.engine.train.loader import BatchPlan, train_batches
     from distilkit.engine.train.pipeline import Pipeline
     from distilkit.engine.train.trainer import Trainer
@@ -74,7 +69,7 @@ def loader_cases(device: torch.device, quick: bool) -> list[Case]:
     model = {"adapter": "scpnet", "params": {"frames": 4, "channels": 8, "point_mlp": [32, 64], "seg_channels": 16}}
     recipe = {"name": "bench", "data": {"dataset": "synthetic-lidar", "params": data},
               "stages": {"s": {"model": model, "train": {"batch_size": 2, "grad_clip": 10, "device": device.type}}}}
-    pipe = Pipeline(recipe_from_dict(recipe, "bench"), Path(tempfile.mkdtemp(prefix="distilkit-bench-")), quiet=True)
+    pipe = Pipeline(recipe_from_dict(recipe, "bench"), scratch_dir("run-"), quiet=True)
     stage, train_set = pipe.resolved.stages["s"], pipe.dataset("train")
     plan = BatchPlan(len(train_set), 2, 0)
     torch.manual_seed(0)
@@ -96,8 +91,6 @@ def camera_cases(device: torch.device, quick: bool) -> list[Case]:
     query proposals; batch 4 on its 64 x 64 x 8 grid, the quick mode 32 x 32 x 4) with RGO²D from the
     Teacher-Labeler and the image-feature MSE ('naive') and without distillation ('fast'): what distilling costs.
     Models have random weights (the step's cost does not depend on them)."""
-    import tempfile
-
     from distilkit.data.probe import _one_scene
     from distilkit.engine.memory.probe import probe_trainer
     from distilkit.engine.assemble.resolve import resolve
@@ -119,7 +112,7 @@ def camera_cases(device: torch.device, quick: bool) -> list[Case]:
     params = _one_scene(res.data_params).model_copy(update={"num_train": 4})
     steps = {}
     for name in ("plain", "rgo2d"):
-        trainer = probe_trainer(res, name, params, Path(tempfile.mkdtemp(prefix="distilkit-bench-")), batch_size=4)
+        trainer = probe_trainer(res, name, params, scratch_dir("run-"), batch_size=4)
         batch = trainer.first_batch()
         trainer.student.train()
         steps[name] = lambda trainer=trainer, batch=batch: torch.tensor(trainer.train_step(batch, 0)["loss"])
