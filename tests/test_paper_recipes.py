@@ -125,40 +125,17 @@ def test_the_memory_estimate_brackets_the_measured_peak_of_a_paper_network(name,
     if name == "scpnet":
         import torch
 
-        done = subprocess.run([sys.executable, "-c", _MEASURE, str(path), stage, json.dumps(sets),
-                               str(torch.get_num_threads())], capture_output=True, text=True, timeout=3600)
+        done = subprocess.run([sys.executable, str(Path(__file__).with_name("_bracket.py")), str(path), stage,
+                               json.dumps(sets), str(torch.get_num_threads())], capture_output=True, text=True,
+                              timeout=3600)
         assert done.returncode == 0, done.stderr[-3000:]
         how, low, peak, high = json.loads(done.stdout.strip().splitlines()[-1])
     else:
-        from distilkit.data.probe import _one_scene
-        from distilkit.engine.assemble.resolve import resolve
-        from distilkit.engine.memory.estimate import estimate_stage, measure_step
+        from _bracket import bracket
 
-        res = resolve(load_recipe(path, parse_overrides(sets)), str(path))
-        estimate = estimate_stage(res, stage)
-        peak = measure_step(res, stage, _one_scene(res.data_params)).total
-        assert estimate is not None
-        how, low, high = estimate.how, estimate.low, estimate.high
+        how, low, peak, high = bracket(str(path), stage, sets)
     assert how.startswith("extrapolated")
     assert 0.99 * low <= peak <= 1.01 * high, (low, peak, high)  # to 1 %
-
-
-# the bracket's numbers in a process of its own (argv: the recipe, the stage, the --set values as JSON, threads)
-_MEASURE = """
-import json, sys
-import torch
-torch.set_num_threads(int(sys.argv[4]))
-from distilkit.data.probe import _one_scene
-from distilkit.engine.assemble.resolve import resolve
-from distilkit.engine.memory.estimate import estimate_stage, measure_step
-from distilkit.recipe import load_recipe, parse_overrides
-path, stage, sets = sys.argv[1], sys.argv[2], json.loads(sys.argv[3])
-res = resolve(load_recipe(path, parse_overrides(sets)), path)
-estimate = estimate_stage(res, stage)
-peak = measure_step(res, stage, _one_scene(res.data_params)).total
-print(json.dumps([estimate.how if estimate is not None else "none", estimate.low if estimate else 0.0, peak,
-                  estimate.high if estimate else 0.0]))
-"""
 
 
 def test_the_networks_bench_covers_every_paper_network_and_measures_a_step() -> None:

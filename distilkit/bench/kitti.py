@@ -3,7 +3,6 @@ on a folder that ``distilkit data export-kitti`` writes."""
 
 from __future__ import annotations
 
-
 import torch
 from torch import Tensor
 

@@ -4,7 +4,6 @@ RGO²D."""
 
 from __future__ import annotations
 
-
 import torch
 from torch import Tensor
 
