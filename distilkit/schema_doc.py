@@ -123,7 +123,8 @@ def adapters_markdown() -> list[str]:
 
     out = ["## Adapter parameters", "",
            "`model: {adapter: NAME, params: {...}}` takes these parameters (unknown ones are errors; "
-           "`distilkit list adapters` shows the same).", ""]
+           "`distilkit list adapters` shows the same; a field that one `size` alone reads — \"tiny:\", \"size paper:\" "
+           "in its description — given with the other size is an error too).", ""]
     for e in ADAPTERS:
         inputs = e.obj.inputs(e.obj.Params.model_construct())
         aux = aux_only_inputs(inputs)

@@ -12,6 +12,19 @@ from distilkit.data.lidar import LIDAR_INPUTS, frames_problems
 from distilkit.structures import VoxelGrid
 
 
+def fields_of_one_size(params: BaseModel, only: dict[str, tuple[str, ...]]) -> None:
+    """Refuse a field the recipe gave for the other ``size`` (``only``: each size's fields that the other one does not
+    read) — it would be ignored without a word (e.g. ``channels`` with ``size: paper``, whose widths are the
+    release's)."""
+    size = getattr(params, "size")
+    for other, names in only.items():
+        given = [n for n in names if n in params.model_fields_set]
+        if other != size and given:
+            raise ValueError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} read by size {other} only; "
+                             f"size {size} does not use {'it' if len(given) == 1 else 'them'} (remove "
+                             f"{'it' if len(given) == 1 else 'them'}, or set size: {other})")
+
+
 class MultiFrameLidarAdapter(Adapter):
     """An adapter on LiDAR points with a ``frames`` parameter (scans fused): declares the LiDAR inputs,
     rejects more frames than the data has, and shows "N frames" in the results table."""

@@ -141,18 +141,31 @@ def _cache(tmp_path_factory: pytest.TempPathFactory) -> None:
 
 _RENDERS = [False]  # whether the test being set up looks at the pictures (marked plots)
 
+# the tests' child processes (`distilkit run` of a sweep's jobs, torchrun, a requeued job...) find
+# tests/_child_site/sitecustomize.py, which gives them the stand-in below where DISTILKIT_TEST_CLOSED_PLOTS is set
+CHILD_SITE = str(Path(__file__).resolve().parent / "_child_site")
+if CHILD_SITE not in os.environ.get("PYTHONPATH", "").split(os.pathsep):
+    os.environ["PYTHONPATH"] = os.pathsep.join([CHILD_SITE, *filter(None, os.environ.get("PYTHONPATH", "").split(
+        os.pathsep))])
+
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item: pytest.Item) -> None:
-    """Before any fixture of ``item`` is set up: module and session fixtures built for it render as it would."""
+    """Before any fixture of ``item`` is set up: module and session fixtures built for it, and the child processes
+    it starts, render as it would."""
     _RENDERS[0] = item.get_closest_marker("plots") is not None
+    if _RENDERS[0]:
+        os.environ.pop("DISTILKIT_TEST_CLOSED_PLOTS", None)
+    else:
+        os.environ["DISTILKIT_TEST_CLOSED_PLOTS"] = "1"
 
 
 @pytest.fixture(autouse=True, scope="session")
 def _render_plots_only_where_looked_at() -> "Iterator[None]":
     """Rendering PNGs is two thirds of a tiny run's time (matplotlib's text layout): a test that does not look at
-    the pictures — and every shared fixture built for one — gets each figure closed and an empty file where the PNG
-    goes (every report path still runs, up to the drawing); tests marked ``plots`` render them for real."""
+    the pictures — every shared fixture built for one, and the child processes it starts (tests/_child_site) — gets
+    each figure closed and an empty file where the PNG goes (every report path still runs, up to the drawing); tests
+    marked ``plots`` render them for real."""
     from distilkit.report import plots
 
     real = plots.save

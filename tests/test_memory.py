@@ -165,8 +165,7 @@ def test_other_runtime_errors_are_not_taken_for_memory() -> None:
         "an allocation of 2.00 GiB on the GPU failed"
 
 
-@pytest.mark.slow
-@pytest.mark.xdist_group("full_grid")  # one at a time: each holds gigabytes (tests/test_paper_recipes.py)
+@pytest.mark.slow  # 1.6 GiB: beside any other slow test (not in the full_grid group of the paper networks' brackets)
 def test_the_full_grid_estimate_brackets_the_measured_peak() -> None:
     """A recipe at SemanticKITTI's full grid: measured at 64x64x8 and 128x128x16, the range holds the peak of a
     real step at 256x256x32 (batch 1). The tiny SCPNet at 2 channels (the grid is what is extrapolated; its two

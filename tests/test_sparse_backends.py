@@ -8,7 +8,6 @@ sets ``DISTILKIT_REQUIRE_SPCONV=1``, so in CI these tests run; elsewhere they sk
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
 
 import pytest
@@ -56,15 +55,26 @@ def test_the_choice_per_device_and_its_errors(monkeypatch) -> None:
             pass
 
 
-def test_an_explicit_backend_that_does_not_import_is_an_error_never_a_fallback() -> None:
-    """spconv made unimportable (sys.modules entry None) in a fresh process: explicit spconv names the install,
-    auto on CUDA goes on to the next candidate."""
-    code = ("import sys; sys.modules['spconv'] = None; sys.modules['spconv_triton'] = None\n"
-            "import os; os.environ['DISTILKIT_SPARSE'] = 'spconv'\n"
-            "from distilkit.sparse import backend\n"
-            "try:\n    backend.choose('cuda')\nexcept backend.SparseBackendError as e:\n    print('ERR', e)\n"
-            "os.environ['DISTILKIT_SPARSE'] = 'auto'; print('AUTO', backend.choose('cuda'))\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+def test_an_explicit_backend_that_does_not_import_is_an_error_never_a_fallback(monkeypatch) -> None:
+    """spconv made unimportable in this process (its sys.modules entries None, the backend's cached import probe
+    cleared before and after, PyTorch's deterministic algorithms off as in a fresh process): explicit spconv names the
+    install, auto on CUDA goes on to the next candidate."""
+    for name in {k for k in sys.modules if k.split(".")[0] in backend.LIBRARIES.values()} | {"spconv", "spconv_triton"}:
+        monkeypatch.setitem(sys.modules, name, None)
+    deterministic = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(False)
+    backend._library.cache_clear()
+    try:
+        monkeypatch.setenv(backend.ENV, "spconv")
+        try:
+            out = f"CHOSE {backend.choose('cuda')}\n"
+        except backend.SparseBackendError as e:
+            out = f"ERR {e}\n"
+        monkeypatch.setenv(backend.ENV, "auto")
+        out += f"AUTO {backend.choose('cuda')}\n"
+    finally:
+        backend._library.cache_clear()  # the real modules are back after the test: probed again when next asked
+        torch.use_deterministic_algorithms(deterministic[0], warn_only=deterministic[1])
     assert "ERR sparse backend spconv (DISTILKIT_SPARSE) on the cuda: spconv does not import" in out, out
     assert "pip install spconv-cu126" in out and "AUTO torch" in out, out
 

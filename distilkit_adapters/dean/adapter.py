@@ -19,7 +19,7 @@ from __future__ import annotations
 from typing import Any, Literal
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
 from distilkit.adapter import Adapter
@@ -27,7 +27,7 @@ from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.registry import ADAPTERS
-from distilkit_adapters._blocks import DenseUNet3d, channels_last
+from distilkit_adapters._blocks import DenseUNet3d, channels_last, fields_of_one_size
 from distilkit_adapters.dean.cylinder import WIDTHS, Features, dense_inputs
 
 EMPTY_LOGIT = 10.0  # class 0's logit outside the geometry; inside it, -EMPTY_LOGIT (a class is always chosen)
@@ -49,6 +49,11 @@ class DeanParams(BaseModel):
                                "2.x ports (a key per convolution, every kernel as written)")
     geometry: str = Field("voxel_target", description="the batch field whose occupied voxels (neither empty nor "
                                                       "ignored) are the complete geometry")
+
+    @model_validator(mode="after")
+    def _one_size(self) -> "DeanParams":
+        fields_of_one_size(self, {"tiny": ("channels",), "paper": ("semantics",)})
+        return self
 
 
 def geometry_logits(logits: Tensor, occupied: Tensor) -> Tensor:

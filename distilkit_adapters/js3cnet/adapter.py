@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 import torch
 
@@ -16,7 +16,7 @@ from distilkit.data.lidar import select_frames
 from distilkit.structures import VoxelGrid
 from distilkit.registry import ADAPTERS
 from distilkit.structures import SparseVoxels
-from distilkit_adapters._blocks import MultiFrameLidarAdapter, channels_last
+from distilkit_adapters._blocks import MultiFrameLidarAdapter, channels_last, fields_of_one_size
 from distilkit_adapters.js3cnet.model import JS3CNet
 
 
@@ -44,6 +44,12 @@ class JS3CNetParams(BaseModel):
     ssc_channels: int = Field(32, ge=1, description="SSC decoder width (paper: 32)")
     pvi_hidden: int = Field(32, ge=1, description="PVI MLP width (paper: 32)")
     knn: int = Field(8, ge=1, description="neighbours per query in the PVI (paper code: 8)")
+
+    @model_validator(mode="after")
+    def _one_size(self) -> "JS3CNetParams":
+        fields_of_one_size(self, {"tiny": ("embed", "pvi_hidden"),
+                                  "paper": ("levels", "fuse_k", "pvi_queries", "seg_voxel", "z_offset")})
+        return self
 
 
 class JS3CNetAdapter(MultiFrameLidarAdapter):

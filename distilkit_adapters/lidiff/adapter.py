@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import Any, Literal
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
 from distilkit.adapter import Adapter
@@ -17,6 +17,7 @@ from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.registry import ADAPTERS
 from distilkit.structures import PointCloud
+from distilkit_adapters._blocks import fields_of_one_size
 from distilkit_adapters.lidiff.model import PointDenoiser, lidiff_alphas_cumprod
 from distilkit_adapters.lidiff.sampler import ddim, ddim_timesteps, dpm_timesteps, sde_dpmsolver_pp
 
@@ -56,6 +57,11 @@ class LiDiffParams(BaseModel):
     freeze_encoder: bool | None = Field(None, description="keep the scan encoder's weights fixed (default: frozen for "
                                                           "a few-step student, generate_steps > 0, as ScoreLiDAR's code "
                                                           "keeps the teacher's encoder; trained otherwise)")
+
+    @model_validator(mode="after")
+    def _one_size(self) -> "LiDiffParams":
+        fields_of_one_size(self, {"tiny": ("channels", "blocks", "k_scan", "k_cond")})
+        return self
 
 
 class LiDiffAdapter(Adapter):

@@ -21,7 +21,7 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor, nn
 
 from distilkit.adapter import Adapter
@@ -31,6 +31,7 @@ from distilkit.data.info import DataInfo
 from distilkit.geometry.nearest import knn_indices
 from distilkit.registry import ADAPTERS
 from distilkit.structures import PointCloud
+from distilkit_adapters._blocks import fields_of_one_size
 from distilkit_adapters.lidiff.model import _mlp
 
 
@@ -51,6 +52,11 @@ class RefineParams(BaseModel):
                                              "completions (the aux input coarse)")
     jitter_sigma: float = Field(0.2, gt=0, description="jitter standard deviation, metres (LiDiff: 0.2)")
     jitter_clip: float = Field(0.3, gt=0, description="jitter clipped to [-clip, clip] per axis, metres (LiDiff: 0.3)")
+
+    @model_validator(mode="after")
+    def _one_size(self) -> "RefineParams":
+        fields_of_one_size(self, {"tiny": ("channels", "k", "chunk")})
+        return self
 
 
 class PointRefiner(nn.Module):

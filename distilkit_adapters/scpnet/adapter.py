@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from distilkit.choices import Choice
 from distilkit.data.batch import Batch
@@ -13,7 +13,7 @@ from distilkit.data.info import DataInfo
 from distilkit.data.lidar import select_frames
 from distilkit.geometry.voxel import dense_to_sparse
 from distilkit.registry import ADAPTERS
-from distilkit_adapters._blocks import MultiFrameLidarAdapter, channels_last
+from distilkit_adapters._blocks import MultiFrameLidarAdapter, channels_last, fields_of_one_size
 from distilkit_adapters.scpnet.model import SCPNet, kernels_for_voxel, mask_inactive
 
 
@@ -49,6 +49,12 @@ class SCPNetParams(BaseModel):
         if any(k % 2 == 0 for k in sizes):
             raise ValueError(f"kernel sizes must be odd (the grid stays aligned), got {v}")
         return v
+
+    @model_validator(mode="after")
+    def _one_size(self) -> "SCPNetParams":
+        fields_of_one_size(self, {"tiny": ("channels", "point_mlp", "seg_channels", "kernels", "conv_kernel"),
+                                  "paper": ("semantics", "voxelization")})
+        return self
 
 
 class SCPNetAdapter(MultiFrameLidarAdapter):
