@@ -13,12 +13,14 @@ from distilkit.structures import VoxelGrid
 
 
 def fields_of_one_size(params: BaseModel, only: dict[str, tuple[str, ...]]) -> None:
-    """Refuse a field the recipe gave for the other ``size`` (``only``: each size's fields that the other one does not
-    read) — it would be ignored without a word (e.g. ``channels`` with ``size: paper``, whose widths are the
-    release's)."""
+    """Refuse a field the recipe set, away from its default, for the other ``size`` (``only``: each size's fields that
+    the other one does not read) — it would be ignored without a word (e.g. ``channels: 16`` with ``size: paper``,
+    whose widths are the release's). A default written out (a saved checkpoint's parameters) passes."""
     size = getattr(params, "size")
+    fields = type(params).model_fields
     for other, names in only.items():
-        given = [n for n in names if n in params.model_fields_set]
+        given = [n for n in names if n in params.model_fields_set
+                 and getattr(params, n) != fields[n].get_default(call_default_factory=True)]
         if other != size and given:
             raise ValueError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} read by size {other} only; "
                              f"size {size} does not use {'it' if len(given) == 1 else 'them'} (remove "

@@ -31,6 +31,7 @@ def test_a_field_of_the_other_size_is_named(cls: type[BaseModel], field: str, va
         cls(size=other, **{field: value})
     assert f"{field} is read by size {reads} only; size {other} does not use it" in str(err.value)
     cls(size=other)  # the defaults of the fields neither size was given stay valid
+    cls.model_validate(cls(size=other).model_dump())  # and every default written out (a checkpoint's parameters)
 
 
 def test_validate_names_the_stage_and_the_field(capsys) -> None:
