@@ -142,7 +142,8 @@ def _cache(tmp_path_factory: pytest.TempPathFactory) -> None:
 _RENDERS = [False]  # whether the test being set up looks at the pictures (marked plots)
 
 # the tests' child processes (`distilkit run` of a sweep's jobs, torchrun, a requeued job...) find
-# tests/_child_site/sitecustomize.py, which gives them the stand-in below where DISTILKIT_TEST_CLOSED_PLOTS is set
+# tests/_child_site/sitecustomize.py, which gives them the stand-in below (tests/_child_site/_closed_plots.py) where
+# DISTILKIT_TEST_CLOSED_PLOTS is set
 CHILD_SITE = str(Path(__file__).resolve().parent / "_child_site")
 if CHILD_SITE not in os.environ.get("PYTHONPATH", "").split(os.pathsep):
     os.environ["PYTHONPATH"] = os.pathsep.join([CHILD_SITE, *filter(None, os.environ.get("PYTHONPATH", "").split(
@@ -168,18 +169,10 @@ def _render_plots_only_where_looked_at() -> "Iterator[None]":
     marked ``plots`` render them for real."""
     from distilkit.report import plots
 
+    from _child_site._closed_plots import closing
+
     real = plots.save
-
-    def save(fig, path):
-        if _RENDERS[0]:
-            return real(fig, path)
-        import matplotlib.pyplot as plt
-
-        plt.close(fig)
-        path.write_bytes(b"")
-        return path
-
-    plots.save = save
+    plots.save = closing(real, lambda: _RENDERS[0])
     yield
     plots.save = real
 

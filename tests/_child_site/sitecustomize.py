@@ -2,24 +2,11 @@
 is set (conftest sets it for a test not marked ``plots``) when a child starts and when it saves a figure, the child's
 ``distilkit.report.plots.save`` closes the figure and writes an empty file, as conftest's stand-in does in the test's
 own process (read again at each call: a child that is itself a test run, the GPU check's, sets it per test). A finder on
-``sys.meta_path`` wraps the module when it is imported: a child imports nothing it did not import before (only this
-file, which imports what Python has already loaded)."""
+``sys.meta_path`` wraps the module when it is imported: a child imports nothing it did not import before but this
+file and, with the plots module, _closed_plots.py beside it (neither imports more than Python has loaded)."""
 
 import os
 import sys
-
-
-def _closing(real):
-    def save(fig, path):
-        if not os.environ.get("DISTILKIT_TEST_CLOSED_PLOTS"):
-            return real(fig, path)
-        import matplotlib.pyplot as plt
-
-        plt.close(fig)
-        path.write_bytes(b"")
-        return path
-
-    return save
 
 
 class _ClosedPlots:
@@ -38,7 +25,9 @@ class _ClosedPlots:
 
                 def exec_module(module, run=run):
                     run(module)
-                    module.save = _closing(module.save)
+                    from _closed_plots import closing
+
+                    module.save = closing(module.save, lambda: not os.environ.get("DISTILKIT_TEST_CLOSED_PLOTS"))
 
                 spec.loader.exec_module = exec_module
                 return spec
