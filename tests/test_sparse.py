@@ -17,6 +17,16 @@ KERNELS = [(1, 3, 3), (3, 1, 3), (3, 3, 1), (3, 3, 3)]
 SHAPE = (7, 6, 5)
 
 
+@pytest.fixture(params=["loop", "table"])
+def form(request: pytest.FixtureRequest):
+    """The torch path's two forms (:mod:`distilkit.sparse.function`'s loop over offsets, :mod:`distilkit.sparse.table`'s
+    neighbour table): each test that takes it holds for both."""
+    from distilkit.sparse.function import using_form
+
+    with using_form(request.param):
+        yield request.param
+
+
 def cloud(seed: int = 0, batch: int = 3, channels: int = 4, n: int = 40, empty: int | None = 1,
           device: torch.device = torch.device("cpu")) -> SparseConvTensor:
     """Random active voxels of ``batch`` grids (sample ``empty`` has none), with the grid's corners included."""
@@ -63,7 +73,7 @@ def grads_match(sparse_out, x, conv, dense_fn, out_idx) -> None:
 
 @pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("dilation", [1, 2])
-def test_submanifold_equals_dense_conv3d_at_the_active_sites(kernel, dilation, device) -> None:
+def test_submanifold_equals_dense_conv3d_at_the_active_sites(kernel, dilation, device, form) -> None:
     x = cloud(device=device)
     x.features.requires_grad_()
     conv = SubMConv3d(4, 5, kernel, dilation=dilation, indice_key="subm").double().to(device)
@@ -79,7 +89,7 @@ def test_submanifold_equals_dense_conv3d_at_the_active_sites(kernel, dilation, d
 @pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("stride,padding,dilation", [(2, 1, 1), ((2, 2, 1), (1, 1, 0), 1), (1, 0, 1), (2, 0, 2)])
 def test_strided_equals_dense_conv3d_and_its_active_sites_are_those_reached(kernel, stride, padding, dilation,
-                                                                            device) -> None:
+                                                                            device, form) -> None:
     x = cloud(1, device=device)
     x.features.requires_grad_()
     conv = SparseConv3d(4, 3, kernel, stride=stride, padding=padding, dilation=dilation, indice_key="down").double()
@@ -97,7 +107,7 @@ def test_strided_equals_dense_conv3d_and_its_active_sites_are_those_reached(kern
 
 @pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("stride,padding", [(2, 1), ((2, 2, 1), (1, 1, 0))])
-def test_inverse_equals_conv_transpose3d_back_on_the_input_sites(kernel, stride, padding, device) -> None:
+def test_inverse_equals_conv_transpose3d_back_on_the_input_sites(kernel, stride, padding, device, form) -> None:
     x = cloud(2, device=device)
     down = SparseConv3d(4, 6, kernel, stride=stride, padding=padding, indice_key="k1").double().to(device)
     y = down(x)
@@ -116,7 +126,7 @@ def test_inverse_equals_conv_transpose3d_back_on_the_input_sites(kernel, stride,
         SparseInverseConv3d(6, 2, kernel, indice_key="nope").double().to(device)(y)
 
 
-def test_an_empty_batch_and_gradcheck(device) -> None:
+def test_an_empty_batch_and_gradcheck(device, form) -> None:
     empty = SparseConvTensor(torch.zeros(0, 4, dtype=torch.float64, device=device, requires_grad=True),
                              torch.zeros(0, 4, dtype=torch.int32, device=device), SHAPE, 2)
     for conv in (SubMConv3d(4, 3, 3), SparseConv3d(4, 3, 3, stride=2, padding=1)):
@@ -190,7 +200,7 @@ def test_each_kernel_offset_writes_distinct_rows_so_the_scatter_order_cannot_cha
     row (forward) or an input row (the features' gradient), so whatever order the pairs of an offset are added in —
     atomics on CUDA included — each row receives one addition per offset, offsets in their fixed order. Tested as
     exactly that: the pairs of each offset shuffled give the same bits in the values and the features' gradient."""
-    from distilkit.sparse.function import rulebook_conv
+    from distilkit.sparse.function import rulebook_conv, using_form
     from distilkit.sparse.rulebook import Rulebook
 
     x = cloud(3, channels=5, n=60, device=device)
@@ -204,10 +214,12 @@ def test_each_kernel_offset_writes_distinct_rows_so_the_scatter_order_cannot_cha
         shuffled = Rulebook(book.in_idx[perm], book.out_idx[perm], book.bounds, book.out_indices, book.out_shape,
                             book.in_indices, book.in_shape, book.kernel, book.dilation, book.subm)
         w = torch.randn(book.volume, 5, 3, generator=g, dtype=torch.float64).to(device)
+        feats = torch.randn(book.in_indices.shape[0], 5, generator=g, dtype=torch.float64).to(device)
         results = []
         for b in (book, shuffled):
-            f, wk = x.features.detach().clone().requires_grad_(), w.clone().requires_grad_()
-            out = rulebook_conv(f, wk, b, b.out_indices.shape[0])
+            f, wk = feats.clone().requires_grad_(), w.clone().requires_grad_()
+            with using_form("loop"):  # the per-offset form's scatter-adds (the table form has none)
+                out = rulebook_conv(f, wk, b, b.out_indices.shape[0])
             out.square().sum().backward()
             results.append((out.detach(), f.grad, wk.grad))
         (out_a, f_a, w_a), (out_b, f_b, w_b) = results

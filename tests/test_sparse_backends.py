@@ -184,7 +184,7 @@ def test_the_stage_summary_and_validate_name_the_backend(tmp_path, tmp_path_fact
         "stages.*.model.params.ssc_channels=4"]
     assert main(["validate", "--static", str(path), "--set", *sets]) == 0
     out = capsys.readouterr().out
-    assert "sparse convolutions on the cpu: torch (DISTILKIT_SPARSE=auto) — stages teacher" in out, out
+    assert "sparse convolutions on the cpu: the torch path's loop form (DISTILKIT_SPARSE=auto) — stages teacher" in out, out
     assert main(["run", str(path), "-q", "-o", str(tmp_path / "runs"), "--set", *sets, "--stage", "teacher"]) == 0
     summaries = [json.loads(p.read_text()) for p in (tmp_path / "runs").rglob("summary.json")]
     assert summaries and all(s["sparse_backend"] == ["torch"] for s in summaries), summaries

@@ -203,8 +203,12 @@ def test_the_deterministic_settings_keep_auto_on_the_torch_path(double) -> None:
     with _deterministic(True):
         _, _, ran = outputs_and_grads(layers, feats, idx)
         assert ran == {"torch"} and not double.CALLS
+        said = backend.describe("cpu")  # validate says why an installed spconv is not used
+        assert said.startswith("sparse convolutions on the cpu: the torch path's loop form (DISTILKIT_SPARSE=auto)")
+        assert "spconv is installed but the deterministic settings keep auto off it" in said, said
         _, _, ran = outputs_and_grads(layers, feats, idx, "spconv")
         assert ran == {"spconv"} and double.CALLS
+    assert backend.describe("cpu").startswith("sparse convolutions on the cpu: spconv (DISTILKIT_SPARSE=auto)")
 
 
 def test_the_real_modules_come_back_after_the_double() -> None:

@@ -14,6 +14,15 @@ from distilkit.sparse import SparseConv3d, SparseConvTensor, SparseInverseConv3d
 SHAPE = (6, 7, 5)
 
 
+@pytest.fixture(params=["loop", "table"])
+def form(request: pytest.FixtureRequest):
+    """The torch path's two forms: spconv 1.x's reuse holds in both."""
+    from distilkit.sparse.function import using_form
+
+    with using_form(request.param):
+        yield request.param
+
+
 def cloud(seed: int = 0, n: int = 45, channels: int = 3) -> SparseConvTensor:
     g = torch.Generator().manual_seed(seed)
     rows = []
@@ -42,7 +51,7 @@ def naive_subm(feats: torch.Tensor, coords: list[tuple[int, ...]], weight: torch
     return torch.stack(rows)
 
 
-def test_spconv1_reuses_the_first_map_whatever_the_kernel_values_and_gradients() -> None:
+def test_spconv1_reuses_the_first_map_whatever_the_kernel_values_and_gradients(form) -> None:
     """Cylinder3D's blocks as SCPNet's release runs them: 1x3x3 first, then 3x1x3 and 3x3x3 on its map, and a branch
     from the block's input on the shared map; a second key first used with 3x1x1 (the ReconBlock)."""
     x = cloud()
@@ -83,7 +92,7 @@ def test_spconv1_reuses_the_first_map_whatever_the_kernel_values_and_gradients()
     assert not c.weight.grad[:, 1:].any() and c.weight.grad[:, 0].any()  # only slice [:, 0] is read
 
 
-def test_spconv1_on_its_own_map_is_the_convolution_and_a_kernel_smaller_than_the_map_is_refused() -> None:
+def test_spconv1_on_its_own_map_is_the_convolution_and_a_kernel_smaller_than_the_map_is_refused(form) -> None:
     x = cloud(1)
     big = SubMConv3d(3, 3, (3, 3, 3), bias=False, indice_key="k", semantics="spconv1").double()
     small = SubMConv3d(3, 3, (1, 3, 3), bias=False, indice_key="k", semantics="spconv1").double()
@@ -96,7 +105,7 @@ def test_spconv1_on_its_own_map_is_the_convolution_and_a_kernel_smaller_than_the
         SubMConv3d(3, 3, 3, dilation=2, semantics="spconv1")
 
 
-def test_spconv1_strided_reuse_and_the_inverse_of_another_shape() -> None:
+def test_spconv1_strided_reuse_and_the_inverse_of_another_shape(form) -> None:
     """A strided convolution whose key exists runs on the stored map (spconv 1.x reuses any key): a 3x3x3 kernel on
     a stored 3x1x3 map is the 3x1x3 convolution with its first 9 slices; a kernel with fewer offsets than the map is
     refused; an inverse needs the same number of offsets, not the same shape."""

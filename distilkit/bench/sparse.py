@@ -12,6 +12,7 @@ path, each with its GFLOP/s beside the GPU's GEMM rate.
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
@@ -19,6 +20,7 @@ import torch
 from torch import Tensor
 
 from distilkit.bench.base import Case, register, scratch_dir
+from distilkit.sparse.function import form
 
 
 def scan_occupancy(quick: bool) -> Tensor:
@@ -113,9 +115,58 @@ def sparse_cases(device: torch.device, quick: bool) -> list[Case]:
     size = f"SubM 3x3x3 {channels}->{channels}, {len(indices):,} of {'x'.join(map(str, shape))} voxels"
     cases = [Case("sparse: SubMConv3d vs dense conv3d", size, on("torch", sparse), dense, [feats, weight],
                   note=note)]
+    cases.append(Case("sparse: table vs loop form (torch path)", size, on("torch", sparse, "table"),
+                      on("torch", sparse, "loop"), [feats, weight],
+                      note=lambda row: f"table form ({form(device.type)} is this {device.type}'s default): "
+                                       + note(row).split("; dense")[0]))
     for name in library_backends(device):  # the same layer on each library present, against the torch path
         cases.append(Case(f"sparse: {name} vs torch backend", size, on(name, sparse), on("torch", sparse),
                           [feats, weight], note=lambda row, name=name: f"{name}: " + note(row).split("; dense")[0]))
+    return cases
+
+
+def tiled(indices: Tensor, copies: int, shape: tuple[int, int, int]) -> tuple[Tensor, tuple[int, int, int]]:
+    """``copies`` copies of a scan's (N, 4) voxels side by side along x and y in a grid that holds them (each voxel
+    keeps its neighbourhood, so the pairs per voxel stay the scan's): (indices, the grid)."""
+    side = math.ceil(math.sqrt(copies))
+    rows = [indices[:, 1:] + torch.tensor([i % side * shape[0], i // side * shape[1], 0], device=indices.device,
+                                          dtype=indices.dtype) for i in range(copies)]
+    coords = torch.cat(rows)
+    out = torch.cat([torch.zeros_like(coords[:, :1]), coords], dim=1)
+    return out, (shape[0] * side, shape[1] * math.ceil(copies / side), shape[2])
+
+
+@register("sparse-sizes")
+def sparse_size_cases(device: torch.device, quick: bool) -> list[Case]:
+    """The torch path's table form against each library present (spconv, spconv-Triton: the issue's goal is 1.5x of
+    spconv) — or against the loop form where none is — for a SubM 3x3x3 layer at 20k-400k voxels (copies of the
+    five-scan occupancy side by side) and 32, 64 and 128 channels; quick: one copy of the quick occupancy at 16 and
+    32 channels."""
+    from distilkit.sparse import SparseConvTensor, SubMConv3d
+
+    base = scan_occupancy(quick)
+    shape = (128, 128, 16) if quick else (256, 256, 32)
+    base = base[(base[:, 1:] < torch.tensor(shape)).all(dim=1)]
+    plan = [(1, 16), (1, 32)] if quick else [(c, ch) for c in (1, 4, 18) for ch in (32, 64, 128)]
+    against = library_backends(device) or ["loop"]
+    cases = []
+    for copies, channels in plan:
+        indices, grid = tiled(base, copies, shape)
+        indices = indices.int().to(device)
+        g = torch.Generator().manual_seed(copies * 1000 + channels)
+        feats = torch.randn(len(indices), channels, generator=g).to(device).requires_grad_()
+        conv = SubMConv3d(channels, channels, 3, bias=False, indice_key="bench").to(device)
+        x = SparseConvTensor(feats, indices, grid, 1)
+        book = conv.rulebook(x)
+
+        def layer(conv: Any = conv, x: Any = x, feats: Tensor = feats, book: Any = book) -> Tensor:
+            return conv(x.derived(feats, indice_dict={"bench": book})).features.sum()
+
+        size = f"SubM 3x3x3 {channels}->{channels}, {len(indices):,} voxels, {book.pairs / len(indices):.1f} pairs each"
+        for other in against:
+            slow = on("torch", layer, "loop") if other == "loop" else on(other, layer)
+            cases.append(Case(f"sparse: table vs {other}", size, on("torch", layer, "table"), slow,
+                              [feats, conv.weight]))
     return cases
 
 
@@ -136,14 +187,16 @@ def library_backends(device: torch.device) -> list[str]:
     return [name for name in ("spconv", "spconv-triton") if backend.problem(name, device.type) is None]
 
 
-def on(name: str, fn: Any) -> Any:
-    """``fn`` with the sparse convolutions on backend ``name``."""
+def on(name: str, fn: Any, form_name: str = "auto") -> Any:
+    """``fn`` with the sparse convolutions on backend ``name`` (the torch path in form ``form_name``)."""
     from distilkit.sparse.backend import using
+    from distilkit.sparse.function import using_form
 
     def run() -> Tensor:
-        with using(name):
+        with using(name), using_form(form_name):
             return fn()
     return run
 
 
-__all__ = ["compared", "library_backends", "on", "scan_occupancy", "sgemm_gflops", "sparse_cases"]
+__all__ = ["compared", "library_backends", "on", "scan_occupancy", "sgemm_gflops", "sparse_cases", "sparse_size_cases",
+           "tiled"]

@@ -15,11 +15,13 @@ similarity numeric (FSD) and relational.
 * :func:`l2cocc_relation` — per map, the P x P cosine-similarity matrices of the student with itself and of the
   teacher with itself (rows L2-normalised as ``F.normalize`` does: a zero row stays zero), their L1 distance averaged
   over the B P^2 entries (``F.l1_loss``; every sample has P^2 entries, so the pooled mean is the mean of the
-  per-sample means: the release's one sample per GPU gives the same value at B > 1). Exact in row blocks with a
-  hand-written backward: O(P^2 C) time, never a P x P matrix (at a 128 x 128 plane, P^2 = 2.7e8 entries, 1 GiB in
-  float32 per matrix). The diagonal is |1 - 1|
-  = 0 for every non-zero row whatever the features: its gradient is 0 here, where autograd of the dense form takes
-  the sign of a rounding residue.
+  per-sample means: the release's one sample per GPU gives the same value at B > 1). Exact, by square tiles of
+  D = A - B (A = a a^T the student's cosines, B = b b^T the teacher's) with a hand-written backward: a tile is one
+  GEMM, [a_I | b_I] [a_J | -b_J]^T = A_IJ - B_IJ; D is symmetric, so only the tiles I <= J are computed, those off
+  the diagonal counted twice; each row of |D_IJ| is summed in the input's dtype, the row sums in float64. O(P^2 C)
+  time, never a P x P matrix (at a 128 x 128 plane, P^2 = 2.7e8 entries, 1 GiB in float32 per matrix). The
+  diagonal is 1 - 1 = 0 for every non-zero row whatever the features: its gradient is 0 here, where autograd of
+  the dense form takes the sign of a rounding residue.
 
 The release computes per-layer ratios for FSD (0.1, 1, 0.5, 1.5) and never uses them; its relation term reads the
 first neck output of each of the three TPV planes and sums the three; the recipe's objectives choose the maps.
@@ -27,15 +29,18 @@ first neck output of each of the three TPV planes and sums the three; the recipe
 
 from __future__ import annotations
 
+import math
 from typing import Literal, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from distilkit.losses.logit import kl_per_sample
 
-_ENTRIES = 1 << 24  # entries of one row block of the P x P matrices (64 MiB in float32)
+_ENTRIES = 1 << 24  # the most entries of one tile of the P x P matrix (64 MiB in float32)
+_CPU_TILE = 1024  # the tiles' edge on the CPU (4 MiB in float32: a core's L2, between the GEMM and the next pass)
 
 
 def _voxels(x: Tensor) -> Tensor:
@@ -97,53 +102,75 @@ def l2cocc_fsd(student_features: Tensor | Sequence[Tensor], teacher_features: Te
 
 
 class _RelationL1(torch.autograd.Function):
-    """sum_b sum_ij |a_i.a_j - b_i.b_j| / (B P^2) over row-normalised (B, P, C) inputs, one row block at a time."""
+    """sum_b sum_ij |a_i.a_j - b_i.b_j| / (B P^2) over row-normalised (B, P, C) inputs, by square tiles of the
+    P x P matrix D = A - B: tile (I, J) is one GEMM, [a_I | b_I] [a_J | -b_J]^T. D is symmetric, so only the tiles
+    I <= J are computed, those off the diagonal counted twice."""
 
     @staticmethod
-    def _block(a: Tensor, b: Tensor, start: int, stop: int) -> Tensor:
-        d = a[start:stop] @ a.T - b[start:stop] @ b.T
-        rows = torch.arange(start, stop, device=a.device)
-        both = (a[start:stop].abs().sum(1) > 0) & (b[start:stop].abs().sum(1) > 0)  # the diagonal is exactly 0
-        d[rows - start, rows] = torch.where(both, torch.zeros_like(d[rows - start, rows]), d[rows - start, rows])
+    def _tiles(p: int, device: torch.device) -> list[tuple[int, int, int, int, float]]:
+        """(I start, I stop, J start, J stop, weight) of the tiles I <= J of a P x P matrix: edge sqrt(_ENTRIES),
+        at most _CPU_TILE on the CPU (elsewhere fewer, larger GEMMs and launches)."""
+        edge = max(1, min(p, math.isqrt(_ENTRIES), _CPU_TILE if device.type == "cpu" else p))
+        starts = range(0, p, edge)
+        return [(i, min(i + edge, p), j, min(j + edge, p), 1.0 if i == j else 2.0)
+                for i in starts for j in starts if i <= j]
+
+    @staticmethod
+    def _tile(lhs: Tensor, rhs: Tensor, both: Tensor, i0: int, i1: int, j0: int, j1: int, out: Tensor) -> Tensor:
+        """The tile (I, J) of D into ``out`` (a flat buffer): one GEMM; on a diagonal tile, D_ii = 1 - 1 = 0
+        exactly where a_i and b_i are both non-zero."""
+        d = torch.mm(lhs[i0:i1], rhs[j0:j1].T, out=out[:(i1 - i0) * (j1 - j0)].view(i1 - i0, j1 - j0))
+        if i0 == j0:
+            d.diagonal().masked_fill_(both[i0:i1], 0)
         return d
+
+    @staticmethod
+    def _operands(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """[a | b], [a | -b] (D = [a | b] [a | -b]^T) and the rows where a and b are both non-zero."""
+        return torch.cat([a, b], 1), torch.cat([a, -b], 1), (a.abs().sum(1) > 0) & (b.abs().sum(1) > 0)
 
     @staticmethod
     def forward(ctx, a: Tensor, b: Tensor) -> Tensor:  # type: ignore[override]
         n, p = a.shape[0], a.shape[1]
-        step = max(1, _ENTRIES // max(p, 1))
-        total = a.new_zeros((), dtype=torch.float64)
-        for i in range(n):
-            for start in range(0, p, step):
-                total += _RelationL1._block(a[i], b[i], start, min(start + step, p)).abs().sum(dtype=torch.float64)
+        tiles = _RelationL1._tiles(p, a.device)
+        buffer = a.new_empty(tiles[0][1] * tiles[0][3] if tiles else 0)  # the first tile is the largest
+        rows = a.new_zeros(p, dtype=torch.float64)  # row sums of |D|, over the batch
+        wide = None if a.dtype in (torch.float32, torch.float64) else torch.float32  # float16/bfloat16: sum in fp32
+        for k in range(n):
+            lhs, rhs, both = _RelationL1._operands(a[k], b[k])
+            for i0, i1, j0, j1, weight in tiles:
+                d = _RelationL1._tile(lhs, rhs, both, i0, i1, j0, j1, buffer)
+                rows[i0:i1].add_(d.abs_().sum(1, dtype=wide), alpha=weight)  # = vector_norm(d, 1, 1): 7x faster (CPU)
         ctx.save_for_backward(a, b)
-        ctx.step = step
-        return (total / max(n * p * p, 1)).to(a.dtype)
+        return (rows.sum() / max(n * p * p, 1)).to(a.dtype)
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, Tensor | None]:  # type: ignore[override]
         a, b = ctx.saved_tensors
-        n, p, step = a.shape[0], a.shape[1], ctx.step
+        n, p, c = a.shape[0], a.shape[1], a.shape[2]
         need_a, need_b = ctx.needs_input_grad
-        ga = torch.zeros_like(a) if need_a else None
-        gb = torch.zeros_like(b) if need_b else None
-        for i in range(n):
-            for start in range(0, p, step):
-                stop = min(start + step, p)
-                s = _RelationL1._block(a[i], b[i], start, stop).sign()  # d|A - B| / dA for this block of rows
-                if ga is not None:  # A = a a^T: dL/da = (S + S^T) a, a block of rows of S at a time
-                    ga[i, start:stop] += s @ a[i]
-                    ga[i] += s.T @ a[i, start:stop]
-                if gb is not None:
-                    gb[i, start:stop] -= s @ b[i]
-                    gb[i] -= s.T @ b[i, start:stop]
-        scale = grad / max(n * p * p, 1)
-        return (ga * scale if ga is not None else None), (gb * scale if gb is not None else None)
+        # dL/d[a | b] = (S + S^T) [a | -b] with S = sign(D): accumulate G = (S + S^T) [a | b] over the columns
+        # wanted (a's, b's or both in one GEMM); b's gradient is -G's part
+        cols = slice(0 if need_a else c, None if need_b else c)
+        tiles = _RelationL1._tiles(p, a.device)
+        buffer = a.new_empty(tiles[0][1] * tiles[0][3] if tiles else 0)  # the first tile is the largest
+        g = a.new_zeros(n, p, (c if need_a else 0) + (b.shape[2] if need_b else 0))
+        for k in range(n):
+            lhs, rhs, both = _RelationL1._operands(a[k], b[k])
+            m = lhs[:, cols]
+            for i0, i1, j0, j1, weight in tiles:
+                s = _RelationL1._tile(lhs, rhs, both, i0, i1, j0, j1, buffer).sign_()
+                g[k, i0:i1].addmm_(s, m[j0:j1], alpha=weight)  # S_IJ [a_J | b_J] to the rows I
+                g[k, j0:j1].addmm_(s.T, m[i0:i1], alpha=weight)  # S_IJ^T [a_I | b_I] to the rows J
+        g *= grad / max(n * p * p, 1)
+        return (g[..., :c] if need_a else None), ((-g[..., c:] if need_a else -g) if need_b else None)
 
 
 def l2cocc_relation(student_features: Tensor, teacher_features: Tensor) -> Tensor:
     """L2COcc's relational feature similarity of one map: mean over the batch and the P^2 position pairs of
     |cos_S(i, j) - cos_T(i, j)|, each model's cosines among its own P = prod(spatial) positions (channels may
-    differ between the two). Exact, in row blocks: no P x P matrix is held."""
+    differ between the two). Exact, by tiles of the P x P matrices' difference: no P x P matrix is held."""
     if student_features.dim() < 3 or student_features.shape[0] != teacher_features.shape[0] or \
             student_features.shape[2:] != teacher_features.shape[2:]:
         raise ValueError(f"l2cocc_relation: features {tuple(student_features.shape)} and "

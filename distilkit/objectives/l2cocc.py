@@ -115,8 +115,8 @@ class FSD(MultiTapObjective):
 
 class Relation(MultiTapObjective):
     """L2COcc's relational feature similarity: the mean L1 distance between the student's and the teacher's P x P
-    cosine matrices among the map's positions (computed in row blocks: O(P^2 C) time, no P x P matrix); weight 5
-    as its configs (the release sums it over the three TPV planes' first neck maps: one term per map here, each at
+    cosine matrices among the map's positions (computed in tiles of the upper triangle, one GEMM each: O(P^2 C)
+    time, no P x P matrix); weight 5 as its configs (the release sums it over the three TPV planes' first neck maps: one term per map here, each at
     x5, is the release's sum). Reduction: the mean over the B P^2 entries, which is the mean of per-sample values
     (every sample has P^2), as the release's one sample per GPU."""
 
@@ -142,6 +142,6 @@ register_objective("l2cocc_fsd", FSD, description="L2COcc's numeric feature simi
                    "m: the term's map pairs", shapes="(B, C, X, Y[, Z]) maps, each pair of one shape; labels pooled "
                    "to each map")
 register_objective("l2cocc_relation", Relation, description="L2COcc's relational similarity: L1 between P×P "
-                   "cosine matrices, in row blocks", paper="L2COcc (Wang et al., IROS 2025), CameraSegmentor.py",
+                   "cosine matrices, in tiles of the upper triangle", paper="L2COcc (Wang et al., IROS 2025), CameraSegmentor.py",
                    equation="mean_{b,i,j} |cos_S(i,j) − cos_T(i,j)|",
                    shapes="(B, C_s / C_t, X, Y[, Z]) maps of one spatial size")

@@ -265,9 +265,20 @@ def describe(device_type: str) -> str:
         name = choose(device_type)
     except SparseBackendError as exc:
         return f"sparse convolutions: cannot run — {exc}"
+    from distilkit.sparse.function import form
+
     how = f"{ENV}={want}" if not _override else f"using({want!r})"
+    torch_path = f"the torch path's {form(device_type)} form"
     where = "" if name == "torch" or device_type != "cuda" else \
-        " (float64 and bfloat16 calls, and every call under the deterministic settings, on torch)"
+        f" (float64 and bfloat16 calls on {torch_path})"
+    if name == "torch":
+        name = torch_path
+        if want == "auto" and device_type in AUTO_DEVICES and _deterministic():
+            kept = [lib for lib in AUTO_LIBRARIES if problem(lib, device_type) is None]
+            if kept:
+                where = (f" — {', '.join(kept)} is installed but the deterministic settings keep auto off it (its "
+                         "tuner times kernels in each process and splits the weight-gradient sums, so two processes "
+                         "can round differently); DISTILKIT_DETERMINISTIC=0 or DISTILKIT_SPARSE=spconv uses it")
     return f"sparse convolutions on the {device_type}: {name} ({how}){where}"
 
 

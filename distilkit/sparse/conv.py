@@ -139,14 +139,15 @@ class _SparseConvolution(nn.Module):
                              f"{book.volume} kernel offsets, more than this kernel's {self.volume} (spconv 1.x would "
                              "read past the filters)")
         matrices = self.kernel_matrices()
-        out = rulebook_conv(x.features, matrices if book.volume == self.volume else matrices[:book.volume], book,
-                            rows_out)
-        return out + self.bias if self.bias is not None else out
+        return rulebook_conv(x.features, matrices if book.volume == self.volume else matrices[:book.volume], book,
+                             rows_out, self.bias)
 
     def _matmul(self, x: SparseConvTensor) -> SparseConvTensor:
         """A 1x1x1 stride-1 convolution, as both spconv versions compute it: a product on the features."""
-        out = torch.mm(x.features, self.kernel_matrices()[0])
-        return x.derived(out + self.bias if self.bias is not None else out)
+        weight = self.kernel_matrices()[0]
+        if self.bias is None:
+            return x.derived(torch.mm(x.features, weight))
+        return x.derived(torch.addmm(self.bias, x.features, weight))  # under autocast: autocast's dtype, as a layer
 
     def _kept(self, x: SparseConvTensor) -> Rulebook | None:
         kept = x.indice_dict.get(self.indice_key) if self.indice_key else None

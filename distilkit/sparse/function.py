@@ -16,8 +16,10 @@ float32 (as spconv accumulates half-precision products); the output has autocast
 
 from __future__ import annotations
 
+import contextlib
+import os
 from functools import cache
-from typing import Any
+from typing import Any, Iterator
 
 import torch
 from torch import Tensor
@@ -25,6 +27,7 @@ from torch import Tensor
 from distilkit.repro import set_deterministic
 from distilkit.sparse.backend import Call, choose, library_conv, ran
 from distilkit.sparse.rulebook import Rulebook
+from distilkit.sparse.table import table_conv
 
 
 def _scatter_add(out: Tensor, index: Tensor, values: Tensor) -> None:
@@ -101,22 +104,66 @@ def _function(device_type: str) -> type[torch.autograd.Function]:
     return _RulebookConv
 
 
-def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: int) -> Tensor:
-    """(rows_out, C_out) = the convolution of (N, C_in) ``features`` on ``book`` with ``weight`` (K, C_in, C_out), on
-    the backend :func:`distilkit.sparse.backend.choose` picks for the features' device."""
+FORM_ENV = "DISTILKIT_SPARSE_FORM"
+FORMS = ("auto", "table", "loop")
+AUTO_FORM = {"cuda": "table"}  # device type -> the torch path's form under ``auto``; others: :data:`CPU_FORM`
+CPU_FORM = "loop"  # the faster form on the CPU (``distilkit bench sparse`` measures both; README, "Sparse path")
+_forms: list[str] = []  # :func:`using_form`'s choices, innermost last
+
+
+def form(device_type: str) -> str:
+    """The torch path's form on ``device_type``: the innermost :func:`using_form`, else ``DISTILKIT_SPARSE_FORM``,
+    else ``auto`` — the neighbour table (:mod:`distilkit.sparse.table`) on CUDA, :data:`CPU_FORM` elsewhere."""
+    want = _forms[-1] if _forms else (os.environ.get(FORM_ENV, "auto").strip().lower() or "auto")
+    if want not in FORMS:
+        raise ValueError(f"{FORM_ENV}={want!r}: choose one of {', '.join(FORMS)}")
+    return AUTO_FORM.get(device_type, CPU_FORM) if want == "auto" else want
+
+
+@contextlib.contextmanager
+def using_form(name: str) -> Iterator[None]:
+    """Run the torch path's convolutions inside the block in form ``name`` (``table`` or ``loop``; ``auto``)."""
+    if name not in FORMS:
+        raise ValueError(f"sparse form {name!r}: choose one of {', '.join(FORMS)}")
+    _forms.append(name)
+    try:
+        yield
+    finally:
+        _forms.pop()
+
+
+def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: int,
+                  bias: Tensor | None = None) -> Tensor:
+    """(rows_out, C_out) = ``bias`` + the convolution of (N, C_in) ``features`` on ``book`` with ``weight`` (K,
+    C_in, C_out), on the backend :func:`distilkit.sparse.backend.choose` picks for the features' device and, on the
+    torch path, in the form :func:`form` picks (the table form adds the bias inside its float32 accumulator)."""
     if weight.shape[0] != len(book.bounds) - 1:
         raise ValueError(f"sparse convolution: {weight.shape[0]} kernel offsets in the weight, "
                          f"{len(book.bounds) - 1} in the neighbour map")
+    if features.shape[0] != book.in_indices.shape[0]:
+        raise ValueError(f"sparse convolution: {features.shape[0]} input rows, the neighbour map reads "
+                         f"{book.in_indices.shape[0]}")
     pairs = book.pairs_host
-    if pairs == 0:  # nothing to multiply: zeros (gradients zeros) on the torch path, never a library's (spconv asserts)
-        return _function(features.device.type).apply(features, weight, book.in_idx, book.out_idx, book.bounds,
-                                                      rows_out)
-    backend = choose(features.device.type, Call.of(features, weight, pairs))
-    ran(backend)
+    backend = "torch"
+    if pairs > 0:  # an empty map never reaches a library (spconv asserts): zeros (gradients zeros) on the torch path
+        backend = choose(features.device.type, Call.of(features, weight, pairs))
+        ran(backend)
     if backend != "torch":
-        return library_conv(backend, features, weight, book, rows_out)
-    return _function(features.device.type).apply(features, weight, book.in_idx, book.out_idx, book.bounds,
-                                                  rows_out)
+        out = library_conv(backend, features, weight, book, rows_out)
+    elif form(features.device.type) == "table":
+        if book.out_indices.shape[0] != rows_out:
+            raise ValueError(f"sparse convolution: the neighbour map has {book.out_indices.shape[0]} output rows, "
+                             f"{rows_out} asked for")
+        return table_conv(features, weight, bias, book)
+    else:
+        out = _function(features.device.type).apply(features, weight, book.in_idx, book.out_idx, book.bounds,
+                                                     rows_out)
+    if bias is not None:
+        out = out + bias
+    device = features.device.type
+    if torch.is_autocast_enabled(device):  # autocast's dtype out, as the table form and a 1x1x1 layer give
+        out = out.to(torch.get_autocast_dtype(device))
+    return out
 
 
-__all__ = ["rulebook_conv"]
+__all__ = ["FORMS", "FORM_ENV", "form", "rulebook_conv", "using_form"]

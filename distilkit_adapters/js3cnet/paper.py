@@ -39,10 +39,10 @@ from __future__ import annotations
 from collections import OrderedDict
 from typing import Literal
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
+from distilkit.geometry.knn import grid_knn as exact_grid_knn
 from distilkit.sparse import SparseConvTensor, name_modules
 from distilkit.sparse.points import voxelize_flat
 from distilkit.structures import VoxelGrid
@@ -160,25 +160,9 @@ def first_k_mean(values: Tensor, groups: Tensor, n_groups: int, k: int) -> Tenso
 
 def grid_knn(query: Tensor, support: Tensor, k: int) -> Tensor:
     """(Q, min(k, S)) indices of each query's k nearest supports, both given as (Q, 3) / (S, 3) int64 coordinates
-    in one unit (distances exact), ties broken by the lower support index; a KD-tree (scipy) finds candidates, a
-    query whose tie at the k-th distance runs past them is searched by brute force."""
-    from scipy.spatial import cKDTree
-
-    k = min(k, len(support))
-    if len(query) == 0 or k == 0:
-        return torch.zeros((len(query), k), dtype=torch.long, device=query.device)
-    q, s = query.cpu().numpy(), support.cpu().numpy()
-    extra = min(k + 8, len(s))
-    _, cand = cKDTree(s.astype(np.float64)).query(q.astype(np.float64), extra)
-    cand = cand.reshape(len(q), extra)
-    d2 = ((s[cand] - q[:, None]) ** 2).sum(-1)
-    order = np.lexsort((cand, d2), axis=1)  # by distance, then index
-    cand, d2 = np.take_along_axis(cand, order, 1), np.take_along_axis(d2, order, 1)
-    open_tie = (d2[:, k - 1] == d2[:, -1]) & (extra < len(s))
-    for i in np.nonzero(open_tie)[0]:  # the tie group may hold supports the tree did not return
-        full = ((s - q[i]) ** 2).sum(-1)
-        cand[i, :k] = np.lexsort((np.arange(len(s)), full))[:k]
-    return torch.from_numpy(np.ascontiguousarray(cand[:, :k])).to(query.device)
+    in one unit (distances exact), ties broken by the lower support index: ``distilkit.geometry.knn.grid_knn``, on
+    the points' device."""
+    return exact_grid_knn(query, support, k)
 
 
 def _centres(coords: Tensor, grid: VoxelGrid, stride: int, dtype: torch.dtype) -> Tensor:
