@@ -1,65 +1,8 @@
-"""Counting the points where the host waits for the device's values (``.item()``, ``bool()``, ``.tolist()``,
-``nonzero``, boolean-mask indexing, ``unique``, ``repeat_interleave`` without its size): on CUDA with PyTorch's own
-sync debug mode (a warning per synchronising call), on the CPU — where nothing waits — by the ops that would, seen
-by a ``TorchDispatchMode``."""
+"""The tests' counter of host syncs is the library's (:mod:`distilkit.bench.syncs`, which ``distilkit bench step``
+also counts with): on CUDA PyTorch's sync debug mode, on the CPU the ops that would sync there."""
 
 from __future__ import annotations
 
-import contextlib
-import warnings
-from typing import Iterator
+from distilkit.bench.syncs import SYNCING, host_syncs
 
-import torch
-from torch.utils._python_dispatch import TorchDispatchMode
-
-SYNCING = {"aten._local_scalar_dense.default", "aten.nonzero.default", "aten.masked_select.default",
-           "aten._unique2.default", "aten.unique_dim.default", "aten.unique_consecutive.default"}
-
-
-class _Counter(TorchDispatchMode):
-    def __init__(self) -> None:
-        super().__init__()
-        self.ops: list[str] = []
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # type: ignore[no-untyped-def]
-        name = str(func)
-        kwargs = kwargs or {}
-        if name in SYNCING:
-            self.ops.append(name)
-        elif name == "aten.index.Tensor" and any(i is not None and i.dtype == torch.bool for i in args[1]):
-            self.ops.append("boolean mask")
-        elif name.startswith("aten.repeat_interleave") and kwargs.get("output_size") is None and \
-                len(args) < 3 and isinstance(args[0], torch.Tensor) and args[0].dtype != torch.bool:
-            self.ops.append(name)
-        return func(*args, **kwargs)
-
-
-@contextlib.contextmanager
-def host_syncs(device: torch.device) -> Iterator[list[str]]:
-    """The list of host syncs made inside the block on ``device`` (filled when the block ends)."""
-    found: list[str] = []
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-        torch.cuda.set_sync_debug_mode("warn")
-        try:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                yield found
-                torch.cuda.set_sync_debug_mode("default")
-            found += [str(w.message).splitlines()[0] for w in caught if "synchroniz" in str(w.message)]
-        finally:
-            torch.cuda.set_sync_debug_mode("default")
-        return
-    tolist = torch.Tensor.tolist
-
-    def counted(self: torch.Tensor):  # type: ignore[no-untyped-def]
-        found.append("tolist")
-        return tolist(self)
-
-    torch.Tensor.tolist = counted  # type: ignore[method-assign]
-    try:
-        with _Counter() as counter:
-            yield found
-        found += counter.ops
-    finally:
-        torch.Tensor.tolist = tolist  # type: ignore[method-assign]
+__all__ = ["SYNCING", "host_syncs"]

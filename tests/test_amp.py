@@ -110,3 +110,19 @@ def test_one_bf16_step_of_each_paper_network_is_float32_within_a_percent(name, s
     loss = {"fp32": fp32, "bf16": at_precision(trainer, "bf16").train_step(batch, 0)["loss"]}
     assert loss["bf16"] != loss["fp32"]  # the models did run in bf16
     assert abs(loss["bf16"] - loss["fp32"]) <= TOLERANCE * abs(loss["fp32"]), loss
+
+
+def test_the_js3cnet_stand_in_trains_under_float16_autocast() -> None:
+    """JS3C-Net's ``size: tiny`` pools its encoder's features into voxels with an ``index_add_`` into float32: under
+    fp16 autocast (a half-precision encoder) it stopped with "self (Float) and source (Half)" (found by ``distilkit
+    bench step``); now its step runs and its loss is float32's within fp16's rounding."""
+    from distilkit.bench.fixtures import build, network_cases, tap_loss
+
+    case = next(c for c in network_cases(quick=True, test=True, sizes=("tiny",)) if c.family == "JS3C-Net")
+    model, batch = build(case, torch.device("cpu"))
+    ref = tap_loss(model(batch))
+    with torch.autocast("cpu", dtype=torch.float16):
+        loss = tap_loss(model(batch))
+    loss.backward()
+    assert torch.isfinite(loss) and abs(float(loss) - float(ref)) <= 2e-2 * abs(float(ref)) + 1e-3
+    assert all(p.grad is None or torch.isfinite(p.grad).all() for p in model.parameters())

@@ -76,6 +76,45 @@ def test_a_section_that_hangs_is_stopped_and_the_check_keeps_its_budget(tmp_path
     assert not list(tmp.iterdir())  # the check's folder removed, the sleeping section's process group killed
 
 
+def test_the_benchmarks_section_times_a_step_within_its_time_and_bf16_runs_at_the_papers_sizes_on_cuda(
+        tmp_path: Path, monkeypatch) -> None:
+    """The section's commands: the other benchmarks, then ``distilkit bench step`` at the papers' sizes on CUDA
+    (its rows in STEP_ONLY's order: the recipes' distillation steps first) with a time limit that ends it before the
+    section's time does, at the reduced sizes in the dry run (VoxFormer's teacher, the cheapest row there); and the
+    bf16 section's trainers at the full grid on CUDA, the reduced one in the dry run."""
+    check = gpu_check_module()
+    cuda, dry = check.parse(["--device", "cuda"]), check.parse(["--device", "cpu", "--quick"])
+    assert "step" in check.BENCHMARKS and cuda.bench is None
+    assert check.bench_command(cuda, ["dskd", "relation", "sparse"]) == [
+        "bench", "--device", "cuda", "dskd", "relation", "sparse"]
+    step = check.step_command(cuda, 120.0)
+    assert step[:4] == ["bench", "--device", "cuda", "step"] and "--quick" not in step
+    limit = float(step[step.index("--time-limit") + 1])
+    assert 0 < limit <= 120.0 - check.STEP_MARGIN
+    only = step[step.index("--only") + 1:]
+    assert only[:2] == ["recipe*fp32", "recipe*bf16"] and any(p.startswith("teacher") for p in only)
+    step = check.step_command(dry, 60.0)
+    assert step[:5] == ["bench", "--device", "cpu", "--quick", "step"]
+    assert step[step.index("--only") + 1:] == ["VoxFormer teacher fp32"]
+    assert check.step_command(dry, 5.0)[6] == "1"  # never a limit below a second
+    seen = []
+    import types
+
+    import distilkit.engine.memory.probe
+
+    monkeypatch.setattr(check, "resolved", lambda name, root, quick, extra: seen.append((name, quick, extra))
+                        or types.SimpleNamespace(data_params=None))
+    monkeypatch.setattr(distilkit.engine.memory.probe, "probe_trainer", lambda *a, **k: "trainer")
+    monkeypatch.setattr("distilkit.data.probe._one_scene", lambda params: params)
+    for args, quick in ((cuda, False), (dry, True)):
+        seen.clear()
+        check.bf16_trainer(args, tmp_path, "scpnet", "student_dskd", "bf16")
+        assert seen == [("scpnet", quick, ["stages.*.train.batch_size=1", f"stages.*.train.device={args.device}",
+                                           "stages.student_dskd.train.precision=bf16"])]
+    assert "data.params.scale=8" not in check.paper_sets("scpnet", tmp_path, False)  # the full grid
+    assert "data.params.scale=8" in check.paper_sets("scpnet", tmp_path, True)
+
+
 @pytest.mark.slow
 def test_the_gpu_check_dry_run_writes_every_section(tmp_path: Path) -> None:
     out, tmp = tmp_path / "gpu-report.md", tmp_path / "tmp"
@@ -92,6 +131,15 @@ def test_the_gpu_check_dry_run_writes_every_section(tmp_path: Path) -> None:
     assert "**failed" not in report and "not run" not in report and "stopped" not in report, report
     assert re.search(r"exit status 0: [1-9]\d* passed, 0 failed", report), report  # the device-fixture tests
     assert "sparse: SubMConv3d vs dense conv3d" in report
+    # distilkit bench step at the reduced sizes: VoxFormer's teacher measured, the same on spconv said to be moot
+    assert "`distilkit bench --device cpu --quick step --time-limit " in report
+    assert "--only 'VoxFormer teacher fp32'`: exit status 0" in report
+    step = report.split("--only 'VoxFormer teacher fp32'`", 1)[1].split("## determinism")[0]
+    assert "step: VoxFormer teacher" in step and "fp32, torch; batch 1, 184x610 image, 128x128x16" in " ".join(
+        step.split())
+    assert all(column in step for column in ("reserved", "syncs", "GPU busy", "fp16 scale"))
+    assert "top ops by self CPU time: " in step
+    assert "The first training step's loss of each paper network at the reduced 32 x 32 x 4 grid" in report
     assert "the same bits" in report  # two deterministic runs of the same recipe
     rows = [line for line in report.splitlines() if line.startswith("| ") and " % |" in line]
     assert len(rows) == 5 and all(float(r.split("|")[4].strip(" %")) < 5.0 for r in rows), rows  # bf16 vs fp32

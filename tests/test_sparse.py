@@ -21,7 +21,7 @@ SHAPE = (7, 6, 5)
 def form(request: pytest.FixtureRequest):
     """The torch path's two forms (:mod:`distilkit.sparse.function`'s loop over offsets, :mod:`distilkit.sparse.table`'s
     neighbour table): each test that takes it holds for both."""
-    from distilkit.sparse.function import using_form
+    from distilkit.sparse.form import using_form
 
     with using_form(request.param):
         yield request.param
@@ -200,7 +200,8 @@ def test_each_kernel_offset_writes_distinct_rows_so_the_scatter_order_cannot_cha
     row (forward) or an input row (the features' gradient), so whatever order the pairs of an offset are added in —
     atomics on CUDA included — each row receives one addition per offset, offsets in their fixed order. Tested as
     exactly that: the pairs of each offset shuffled give the same bits in the values and the features' gradient."""
-    from distilkit.sparse.function import rulebook_conv, using_form
+    from distilkit.sparse.form import using_form
+    from distilkit.sparse.function import rulebook_conv
     from distilkit.sparse.rulebook import Rulebook
 
     x = cloud(3, channels=5, n=60, device=device)

@@ -17,7 +17,7 @@ SHAPE = (6, 7, 5)
 @pytest.fixture(params=["loop", "table"])
 def form(request: pytest.FixtureRequest):
     """The torch path's two forms: spconv 1.x's reuse holds in both."""
-    from distilkit.sparse.function import using_form
+    from distilkit.sparse.form import using_form
 
     with using_form(request.param):
         yield request.param

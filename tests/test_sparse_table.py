@@ -13,7 +13,8 @@ from host_syncs import host_syncs
 from test_sparse import SHAPE, cloud
 from distilkit.sparse import SparseConv3d, SparseConvTensor, SubMConv3d
 from distilkit.sparse import table as table_module
-from distilkit.sparse.function import FORM_ENV, form, rulebook_conv, using_form
+from distilkit.sparse.form import FORM_ENV, form, using_form
+from distilkit.sparse.function import rulebook_conv
 from distilkit.sparse.rulebook import strided, submanifold
 from distilkit.sparse.table import table_conv, tables
 

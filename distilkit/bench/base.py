@@ -1,8 +1,10 @@
 """What every ``distilkit bench`` benchmark shares, and nothing else: a :class:`Case` (the fast, shipped form timed
 against the naive form of the paper's formula on the same inputs, side by side in one run), forward+backward timing
 with peak memory (:func:`time_fb`), and the registry of benchmarks by name (:data:`BENCHES`, filled by
-:func:`register`) that :mod:`distilkit.bench.runner` reads. A benchmark module registers its cases here and imports
-no other benchmark (an import-linter contract in ``pyproject.toml``).
+:func:`register`) that :mod:`distilkit.bench.runner` reads. A case may measure itself (``measure``), add columns of
+its own to its row (``columns``), or say why it cannot run here (``skipped``, or :class:`Skipped` from ``measure``;
+a line under the table, never a silent gap); :func:`time_left` is the running bench's time limit. A benchmark module
+registers its cases here and imports no other benchmark (an import-linter contract in ``pyproject.toml``).
 
 Peak memory is the growth of the process's peak resident set (Linux ``VmHWM``, reset through
 ``/proc/self/clear_refs``) on the CPU, or ``torch.cuda.max_memory_allocated`` on CUDA.
@@ -13,7 +15,7 @@ from __future__ import annotations
 import gc
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -41,6 +43,22 @@ class Case:
     same_value: bool = True  # False: the two forms compute different things (a sampler at other step counts)
     note: Callable[[dict[str, Any]], str] | None = None  # a line under the table from the timed row (e.g. GFLOP/s)
     measure: Callable[[], tuple[float, int | None, float]] | None = None  # its own (ms, peak bytes, value)
+    columns: dict[str, str] = field(default_factory=dict)  # more figures of its row (column -> text), set by measure
+    skipped: str | None = None  # why it cannot run here: a line under the table instead of a row
+
+
+class Skipped(Exception):
+    """Raised by a case's ``measure`` that cannot run here after all (a backend that refuses the call, the device's
+    memory, the time limit): the runner prints the reason under the table instead of a row."""
+
+
+DEADLINE: list[float] = []  # the running ``run_bench``'s time limit (``time.monotonic()``), if it has one
+
+
+def time_left() -> float:
+    """Seconds until the running ``run_bench``'s time limit (infinite without one): a case that times many steps
+    checks it between them and raises :class:`Skipped` when it is past."""
+    return DEADLINE[-1] - time.monotonic() if DEADLINE else float("inf")
 
 
 def _peak_reset(device: torch.device) -> None:

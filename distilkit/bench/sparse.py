@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from distilkit.bench.base import Case, register, scratch_dir
-from distilkit.sparse.function import form
+from distilkit.sparse.form import form
 
 
 def scan_occupancy(quick: bool) -> Tensor:
@@ -190,7 +190,7 @@ def library_backends(device: torch.device) -> list[str]:
 def on(name: str, fn: Any, form_name: str = "auto") -> Any:
     """``fn`` with the sparse convolutions on backend ``name`` (the torch path in form ``form_name``)."""
     from distilkit.sparse.backend import using
-    from distilkit.sparse.function import using_form
+    from distilkit.sparse.form import using_form
 
     def run() -> Tensor:
         with using(name), using_form(form_name):

@@ -10,7 +10,8 @@ from typing import Any
 from distilkit.cli.base import command
 
 EXAMPLES = {
-    "bench": ["distilkit bench dskd pkt", "distilkit bench --quick", "distilkit bench determinism loader"],
+    "bench": ["distilkit bench dskd pkt", "distilkit bench --quick", "distilkit bench determinism loader",
+              "distilkit bench step --device cuda --only 'SCPNet student' 'recipe scpnet'"],
 }
 
 # every `distilkit bench` NAME with what it times, in the order a run without names takes them (the help lists them
@@ -22,7 +23,7 @@ BENCH_NAMES: dict[str, str] = {
     "kd": "KD over a masked voxel volume",
     "nst": "NST's MMD, by its Gram identity",
     "structural": "ScoreLiDAR's structural loss: key points and the point-wise distance matrices",
-    "relation": "L2COcc's relational term in row blocks against the dense P x P cosine matrices",
+    "relation": "L2COcc's relational term in tiles of one GEMM against the dense P x P cosine matrices",
     "sampler": "LiDiff's sampler at 8 against 50 steps",
     "guidance": "LiDiff's sampler with classifier-free guidance against without",
     "complete": "`distilkit complete` on a 125,000-point scan, with and without refinement",
@@ -30,8 +31,10 @@ BENCH_NAMES: dict[str, str] = {
     "loader": "an epoch of the quickstart teacher's steps with 2 loader workers and with none",
     "camera": "the camera student's step with and without RGO²D",
     "kitti": "reading, fusing and evaluating SemanticKITTI-sized frames",
-    "sparse": "a Cylinder3D-sized submanifold 3x3x3 layer (GFLOP/s vs sgemm) against dense conv3d",
+    "sparse": "a Cylinder3D-sized submanifold 3x3x3 layer (GFLOP/s vs sgemm) against dense conv3d; table vs loop",
+    "sparse-sizes": "the sparse table form against spconv (or the loop) at 20k-400k voxels, 32-128 channels",
     "networks": "each family's network at size tiny and paper: parameters, a training step's time and memory",
+    "step": "a paper network's or recipe's step in fp32/bf16/fp16: time, memory, syncs, top ops",
 }
 
 
@@ -44,11 +47,18 @@ def add(sub: Any) -> None:
                         "(the current GPU; peak memory is torch's allocations on it, and the sparse bench also times "
                         "each sparse library present)")
     b.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
+    b.add_argument("--only", nargs="+", metavar="PATTERN",
+                   help="run only the cases whose objective or size matches one of these (case-insensitive, anywhere "
+                        "in the row's first two cells; * for anything between), those of the first pattern first: "
+                        "--only 'recipe*bf16' 'SCPNet student'")
+    b.add_argument("--time-limit", type=float, metavar="SECONDS",
+                   help="start no case after this many seconds (a case that times many steps also stops); those left "
+                        "are named under the table")
     b.set_defaults(fn=bench)
 
 
 def bench(args: argparse.Namespace) -> int:
     from distilkit.bench import run_bench
 
-    run_bench(args.names, device=args.device, quick=args.quick)
+    run_bench(args.names, device=args.device, quick=args.quick, only=args.only, time_limit=args.time_limit)
     return 0

@@ -58,6 +58,7 @@ import torch
 from torch import Tensor
 
 from distilkit.errors import DistilkitError
+from distilkit.sparse.form import form
 
 ENV = "DISTILKIT_SPARSE"
 CHOICES = ("auto", "torch", "spconv", "spconv-triton")
@@ -265,8 +266,6 @@ def describe(device_type: str) -> str:
         name = choose(device_type)
     except SparseBackendError as exc:
         return f"sparse convolutions: cannot run — {exc}"
-    from distilkit.sparse.function import form
-
     how = f"{ENV}={want}" if not _override else f"using({want!r})"
     torch_path = f"the torch path's {form(device_type)} form"
     where = "" if name == "torch" or device_type != "cuda" else \

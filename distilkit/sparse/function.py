@@ -16,16 +16,15 @@ float32 (as spconv accumulates half-precision products); the output has autocast
 
 from __future__ import annotations
 
-import contextlib
-import os
 from functools import cache
-from typing import Any, Iterator
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from distilkit.repro import set_deterministic
 from distilkit.sparse.backend import Call, choose, library_conv, ran
+from distilkit.sparse.form import form
 from distilkit.sparse.rulebook import Rulebook
 from distilkit.sparse.table import table_conv
 
@@ -104,34 +103,6 @@ def _function(device_type: str) -> type[torch.autograd.Function]:
     return _RulebookConv
 
 
-FORM_ENV = "DISTILKIT_SPARSE_FORM"
-FORMS = ("auto", "table", "loop")
-AUTO_FORM = {"cuda": "table"}  # device type -> the torch path's form under ``auto``; others: :data:`CPU_FORM`
-CPU_FORM = "loop"  # the faster form on the CPU (``distilkit bench sparse`` measures both; README, "Sparse path")
-_forms: list[str] = []  # :func:`using_form`'s choices, innermost last
-
-
-def form(device_type: str) -> str:
-    """The torch path's form on ``device_type``: the innermost :func:`using_form`, else ``DISTILKIT_SPARSE_FORM``,
-    else ``auto`` — the neighbour table (:mod:`distilkit.sparse.table`) on CUDA, :data:`CPU_FORM` elsewhere."""
-    want = _forms[-1] if _forms else (os.environ.get(FORM_ENV, "auto").strip().lower() or "auto")
-    if want not in FORMS:
-        raise ValueError(f"{FORM_ENV}={want!r}: choose one of {', '.join(FORMS)}")
-    return AUTO_FORM.get(device_type, CPU_FORM) if want == "auto" else want
-
-
-@contextlib.contextmanager
-def using_form(name: str) -> Iterator[None]:
-    """Run the torch path's convolutions inside the block in form ``name`` (``table`` or ``loop``; ``auto``)."""
-    if name not in FORMS:
-        raise ValueError(f"sparse form {name!r}: choose one of {', '.join(FORMS)}")
-    _forms.append(name)
-    try:
-        yield
-    finally:
-        _forms.pop()
-
-
 def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: int,
                   bias: Tensor | None = None) -> Tensor:
     """(rows_out, C_out) = ``bias`` + the convolution of (N, C_in) ``features`` on ``book`` with ``weight`` (K,
@@ -166,4 +137,4 @@ def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: in
     return out
 
 
-__all__ = ["FORMS", "FORM_ENV", "form", "rulebook_conv", "using_form"]
+__all__ = ["rulebook_conv"]

@@ -136,7 +136,8 @@ class JS3CNet(nn.Module):
         enc = self.encoder(point_features(pts, idx, grid))
         uniq, inv = torch.unique(flat, return_inverse=True)
         counts = torch.zeros(uniq.numel(), device=pts.device).index_add_(0, inv, torch.ones_like(inv, dtype=torch.float))
-        pooled = torch.zeros(uniq.numel(), enc.shape[1], device=pts.device).index_add_(0, inv, enc) / counts[:, None]
+        # summed in float32 whatever autocast gave the encoder (an index_add_ of half values into float32 stops)
+        pooled = torch.zeros(uniq.numel(), enc.shape[1], device=pts.device).index_add_(0, inv, enc.float()) / counts[:, None]
         dense = pooled.new_zeros(n_vox, enc.shape[1])
         dense[uniq] = pooled
         vol = self.unet(dense.view(batch_size, x, y, z, -1).permute(0, 4, 1, 2, 3))
