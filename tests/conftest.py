@@ -54,7 +54,8 @@ def device(request: pytest.FixtureRequest) -> "torch.device":
 BY_FILE = {
     "network": {"test_scpnet_paper.py", "test_scpnet_release.py", "test_js3cnet_paper.py",
                 "test_js3cnet_release.py", "test_lidiff_paper.py", "test_lidiff_release.py",
-                "test_voxformer_paper.py", "test_voxformer_release.py", "test_dean_paper.py", "test_amp.py"},
+                "test_voxformer_paper.py", "test_voxformer_release.py", "test_dean_paper.py", "test_amp.py",
+                "test_bench_step.py"},
     "processes": {"test_faults.py", "test_distributed.py", "test_slurm_plan.py", "test_slurm_real.py",
                   "test_new_user_faults.py", "test_ema_teacher.py", "test_sweep.py", "test_reproducible.py",
                   "test_gpu_check.py", "test_trackers.py"},
