@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import gc
 import traceback
 from pathlib import Path
@@ -181,8 +182,9 @@ def load(name: str) -> dict[str, Any]:
     return yaml.safe_load((RECIPES / f"{name}.yaml").read_text())
 
 
+@functools.cache
 def recipe_batch(name: str, stage: str) -> int:
-    """The batch size of stage ``stage`` of paper recipe ``name``."""
+    """The batch size of stage ``stage`` of paper recipe ``name`` (read once: every row of a network asks)."""
     return int(((load(name)["stages"][stage].get("train") or {}).get("batch_size")) or 1)
 
 

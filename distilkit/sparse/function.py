@@ -26,7 +26,7 @@ from distilkit.repro import set_deterministic
 from distilkit.sparse.backend import Call, choose, library_conv, ran
 from distilkit.sparse.form import form
 from distilkit.sparse.rulebook import Rulebook
-from distilkit.sparse.table import table_conv
+from distilkit.sparse.table import compute_dtypes, table_conv
 
 
 def _scatter_add(out: Tensor, index: Tensor, values: Tensor) -> None:
@@ -46,15 +46,6 @@ def _scatter_add(out: Tensor, index: Tensor, values: Tensor) -> None:
     out.index_add_(0, index, values)
 
 
-def _compute_dtypes(features: Tensor) -> tuple[torch.dtype, torch.dtype]:
-    """(the products' dtype, the sums' dtype): autocast's dtype where it is on for the features' device, with sums in
-    float32; else the features' own dtype for both (the layer checks that the weight has it)."""
-    device = features.device.type
-    if torch.is_autocast_enabled(device):
-        return torch.get_autocast_dtype(device), torch.float32
-    return features.dtype, features.dtype
-
-
 @cache
 def _function(device_type: str) -> type[torch.autograd.Function]:
     """The convolution's autograd function for one device type, declaring its autocast behaviour there
@@ -67,7 +58,7 @@ def _function(device_type: str) -> type[torch.autograd.Function]:
         @torch.amp.custom_fwd(device_type=device_type)
         def forward(ctx: Any, features: Tensor, weight: Tensor, in_idx: Tensor, out_idx: Tensor, bounds: list[int],
                     rows_out: int) -> Tensor:
-            dtype, acc = _compute_dtypes(features)
+            dtype, acc = compute_dtypes(features)
             f, w = features.to(dtype), weight.to(dtype)
             out = features.new_zeros((rows_out, weight.shape[2]), dtype=acc)
             for k in range(weight.shape[0]):
@@ -114,6 +105,9 @@ def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: in
     if features.shape[0] != book.in_indices.shape[0]:
         raise ValueError(f"sparse convolution: {features.shape[0]} input rows, the neighbour map reads "
                          f"{book.in_indices.shape[0]}")
+    if book.out_indices.shape[0] != rows_out:
+        raise ValueError(f"sparse convolution: the neighbour map has {book.out_indices.shape[0]} output rows, "
+                         f"{rows_out} asked for")
     pairs = book.pairs_host
     backend = "torch"
     if pairs > 0:  # an empty map never reaches a library (spconv asserts): zeros (gradients zeros) on the torch path
@@ -122,9 +116,6 @@ def rulebook_conv(features: Tensor, weight: Tensor, book: Rulebook, rows_out: in
     if backend != "torch":
         out = library_conv(backend, features, weight, book, rows_out)
     elif form(features.device.type) == "table":
-        if book.out_indices.shape[0] != rows_out:
-            raise ValueError(f"sparse convolution: the neighbour map has {book.out_indices.shape[0]} output rows, "
-                             f"{rows_out} asked for")
         return table_conv(features, weight, bias, book)
     else:
         out = _function(features.device.type).apply(features, weight, book.in_idx, book.out_idx, book.bounds,

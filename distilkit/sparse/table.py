@@ -77,7 +77,7 @@ def _padded(x: Tensor) -> Tensor:
 def _out_dtype_ok(device_type: str, dtype: torch.dtype) -> bool:
     """Whether ``torch.mm(..., out_dtype=torch.float32)`` runs for ``dtype`` operands on ``device_type`` (CUDA's
     half-precision GEMMs; not the CPU's in torch 2.13): probed once."""
-    if dtype == torch.float32 or device_type == "cpu":
+    if device_type == "cpu":
         return False
     try:
         a = torch.zeros((2, 2), dtype=dtype, device=device_type)
@@ -96,7 +96,9 @@ def _mm_acc(a: Tensor, b: Tensor, acc: torch.dtype) -> Tensor:
     return torch.mm(a, b).to(acc)
 
 
-def _dtypes(features: Tensor) -> tuple[torch.dtype, torch.dtype]:
+def compute_dtypes(features: Tensor) -> tuple[torch.dtype, torch.dtype]:
+    """(the products' dtype, the sums' dtype): autocast's dtype where it is on for the features' device, with sums in
+    float32; else the features' own dtype for both (the layer checks that the weight has it). Both forms use it."""
     device = features.device.type
     if torch.is_autocast_enabled(device):
         return torch.get_autocast_dtype(device), torch.float32
@@ -129,7 +131,7 @@ def _function(device_type: str) -> type[torch.autograd.Function]:
         @torch.amp.custom_fwd(device_type=device_type)
         def forward(ctx: Any, features: Tensor, weight: Tensor, bias: Tensor | None, table: Tensor,
                     back: Tensor) -> Tensor:
-            dtype, acc = _dtypes(features)
+            dtype, acc = compute_dtypes(features)
             f, w = features.to(dtype), weight.to(dtype)  # the weight cast once a call, never per offset
             out = _forward(f, w, bias, table, acc)
             ctx.save_for_backward(f, w, table, back)
@@ -169,4 +171,4 @@ def table_conv(features: Tensor, weight: Tensor, bias: Tensor | None, book: Any)
     return _function(features.device.type).apply(features, weight, bias, table, back)
 
 
-__all__ = ["BUDGET", "table_conv", "tables"]
+__all__ = ["BUDGET", "compute_dtypes", "table_conv", "tables"]
