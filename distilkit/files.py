@@ -9,8 +9,6 @@ import tempfile
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
-import torch
-
 
 def _fsync_dir(path: Path) -> None:
     """Make a rename durable: fsync the folder that holds it (a no-op where folders cannot be opened)."""
@@ -62,7 +60,15 @@ def atomic_write_json(path: Path, obj: Any) -> None:
 
 
 def atomic_torch_save(path: Path, obj: Any) -> None:
+    import torch  # here, not at the top: the commands that only read and write text never load torch
+
     atomic_write(path, lambda f: torch.save(obj, f))
 
 
-__all__ = ["atomic_torch_save", "atomic_write", "atomic_write_json", "atomic_write_text"]
+def cache_root() -> Path:
+    """Where distilkit keeps what it can make again (generated samples, the components' catalogue):
+    ``$DISTILKIT_CACHE``, default ``~/.cache/distilkit``."""
+    return Path(os.environ.get("DISTILKIT_CACHE", Path.home() / ".cache" / "distilkit"))
+
+
+__all__ = ["atomic_torch_save", "atomic_write", "atomic_write_json", "atomic_write_text", "cache_root"]

@@ -112,6 +112,13 @@ class Registry(Generic[T]):
     def get(self, name: str) -> T:
         return self.entry(name).obj
 
+    def registered(self, name: str) -> T | None:
+        """The component ``name`` names if it is registered in this process so far (built-in components, plugins
+        or a script's own ``add``), without loading the plugins; else None."""
+        target = self._aliases.get(name, (name, False))[0]
+        entry = self._entries.get(target)
+        return entry.obj if entry is not None else None
+
     def unknown_message(self, name: object) -> str:
         close = difflib.get_close_matches(str(name), [*self._entries, *self._aliases], n=3, cutoff=0.6)
         hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
@@ -185,6 +192,11 @@ def _failure(ep: Any, exc: BaseException) -> str:
     frames = traceback.extract_tb(exc.__traceback__)
     where = f" (at {frames[-1].filename}:{frames[-1].lineno})" if frames else ""
     return f"plugin {ep.name!r} ({ep.value}) failed to load: {type(exc).__name__}: {exc}{where}"
+
+
+def plugins_loaded() -> bool:
+    """Whether the built-in components and the plugins are loaded in this process."""
+    return _loaded
 
 
 def load_plugins(force: bool = False) -> None:

@@ -28,7 +28,35 @@ def recipe_json_schema() -> str:
                       "then": {"properties": {"params": {"$ref": f"#/$defs/{key}"}}}})
     if "ModelSpec" in defs:
         defs["ModelSpec"]["allOf"] = rules
+    schema["properties"]["trackers"]["items"] = trackers_schema(defs)
     return json.dumps(schema, indent=2)
+
+
+def trackers() -> list[Any]:
+    """The registered trackers (hooks registered with ``tracker=True``), in registration order."""
+    from distilkit.registry import HOOKS
+
+    return [e for e in HOOKS if e.meta.get("tracker")]
+
+
+def trackers_schema(defs: dict[str, Any]) -> dict[str, Any]:
+    """A ``trackers`` entry: a tracker's name, or ``{NAME: {params}}`` with that tracker's parameters (each in
+    ``defs`` as ``TrackerParams_<name>``)."""
+    from distilkit.registry import NoParams
+
+    names, options = [], {}
+    for e in trackers():
+        params = e.meta.get("params", NoParams).model_json_schema(by_alias=True)
+        for name, block in params.pop("$defs", {}).items():
+            defs.setdefault(name, block)
+        key = f"TrackerParams_{e.name.replace('-', '_')}"
+        defs[key] = {**params, "title": f"{e.name} parameters", "description": e.description,
+                     "additionalProperties": False}
+        names.append(e.name)
+        options[e.name] = {"anyOf": [{"$ref": f"#/$defs/{key}"}, {"type": "null"}]}
+    return {"anyOf": [{"type": "string", "enum": names},
+                      {"type": "object", "properties": options, "additionalProperties": False,
+                       "minProperties": 1, "maxProperties": 1}]}
 
 
 def _type(prop: dict[str, Any]) -> str:
@@ -67,7 +95,7 @@ def recipe_reference_markdown() -> str:
             default = "*required*" if field in required else f"`{json.dumps(prop.get('default'))}`" if "default" in prop else ""
             out.append(f"| `{field}` | {_cell(_type(prop))} | {default} | {_cell(prop.get('description') or '')} |")
         out.append("")
-    return "\n".join(out + OVERRIDES_MARKDOWN + adapters_markdown())
+    return "\n".join(out + OVERRIDES_MARKDOWN + trackers_markdown() + adapters_markdown())
 
 
 OVERRIDES_MARKDOWN = [
@@ -83,6 +111,22 @@ OVERRIDES_MARKDOWN = [
     "distilkit run recipes/quickstart.yaml --set 'stages.*.train.steps=4' data.params.num_test=4",
     "distilkit validate recipes/semantickitti_scpnet.yaml --set data.params.root=/data/semantickitti",
     "```", ""]
+
+
+def trackers_markdown() -> list[str]:
+    """Every registered tracker (``trackers:``), what it records, what it needs, and its parameters."""
+    from distilkit.registry import NoParams
+
+    out = ["## Trackers", "",
+           "`trackers: [NAME, {NAME: {param: value}}, ...]` logs every stage run to these trackers, each given once "
+           "(unknown parameters are errors; a tracker's library is an optional extra, `pip install "
+           "'distilkit[NAME]'`, and `validate` names what is missing: the library, MLflow's store needs, a W&B "
+           "login). Each tracker's library reads its own environment variables, which win over these parameters. "
+           "`every` is common to all: log training values every N steps (0: as often as `train.log_every`).", ""]
+    for e in trackers():
+        out += [f"### {e.name}", "", e.description + ".", ""]
+        out += params_table(e.meta.get("params", NoParams))
+    return out
 
 
 def params_table(params: type[Any]) -> list[str]:

@@ -43,6 +43,97 @@ def _cut_short(path: Path, exc: Exception) -> str | None:
     return f"it is not a complete PyTorch file ({size} bytes): {why} (copied or downloaded only in part?)"
 
 
+def _numpy_file(path: Path) -> str:
+    """"a NumPy array file (.npy: float32, shape (5, 3))", its header read without unpickling anything."""
+    from numpy.lib import format as npy
+
+    try:
+        with open(path, "rb") as f:
+            version = npy.read_magic(f)
+            read = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+            shape, _, dtype = read(f)  # the header's literal alone, nothing unpickled
+        return f"a NumPy array file (.npy: {dtype}, shape {tuple(shape)})"
+    except Exception:
+        return "a NumPy array file (.npy)"
+
+
+def _zip_members(path: Path) -> list[str]:
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            return z.namelist()
+    except Exception:
+        return []
+
+
+def _other_format(path: Path) -> str | None:
+    """What a file torch could not read is, where its first bytes say (a text file, a NumPy array or archive, a
+    safetensors or HDF5 file, a zip archive that is not torch.save's); None for anything else."""
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    if head.startswith(b"\x93NUMPY"):
+        return _numpy_file(path)
+    if head.startswith(_ZIP):
+        members = _zip_members(path)
+        if members and all(m.endswith(".npy") for m in members):
+            shown = [m[:-4] for m in members[:6]] + ([f"{len(members) - 6} more"] if len(members) > 6 else [])
+            return f"a NumPy archive (.npz: {', '.join(shown)})"
+        if members and not any(m.endswith("data.pkl") for m in members):
+            return f"a zip archive without torch.save's data.pkl ({len(members)} member{'s' * (len(members) != 1)})"
+        return None
+    if head.startswith(b"\x89HDF\r\n\x1a\n"):
+        return "an HDF5 file (Keras or TensorFlow weights?)"
+    if len(head) > 10 and head[8:10] == b'{"':
+        return "a safetensors file (read it with safetensors.torch.load_file and torch.save its dict)"
+    text = _text(head)
+    if text is not None and text.strip():
+        first = next(line.strip() for line in text.splitlines() if line.strip())
+        return f"a text file (first line: {first[:60] + ('...' if len(first) > 60 else '')!r})"
+    return None
+
+
+def _text(head: bytes) -> str | None:
+    """A file's first bytes as UTF-8 text (a character the read cut at its end left out), None where they are not
+    text (a NUL byte, or bytes UTF-8 has no character for)."""
+    if b"\x00" in head:
+        return None
+    try:
+        return head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return head[:exc.start].decode("utf-8") if exc.start >= len(head) - 3 else None
+
+
+CHECKPOINT_SUFFIXES = (".pt", ".pth", ".ckpt")
+
+
+def _some(names: list[str], limit: int = 4) -> str:
+    return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
+
+
+def folder_hint(path: Path) -> str:
+    """What a folder given where a checkpoint is read holds that was perhaps meant, in words: its checkpoint files
+    (a run's ``checkpoints/best.pt`` and ``last.pt`` among them), else the stage runs under it, else neither."""
+    files = sorted(str(f.relative_to(path)) for f in (*path.iterdir(), *path.glob("checkpoints/*"))
+                   if f.suffix in CHECKPOINT_SUFFIXES and f.is_file())
+    if files:
+        return f"it holds {_some(files)}: give {'that file' if len(files) == 1 else 'one of them'}"
+    runs = sorted(d.name for d in path.iterdir() if (d / "checkpoints").is_dir() or (d / "summary.json").is_file())
+    if runs:
+        return f"it holds stage runs: {_some(runs)}: give {'it' if len(runs) == 1 else 'one of them'}"
+    return f"it holds no checkpoint file ({', '.join(CHECKPOINT_SUFFIXES)}) and no stage run"
+
+
+def not_a_file(path: Path) -> str | None:
+    """One line where ``path``, given as a checkpoint or weights file, is not a file (missing, or a folder: what it
+    holds); None for a file."""
+    if path.is_file():
+        return None
+    if path.is_dir():
+        return f"{path}: not a readable checkpoint: it is a folder, not a file; {folder_hint(path)}"
+    return f"{path}: no such file"
+
+
 def _globals_in(path: Path) -> list[str]:
     """The Python names (module.qualname) the pickle of a torch.save zip file refers to beyond torch's own and the
     builtin containers, in order, once each ([] where it cannot be read). Read from the pickle's opcodes, not run:
@@ -97,6 +188,9 @@ def _reason(exc: Exception, path: Path) -> str:
     short = _cut_short(path, exc)
     if short is not None:
         return short
+    other = _other_format(path)
+    if other is not None:
+        return f"it is {other}, not a file torch.save wrote"
     text = str(exc)
     if text.startswith("Weights only load failed"):
         names = _globals_in(path) or list(dict.fromkeys(re.findall(r"GLOBAL ([A-Za-z_][\w.]*)", text)))
@@ -126,8 +220,9 @@ def _sentence(text: str, limit: int = 300) -> str:
 
 
 def _load_safely(path: Path) -> Any:
-    if not path.is_file():
-        raise DataError(f"{path}: checkpoint not found")
+    problem = not_a_file(path)
+    if problem:
+        raise DataError(problem)
     try:
         try:  # memory-mapped: a tensor is read only when used (validate reads shapes alone)
             return torch.load(path, map_location="cpu", weights_only=True, mmap=True)
@@ -294,5 +389,5 @@ def not_finite(weights: dict[str, Any], only: Any = None) -> str | None:
     return None
 
 
-__all__ = ["ImportedWeights", "PartialWeights", "in_the_file", "load_checkpoint", "load_weights", "mismatch",
-           "not_finite", "read_state_dict", "spelling", "under_prefix", "whole_problem"]
+__all__ = ["ImportedWeights", "PartialWeights", "folder_hint", "in_the_file", "load_checkpoint", "load_weights",
+           "mismatch", "not_a_file", "not_finite", "read_state_dict", "spelling", "under_prefix", "whole_problem"]

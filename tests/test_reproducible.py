@@ -104,12 +104,19 @@ def test_importing_distilkit_sets_the_libraries_reproducibility_before_torch_loa
                                                              "DISTILKIT_DETERMINISTIC")}
     started = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True, env={**env, **extra})  # at once: three fresh imports of torch
-               for extra in ({}, {"DISTILKIT_DETERMINISTIC": "0"}, {"MKL_CBWR": "AVX2"})]  # last: a user's own kept
-    on, off, mine = (SimpleNamespace(stdout=out, stderr=err) for out, err in (p.communicate(timeout=600)
-                                                                            for p in started))
+               for extra in ({}, {"DISTILKIT_DETERMINISTIC": "0"}, {"MKL_CBWR": "AVX2"},  # last two: a user's own
+                             {"MKL_CBWR": "AVX512_E4"})]  # a branch most CPUs lack: MKL reports AUTO, as AMD for AVX2
+    on, off, *users = (SimpleNamespace(stdout=out, stderr=err) for out, err in (p.communicate(timeout=600)
+                                                                              for p in started))
     assert on.stdout.split() == ["AUTO,STRICT", ":4096:8", "True", "AUTO,STRICT" if mkl else "None"], on.stderr
     assert off.stdout.split() == ["None", "None", "False", "off" if mkl else "None"], off.stderr
-    assert mine.stdout.split()[::3] == ["AVX2", "AVX2" if mkl else "None"]
+    # a user's own setting is kept: distilkit neither overrides the variable nor makes MKL run its own mode. What MKL
+    # then runs is MKL's choice, which depends on the vendor (an Intel CPU honours AVX2; on an AMD EPYC MKL reports
+    # AUTO for it), so that is not asserted — only that it is not distilkit's AUTO,STRICT
+    for mine, asked in zip(users, ("AVX2", "AVX512_E4")):
+        assert mine.stdout.split()[0] == asked, mine.stderr
+        ran = mine.stdout.split()[3]
+        assert (ran != "AUTO,STRICT") if mkl else ran == "None", mine.stdout
 
 
 def test_a_stage_makes_the_racy_gather_backward_repeatable() -> None:

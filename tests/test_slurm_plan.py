@@ -93,7 +93,8 @@ def test_the_plan_queues_upstream_first_then_arrays_that_wait_on_it(tmp_path, sl
     assert "srun" not in scripts[101]
     record = json.loads((out / "sw" / "slurm" / "jobs.json").read_text())
     assert [(r["title"], r["job_id"], r["after"]) for r in record] == [
-        ("teacher (for dskd), seed 0", "101", []), ("none, seed 0", "102_0", []), ("none, seed 1", "102_1", []),
+        ("teacher (upstream of variant dskd), seed 0", "101", []), ("none, seed 0", "102_0", []),
+        ("none, seed 1", "102_1", []),
         ("dskd, seed 0", "103_0", ["101"]), ("dskd, seed 1", "103_1", ["101"])]
     assert "103_1  dskd, seed 1 after 101" in printed
     # each job runs the same `distilkit run` as the local launcher, with absolute paths
@@ -106,6 +107,11 @@ def test_the_plan_queues_upstream_first_then_arrays_that_wait_on_it(tmp_path, sl
     assert main(["sweep", str(path), "-o", str(out), "--status"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 5 and all(line.startswith("pending") for line in lines), lines
+    assert main(["sweep", str(path), "-o", str(out), "--launcher", "slurm"]) == 0
+    assert len(list(slurm_bin.glob("sbatch-*.sh"))) == 3
+    # a queued task is known by its variant, seed and stages, not by its title (a title may be worded otherwise)
+    jobs = out / "sw" / "slurm" / "jobs.json"
+    jobs.write_text(json.dumps([{**r, "title": f"old words {i}"} for i, r in enumerate(json.loads(jobs.read_text()))]))
     assert main(["sweep", str(path), "-o", str(out), "--launcher", "slurm"]) == 0
     assert len(list(slurm_bin.glob("sbatch-*.sh"))) == 3
 
@@ -166,8 +172,8 @@ def test_the_slurm_plan_prints_jobs_arrays_afterok_and_scripts_and_calls_and_wri
         assert "Slurm plan for sweep sw: nothing submitted, nothing written, no Slurm command run." in text
         assert "queues 3 job(s) for 4 of the sweep's 4 runs (0 finished; each 2 CPU(s), 0 GPU(s), 240 min)" in text
         graph = text.split("Dependency graph")[1].split("Commands")[0]
-        assert re.search(r"job-1  distilkit-sw  1 task  waits on nothing\n +job-1 +teacher \(for dskd\), seed 0\n",
-                         graph), graph
+        assert re.search(r"job-1  distilkit-sw  1 task  waits on nothing\n"
+                         r" +job-1 +teacher \(upstream of variant dskd\), seed 0\n", graph), graph
         assert re.search(r"job-2  distilkit-sw  array of 2 tasks \(0-1, 2 at a time\)  waits on nothing\n"
                          r" +job-2_0 +none, seed 0\n +job-2_1 +none, seed 1\n", graph), graph
         assert re.search(r"job-3  distilkit-sw  array of 2 tasks \(0-1, 2 at a time\)  afterok:job-1\n"
@@ -185,6 +191,21 @@ def test_the_slurm_plan_prints_jobs_arrays_afterok_and_scripts_and_calls_and_wri
     err = capsys.readouterr().err
     assert "--plan and --status: give one" in err and len(err.strip().splitlines()) == 1
     assert called(no_slurm) == [] and files_under(tmp_path) == before
+
+
+def test_a_shared_upstream_job_is_named_by_the_variants_it_is_upstream_of(tmp_path, no_slurm, capsys) -> None:
+    """Not "teacher (for none)" — the first variant's name read as if the job were for nobody — but the variants
+    whose runs wait on it: one, several, or every variant of the sweep."""
+    from distilkit.sweep.runner import SweepRun
+
+    kd = {"distill": [{"name": "kd", "weight": 1}]}
+    several = write_sweep(tmp_path, upstream="shared", seeds=[0], variants={
+        "none": {"distill": []}, "dskd": {"distill": [{"name": "dskd", "weight": 10}]}, "kd": kd})
+    assert [t.title for t in SweepRun(several, tmp_path / "runs", quiet=True).upstream_tasks()] == [
+        "teacher (upstream of variants dskd, kd), seed 0"]
+    every = write_sweep(tmp_path, upstream="shared", seeds=[0], variants={"kd": kd, "kd2": {**kd, "label": "2"}})
+    assert main(["sweep", str(every), "-o", str(tmp_path / "runs"), "--launcher", "slurm", "--plan"]) == 0
+    assert re.search(r"job-1 +teacher \(upstream of every variant\), seed 0\n", capsys.readouterr().out)
 
 
 def test_the_local_plan_starts_nothing_and_writes_only_the_recipes_it_names(tmp_path, no_slurm, capsys) -> None:
@@ -259,7 +280,8 @@ def test_a_job_that_left_the_queue_without_its_run_is_failed_with_its_logs_last_
     assert main(["sweep", str(path), "-o", str(out), "--status"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     by_title = {re.split(r"\s+", line, maxsplit=2)[2].split("  log")[0]: line for line in lines}
-    assert "FAILED: RuntimeError: distilkit run ...: exit status 2" in by_title["teacher (for dskd), seed 0"]
+    teacher_line = by_title["teacher (upstream of variant dskd), seed 0"]
+    assert "FAILED: RuntimeError: distilkit run ...: exit status 2" in teacher_line
     assert "never ran: the upstream job" in by_title["dskd, seed 0"]
     from submitit.core.utils import DelayedSubmission
 

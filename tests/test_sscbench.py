@@ -13,7 +13,8 @@ from _no_run_reports import no_run_reports  # noqa: F401  (autouse: nothing here
 from _sscbench import CAM_TO_VELO, DRIVE, P_RECT, R_RECT, SHAPE, write_folder, write_prediction
 from conftest import folder_recipe
 from distilkit.cli import main
-from distilkit.data.sscbench import SscbenchDataset, SscbenchParams, read_train_ids, read_voxel_mask, sscbench_check
+from distilkit.data.sscbench import SscbenchParams, read_train_ids, read_voxel_mask
+from distilkit.data.sscbench_folder import SscbenchDataset, sscbench_check
 from distilkit.errors import DataError
 
 VALID = DRIVE.format(6)
@@ -123,10 +124,10 @@ def test_validate_names_a_missing_drive_a_missing_file_and_a_wrong_size(folder, 
     broken = tmp_path / "broken"
     write_folder(broken, {0: ("000000",), 6: ("000000",), 9: ("000000",)}, images=False)
     np.zeros(100, np.uint8).tofile(broken / "data_2d_raw" / VALID / "voxels" / "000000.invalid")
-    (broken / "data_2d_raw" / VALID / "voxels" / "000000.bin").unlink()
+    (broken / "data_2d_raw" / VALID / "voxels" / "000000.label").unlink()
     problem = sscbench_check(SscbenchParams(root=str(broken)), "val")
     assert "voxels/000000.invalid: 100 bytes, expected 2,097,152 or 262,144 (the invalid mask" in problem
-    assert "voxels/000000.bin: missing (the voxelised input scan)" in problem
+    assert "voxels/000000.label: missing (uint16 voxel labels)" in problem
     shutil.rmtree(broken / "data_2d_raw" / DRIVE.format(9))
     assert main(["validate", str(_recipe(tmp_path, broken, train=["00"])), "--no-memory"]) == 2
     out = _said(capsys)
@@ -200,7 +201,7 @@ def test_the_camera_reads_the_image_and_its_calibration(tmp_path, calibrated) ->
 
     root = tmp_path / "KITTI-360"
     frames = write_folder(root, {6: ("000000",)}, calibration=calibrated)
-    ds = SscbenchDataset(SscbenchParams(root=str(root), train=["06"], camera={}), "train")
+    ds = SscbenchDataset(SscbenchParams(root=str(root), train=["06"], val=None, camera={}), "train")
     s = ds[0]
     from PIL import Image
 
@@ -223,7 +224,7 @@ def test_the_camera_reads_the_image_and_its_calibration(tmp_path, calibrated) ->
     assert all(abs(depth[k] - z) < 1e-4 for k, z in nearest.items())
     assert frames[(VALID, "000000")].occupied_input.sum() == len(xyz)
     if calibrated:
-        rotated = SscbenchDataset(SscbenchParams(root=str(root), train=["06"],
+        rotated = SscbenchDataset(SscbenchParams(root=str(root), train=["06"], val=None,
                                                  camera={"rectify_rotation": True, "height": 94, "width": 352}),
                                   "train")[0]
         rect = np.eye(4)
@@ -241,11 +242,11 @@ def test_the_camera_wants_the_image_and_only_the_current_frame(folder, tmp_path)
         SscbenchParams(root=str(root), camera={"previous": [3]})
     bare = tmp_path / "bare"
     write_folder(bare, {6: ("000000",)}, images=False)
-    problem = sscbench_check(SscbenchParams(root=str(bare), train=["06"], camera={}), "train")
+    problem = sscbench_check(SscbenchParams(root=str(bare), train=["06"], val=None, camera={}), "train")
     assert "image_00/data_rect/000000.png: missing (the camera's image)" in problem
     calibrated = tmp_path / "calibrated"
     write_folder(calibrated, {6: ("000000",)}, calibration=True)
-    params = SscbenchParams(root=str(calibrated), train=["06"], camera={})
+    params = SscbenchParams(root=str(calibrated), train=["06"], val=None, camera={})
     persp = calibrated / "calibration" / "perspective.txt"
     persp.write_text("\n".join(line.rsplit(" ", 1)[0] if line.startswith("P_rect_00") else line
                                for line in persp.read_text().splitlines()))

@@ -79,12 +79,22 @@ def command(sub: Any, name: str, help: str, examples: list[str], *, before: str 
 
 
 def overrides(args: argparse.Namespace) -> dict[str, object] | None:
-    """``--set PATH=VALUE ...`` as path -> value (None without any)."""
-    if not args.set:
+    """``--set PATH=VALUE ...`` as path -> value, and ``--threads N`` as the recipe's ``threads`` (None without
+    any)."""
+    threads = getattr(args, "threads", None)
+    if not args.set and threads is None:
         return None
     from distilkit.recipe import parse_overrides
 
-    return parse_overrides(args.set)
+    out = parse_overrides(args.set) if args.set else {}
+    return {**out, "threads": threads} if threads is not None else out
+
+
+def threads_option(parser: argparse.ArgumentParser) -> None:
+    """``--threads N``: the CPU threads each process computes with (the recipe's ``threads``)."""
+    parser.add_argument("--threads", type=int, default=None, metavar="N",
+                        help="CPU threads each process computes with (the recipe's threads; default: OMP_NUM_THREADS, "
+                             "else SLURM_CPUS_PER_TASK, else the CPUs this process may use)")
 
 
 def set_option(parser: argparse.ArgumentParser, help: str) -> None:
@@ -92,4 +102,4 @@ def set_option(parser: argparse.ArgumentParser, help: str) -> None:
     parser.add_argument("--set", nargs="+", action="extend", metavar="PATH=VALUE", default=None, help=help)
 
 
-__all__ = ["ExamplesFormatter", "command", "overrides", "set_option"]
+__all__ = ["ExamplesFormatter", "command", "overrides", "set_option", "threads_option"]

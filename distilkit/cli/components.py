@@ -33,36 +33,50 @@ def add(sub: Any) -> None:
 
 
 def list_components(args: argparse.Namespace) -> int:
-    from rich.table import Table
-
+    from distilkit.catalogue import cached
     from distilkit.console import make_console
-
-    from distilkit.registry import ALL_REGISTRIES, plugin_errors
 
     if args.markdown:
         if args.kind not in ("objectives", "datasets"):
             from distilkit.errors import DistilkitError
 
             raise DistilkitError("--markdown is available for `distilkit list objectives` and `list datasets`")
-        from distilkit.schema_doc import datasets_markdown, objectives_markdown
-
-        print(objectives_markdown() if args.kind == "objectives" else datasets_markdown())
+        print(cached(f"list-{args.kind}-markdown", lambda: _markdown(args.kind)))
         return 0
+    data = cached("list", _catalogue)
     console = make_console()
-    for kind, reg in ALL_REGISTRIES.items():
+    for kind, rows in data["kinds"].items():
         if args.kind and args.kind != kind.split()[0].rstrip("s") and args.kind != kind:
             continue
         if kind == "adapters" and console.width < 120:  # six columns do not read at 80: one block per adapter
-            _adapter_blocks(console, reg)
+            _adapter_blocks(console, rows)
             continue
-        table = _kind_table(console, kind, reg)
-        console.print(table)
-    for msg in plugin_errors:
+        console.print(_kind_table(console, kind, rows))
+    for msg in data["plugin_errors"]:
         console.print(f"[yellow]warning:[/] {msg}")
     return 0
 
 
-def _kind_table(console: Any, kind: str, reg: Any) -> Any:
+def _markdown(kind: str) -> str:
+    from distilkit.schema_doc import datasets_markdown, objectives_markdown
+
+    return objectives_markdown() if kind == "objectives" else datasets_markdown()
+
+
+def _catalogue() -> dict[str, Any]:
+    """Every registered component as the cells ``distilkit list`` shows (JSON data: the catalogue keeps it)."""
+    from distilkit.registry import ALL_REGISTRIES, plugin_errors
+
+    kinds = {}
+    for kind, reg in ALL_REGISTRIES.items():
+        kinds[kind] = [{"name": _name_cell(reg, e), "description": e.description, "paper": e.paper,
+                        "column": list_cell(kind, e),
+                        **({"params": params_cell(e.obj.Params), "network": networks_cell(e.obj)}
+                           if kind == "adapters" else {})} for e in reg]
+    return {"kinds": kinds, "plugin_errors": list(plugin_errors)}
+
+
+def _kind_table(console: Any, kind: str, rows: list[dict[str, str]]) -> Any:
     """One kind's components as a table that fits the console: every column wraps (a word longer than its column
     is folded onto the next line, never cut with an ellipsis); under 120 columns the paper is a dim line of the
     description's cell instead of a column of its own, so that the description keeps a readable width."""
@@ -72,7 +86,7 @@ def _kind_table(console: Any, kind: str, reg: Any) -> Any:
 
     narrow = console.width < 120
     table = Table(title=kind, title_justify="left")
-    longest = max((len(_name_cell(reg, e)) for e in reg), default=4)
+    longest = max((len(r["name"]) for r in rows), default=4)
     table.add_column("name", style="bold", overflow="fold", min_width=min(longest, 22))
     table.add_column("description (paper)" if narrow else "description", overflow="fold", ratio=2)
     if not narrow:
@@ -81,16 +95,16 @@ def _kind_table(console: Any, kind: str, reg: Any) -> Any:
     if kind == "adapters":
         table.add_column("parameters (default)", overflow="fold", ratio=1)
         table.add_column("network (by size)", overflow="fold", ratio=1)
-    for e in reg:
-        extra = [params_cell(e.obj.Params), networks_cell(e.obj)] if kind == "adapters" else []
+    for r in rows:
+        extra = [r["params"], r["network"]] if kind == "adapters" else []
         if narrow:
-            about = Text(e.description)
-            if e.paper and e.paper != "—":
-                about.append("\n" + e.paper, style="dim")
+            about = Text(r["description"])
+            if r["paper"] and r["paper"] != "—":
+                about.append("\n" + r["paper"], style="dim")
             cells = [about]
         else:
-            cells = [Text(e.description), Text(e.paper)]
-        table.add_row(Text(_name_cell(reg, e)), *cells, Text(list_cell(kind, e)), *map(Text, extra))
+            cells = [Text(r["description"]), Text(r["paper"])]
+        table.add_row(Text(r["name"]), *cells, Text(r["column"]), *map(Text, extra))
     # as wide as its text, up to the console's width (measured to at most that; there the columns share it by ratio)
     table.expand = Measurement.get(console, console.options, table).maximum >= console.width
     return table
@@ -101,22 +115,19 @@ def _name_cell(reg: Any, e: Any) -> str:
     return e.name + (f" (also {', '.join(also)})" if also else "")
 
 
-def _adapter_blocks(console: Any, reg: Any) -> None:
+def _adapter_blocks(console: Any, rows: list[dict[str, str]]) -> None:
     """``distilkit list adapters`` on a narrow console: each adapter's fields as a two-column table."""
     from rich.table import Table
     from rich.text import Text
 
     console.print("adapters")
-    for e in reg:
-        also = reg.aliases_of(e.name)
-        block = Table(title=e.name + (f" (also {', '.join(also)})" if also else ""), title_justify="left",
-                      title_style="bold", show_header=False, expand=True)
+    for r in rows:
+        block = Table(title=r["name"], title_justify="left", title_style="bold", show_header=False, expand=True)
         block.add_column("field", style="dim", no_wrap=True)
         block.add_column("value", ratio=1, overflow="fold")
-        for field, value in (("description", e.description), ("paper", e.paper),
-                             (COLUMN["adapters"], list_cell("adapters", e)),
-                             ("parameters", params_cell(e.obj.Params).replace("\n", ", ")),
-                             ("network", networks_cell(e.obj))):
+        for field, value in (("description", r["description"]), ("paper", r["paper"]),
+                             (COLUMN["adapters"], r["column"]), ("parameters", r["params"].replace("\n", ", ")),
+                             ("network", r["network"])):
             block.add_row(field, Text(value))
         console.print(block)
 
@@ -164,7 +175,13 @@ def list_cell(kind: str, entry: object) -> str:
 
 
 def schema(args: argparse.Namespace) -> int:
+    from distilkit.catalogue import cached
+
+    print(cached("schema-markdown" if args.markdown else "schema", lambda: _schema(args.markdown)))
+    return 0
+
+
+def _schema(markdown: bool) -> str:
     from distilkit.schema_doc import recipe_json_schema, recipe_reference_markdown
 
-    print(recipe_reference_markdown() if args.markdown else recipe_json_schema())
-    return 0
+    return recipe_reference_markdown() if markdown else recipe_json_schema()

@@ -11,9 +11,12 @@ from typing import Any
 from distilkit.cli.base import command
 
 EXAMPLES = {
-    "eval": ["distilkit eval --dataset-root /data/semantickitti --predictions preds --split valid"],
+    "eval": ["distilkit eval --dataset-root /data/semantickitti --predictions preds --split valid",
+             "distilkit eval --classes sscbench-kitti360 --dataset-root /data/KITTI-360 --predictions preds "
+             "--split test"],
     "predict": ["distilkit predict runs/NAME/STAGE-* --dataset-root /data/semantickitti --split valid --out preds",
-                "distilkit predict runs/NAME/STAGE-* --dataset-root /data/semantickitti --split test --out submission"],
+                "distilkit predict runs/NAME/STAGE-* --dataset-root /data/semantickitti --split test --out submission",
+                "distilkit predict runs/NAME/STAGE-* --dataset-root /data/KITTI-360 --split test --out preds"],
     "export": ["distilkit export runs/quickstart/student_dskd-* --out student.pt",
                "distilkit export runs/quickstart/student_dskd-* --out student.pt --which last"],
     "complete": ["distilkit complete runs/scorelidar/student-* scan.bin --out scene.ply --steps 8",
@@ -26,21 +29,29 @@ def add(sub: Any) -> None:
     ev = command(sub, "eval", "SemanticKITTI's official completion evaluation of a predictions "
                               "folder (and VoxFormer's 12.8 / 25.6 m range split)",
                               EXAMPLES["eval"])
-    _folder_split(ev, "the SemanticKITTI folder (holds sequences/NN/voxels/)", "valid", "08")
-    ev.add_argument("--predictions", required=True, help="the folder holding sequences/NN/predictions/*.label")
+    _folder_split(ev, "the SemanticKITTI folder (holds sequences/NN/voxels/; sscbench-kitti360: the KITTI-360 "
+                      "folder)", "valid", "08")
+    ev.add_argument("--predictions", required=True, help="the folder holding sequences/NN/predictions/*.label "
+                                                         "(sscbench-kitti360: <drive>/FFFFFF_1_1.npy)")
     ev.add_argument("--out", default=None, help="where to write the scores (default: PREDICTIONS/scores.txt)")
     ev.add_argument("--classes", default="semantickitti",
                     choices=["semantickitti", "semanticposs", "sscbench-kitti360"],
                     help="the labels' class table and official splits (semanticposs: 11 classes, valid = test = 02; "
                          "sscbench-kitti360: its folder layout, 19 classes, valid 06, test 09, predictions "
                          "PREDICTIONS/<drive>/FFFFFF_1_1.npy or .label)")
+    ev.add_argument("--targets", default=None, choices=["voxels", "preprocess"],
+                    help="sscbench-kitti360's target files: voxels/*.label + .invalid (default) or "
+                         "preprocess/labels/*_1_1.npy")
     ev.set_defaults(fn=evaluate)
-    pr = command(sub, "predict", "write a trained SSC run's predictions of a SemanticKITTI folder in "
-                                 "the submission format (sequences/NN/predictions/NNNNNN.label)",
+    pr = command(sub, "predict", "write a trained SSC run's predictions of a folder in its benchmark's "
+                                 "format (SemanticKITTI: sequences/NN/predictions/NNNNNN.label; "
+                                 "SSCBench-KITTI-360: <drive>/FFFFFF_1_1.npy)",
                                  EXAMPLES["predict"])
-    pr.add_argument("run", help="a stage's run folder or checkpoint (trained on a semantickitti folder)")
-    _folder_split(pr, "the SemanticKITTI folder to predict", "test", "11-21")
-    pr.add_argument("--out", required=True, help="the folder to write sequences/NN/predictions/ into")
+    pr.add_argument("run", help="a stage's run folder or checkpoint (trained on a SemanticKITTI-format or "
+                                "SSCBench-KITTI-360 folder)")
+    _folder_split(pr, "the folder to predict (the run's dataset's layout)", "test",
+                  "11-21; SSCBench-KITTI-360: drive 09")
+    pr.add_argument("--out", required=True, help="the folder to write the predictions into")
     pr.add_argument("--device", default="cpu", help="cpu or cuda")
     pr.set_defaults(fn=predict)
     xp = command(sub, "export", "write a trained student's weights alone (a plain state dict for "
@@ -79,25 +90,35 @@ def _folder_split(parser: argparse.ArgumentParser, root_help: str, split: str, s
 
 
 def evaluate(args: argparse.Namespace) -> int:
+    """Every input checked (:func:`~distilkit.metrics.sscbench.plan_sscbench`,
+    :func:`~distilkit.metrics.official.plan_folder`) before the progress bar starts, then scored."""
     from distilkit.console import make_console, progress_bar
     from distilkit.data.info import ClassTable
     from distilkit.data.params import KITTI_SPLITS, POSS_SPLITS
-    from distilkit.metrics.official import evaluate_folder
+    from distilkit.errors import DataError
+    from distilkit.metrics.official import evaluate_folder, plan_folder
 
     console = make_console()
     if args.classes == "sscbench-kitti360":  # its own layout and target rule (distilkit.metrics.sscbench)
         from distilkit.data.sscbench import SPLITS, drive_name
-        from distilkit.metrics.sscbench import evaluate_sscbench
+        from distilkit.metrics.sscbench import plan_sscbench, score_sscbench
 
         sequences = [drive_name(s) for s in args.sequences] if args.sequences else list(SPLITS[args.split])
+        plan = plan_sscbench(args.dataset_root, args.predictions, sequences, args.targets or "voxels")
+        for note in plan.data.notes:
+            console.print(f"[yellow]eval:[/] {note}", highlight=False, soft_wrap=True)
         with progress_bar(console, "eval") as advance:
-            ev = evaluate_sscbench(args.dataset_root, args.predictions, sequences, advance)
+            ev = score_sscbench(plan, advance)
         return _report(args, console, ev, "SSCBench-KITTI-360 completion", sequences)
+    if args.targets is not None:
+        raise DataError(f"--targets {args.targets}: only with --classes sscbench-kitti360 (a SemanticKITTI folder's "
+                        "targets are its voxels/*.label)")
     poss = args.classes == "semanticposs"
     sequences = args.sequences or list((POSS_SPLITS if poss else KITTI_SPLITS)[args.split])
     table = ClassTable.semanticposs() if poss else ClassTable.semantickitti()
+    jobs = plan_folder(args.dataset_root, args.predictions, sequences)
     with progress_bar(console, "eval") as advance:
-        ev = evaluate_folder(args.dataset_root, args.predictions, sequences, advance, table)
+        ev = evaluate_folder(args.dataset_root, args.predictions, sequences, advance, table, jobs=jobs)
     return _report(args, console, ev, "SemanticKITTI completion", sequences)
 
 
@@ -124,14 +145,19 @@ def _report(args: argparse.Namespace, console: Any, ev: Any, title: str, sequenc
 
 
 def predict(args: argparse.Namespace) -> int:
+    """The run, its data and the folder checked and the model loaded before the progress bar starts."""
     from distilkit.console import make_console, progress_bar
-    from distilkit.engine.infer.predict import predict_folder
+    from distilkit.engine.infer.predict import prepare_prediction, run_prediction
 
     console = make_console()
+    job = prepare_prediction(args.run, args.dataset_root, args.sequences or args.split, args.out, args.device)
+    for note in getattr(job.dataset, "notes", []):
+        console.print(f"[yellow]predict:[/] {note}", highlight=False, soft_wrap=True)
     with progress_bar(console, "predict") as advance:
-        n, sequences = predict_folder(args.run, args.dataset_root, args.sequences or args.split, args.out, args.device,
-                                      advance)
-    console.print(f"{n} frames of sequences {' '.join(sequences)} predicted into {args.out}/sequences/*/predictions/")
+        n = run_prediction(job, advance)
+    unit = "drives" if job.where.endswith("_1_1.npy") else "sequences"
+    console.print(f"{n} frames of {unit} {' '.join(job.sequences)} predicted into {job.where}", highlight=False,
+                  soft_wrap=True)
     return 0
 
 

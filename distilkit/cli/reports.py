@@ -1,4 +1,5 @@
-"""``distilkit report RUN`` and ``distilkit compare A B``: a stage run's report re-rendered, two runs side by side."""
+"""``distilkit report RUN...`` and ``distilkit compare A B``: stage runs' reports re-rendered, two runs side by
+side."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from distilkit.cli.base import command
 
 EXAMPLES = {
     "report": ["distilkit report runs/quickstart                                # every stage of a recipe",
+               "distilkit report runs                                          # every run under a folder",
                "distilkit report runs/quickstart/student_dskd-*"],
     "compare": ["distilkit compare runs/quickstart/student-* runs/quickstart/student_dskd-*"],
 }
@@ -17,7 +19,8 @@ EXAMPLES = {
 def add(sub: Any) -> None:
     rp = command(sub, "report", "re-render a stage run's report.md and plots (or every run under a folder)",
                  EXAMPLES["report"])
-    rp.add_argument("run", help="a stage run folder (runs/<recipe>/<stage>-<hash>) or a recipe's output folder")
+    rp.add_argument("run", nargs="+", help="stage run folders (runs/<recipe>/<stage>-<hash>), or folders of runs at "
+                    "any depth (a recipe's or a sweep's output folder, runs/): every finished stage run under them")
     rp.set_defaults(fn=report)
     cp = command(sub, "compare", "two stage runs side by side: configuration, scores, per-class, plots",
                  EXAMPLES["compare"])
@@ -31,7 +34,8 @@ def add(sub: Any) -> None:
 def report(args: argparse.Namespace) -> int:
     from distilkit.report.run import report_targets, write_run_report
 
-    for run_dir in report_targets(args.run):
+    targets = [run_dir for path in args.run for run_dir in report_targets(path)]  # every folder checked first
+    for run_dir in dict.fromkeys(targets):
         print(write_run_report(run_dir))
     return 0
 

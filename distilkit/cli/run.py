@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from distilkit.cli.base import command, overrides, set_option
+from distilkit.cli.base import command, overrides, set_option, threads_option
 
 EXAMPLES = {
     "run": ["distilkit run recipes/quickstart.yaml",
@@ -33,6 +33,7 @@ def add(sub: Any) -> None:
                    help="run only these stages and the stages they need (their teacher, their initial weights)")
     set_option(r, "override recipe fields by dotted path (as sweep files do), e.g. --set "
                   "stages.student.optimizer.lr=0.01 (values are read as YAML); validated like the file")
+    threads_option(r)
     r.add_argument("--no-wait", action="store_true",
                    help="stop with an error instead of waiting when another distilkit run is training a stage")
     d = r.add_argument_group("multi-process training (PyTorch's torchrun; gloo on the CPU, NCCL on GPUs)")
@@ -108,6 +109,7 @@ def _forwarded(args: argparse.Namespace) -> list[str]:
             *(["--no-wait"] if args.no_wait else []), *(["--seed", *map(str, args.seed)] if args.seed else []),
             *(["--baseline", args.baseline] if args.baseline else []), *(["--rerun", *args.rerun] if args.rerun else []),
             *(["--stage", *args.stage] if args.stage else []), *(["--set", *args.set] if args.set else []),
+            *(["--threads", str(args.threads)] if args.threads is not None else []),
             *(["--stop-after", str(args.stop_after)] if args.stop_after is not None else [])]
 
 

@@ -31,7 +31,8 @@ def add(sub: Any) -> None:
                    "cluster scheduler, or with --launcher slurm the jobs, arrays, afterok dependencies and sbatch "
                    "scripts a submission would queue (nothing written); `distilkit sweep` afterwards collects")
     w.add_argument("--collect", action="store_true", help="train nothing: the table of the runs finished so far")
-    w.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    w.add_argument("--quiet", "-q", action="store_true", help="no progress bars or per-run lines; the final table is "
+                   "still printed")
     s = w.add_argument_group("on a Slurm cluster (pip install 'distilkit[slurm]'; the sweep file's launcher: block "
                              "gives the same, these win)")
     s.add_argument("--launcher", choices=("local", "slurm"), default="local",

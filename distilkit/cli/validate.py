@@ -9,7 +9,7 @@ import argparse
 import sys
 from typing import Any
 
-from distilkit.cli.base import command, overrides, set_option
+from distilkit.cli.base import command, overrides, set_option, threads_option
 
 EXAMPLES = {
     "validate": ["distilkit validate recipes/quickstart.yaml",
@@ -21,6 +21,7 @@ def add(sub: Any) -> None:
     v = command(sub, "validate", "check recipes without training (exit status 2 on a problem)", EXAMPLES["validate"])
     v.add_argument("recipes", nargs="+", help="recipe YAML files")
     set_option(v, "override recipe fields by dotted path, e.g. --set stages.student.train.steps=10")
+    threads_option(v)
     v.add_argument("--no-memory", action="store_true", help="skip the memory estimate (two training steps of each "
                    "stage at a small size); each stage's terms still run once on a small dry batch")
     v.add_argument("--static", action="store_true", help="run no model at all: neither the memory estimate nor the "
@@ -50,8 +51,21 @@ def validate(args: argparse.Namespace) -> int:
         print(f"{path}: ok — {len(res.stages)} stage(s): {stages}")
         for line in networks:
             print(f"  {line}")
+        print(f"  {_threads_line(res.recipe.threads)}")
         _report(res, lines)
     return 0
+
+
+def _threads_line(requested: int | None) -> str:
+    """The CPU threads each process will compute with, and where the figure comes from."""
+    from distilkit.engine.train.cpus import run_threads, usable_cpus
+
+    threads, source = run_threads(requested)
+    why = "the recipe's threads or --threads" if source == "threads" else source
+    line = f"threads: {threads} per process ({why}; {usable_cpus()} CPUs usable)"
+    if source not in ("threads", "OMP_NUM_THREADS", "SLURM_CPUS_PER_TASK") and threads > 1:
+        line += "; on a machine shared with other busy processes give --threads (fewer threads than cores)"
+    return line
 
 
 def _first_steps(res: Any, memory: bool) -> tuple[list[Any], list[tuple[str, str]]]:

@@ -12,9 +12,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-
-def cache_root() -> Path:
-    return Path(os.environ.get("DISTILKIT_CACHE", Path.home() / ".cache" / "distilkit"))
+from distilkit.files import cache_root
 
 
 def content_key(obj: Any) -> str:

@@ -68,10 +68,13 @@ def seg_lut(learning_map: dict[int, int] | None = None) -> np.ndarray:
     return lut
 
 
-def remap(raw: np.ndarray, lut: np.ndarray, what: str = "labels") -> np.ndarray:
+def remap(raw: np.ndarray, lut: np.ndarray, what: str = "labels", ids: str = "SemanticKITTI") -> np.ndarray:
+    """Raw ids -> train ids through ``lut``; ``what`` (the file) and ``ids`` (whose raw ids they are: SemanticKITTI,
+    SemanticPOSS, SSCBench-KITTI-360) name an id outside the table in the error."""
     raw = np.asarray(raw).astype(np.int64)
     if raw.size and (raw.min() < 0 or raw.max() >= lut.size):
         from distilkit.errors import DataError
 
-        raise DataError(f"{what}: raw SemanticKITTI ids must lie in [0, {lut.size}), got max {int(raw.max())}")
+        bad = int(raw.min()) if raw.min() < 0 else int(raw.max())
+        raise DataError(f"{what}: raw id {bad} is not a {ids} label id (they lie in [0, {lut.size}))")
     return lut[raw]

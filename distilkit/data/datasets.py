@@ -20,7 +20,8 @@ from distilkit.data.params import (SceneParams, SemanticKittiParams, SemanticKit
                                    SyntheticParams)
 from distilkit.data.probe import cloud_plan, grid_plan
 from distilkit.data.render import CAMERA_VERSION
-from distilkit.data.sscbench import SscbenchParams, sscbench_check, sscbench_fingerprint, sscbench_info
+from distilkit.data.sscbench import SscbenchParams, sscbench_info
+from distilkit.data.sscbench_folder import sscbench_check, sscbench_fingerprint
 from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.structures import VoxelGrid
 from distilkit.registry import DATASETS
@@ -113,7 +114,7 @@ for _name, _params, _description, _paper in (
 
 
 def _sscbench_factory(params: Any, split: str, progress: Any = None) -> Any:
-    from distilkit.data.sscbench import SscbenchDataset
+    from distilkit.data.sscbench_folder import SscbenchDataset
 
     return SscbenchDataset(params, split)
 

@@ -159,6 +159,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
                                                                                    f"{params.stride}"]))
         self.info = kitti_info(params)
         self.has_targets = any(item[3] for item in self.items)  # False: the hidden test split, predicted only
+        self._ids = "SemanticPOSS" if params.classes == "semanticposs" else "SemanticKITTI"  # whose raw ids, in errors
         self._poses: dict[Path, np.ndarray] = {}
         self._calibs: dict[Path, dict[str, np.ndarray]] = {}
 
@@ -235,7 +236,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
                 p = p.copy()
                 p[:, :3] = p[:, :3] @ rel[:3, :3].T + rel[:3, 3]
             pts.append(p)
-            labs.append(remap(sem, seg_lut(self.table.learning_map), str(lab_file)))
+            labs.append(remap(sem, seg_lut(self.table.learning_map), str(lab_file), self._ids))
             frames.append(np.full(len(p), k, np.uint8))
         vox_file = d / self.p.voxels / f"{frame:06d}.label"
         if not labelled:  # hidden test split, or a scan between voxel frames: nothing to score
@@ -245,7 +246,7 @@ class SemanticKittiDataset(torch.utils.data.Dataset):
                     "voxel_label": np.full(shape, IGNORE_INDEX, np.uint8), "invalid": np.ones(shape, bool),
                     **({"occluded": np.zeros(shape, bool)} if self.p.occluded else {}),
                     **({"scribble": np.full(shape, IGNORE_INDEX, np.uint8)} if self.p.scribbles else {})}
-        vl = remap(skio.read_voxel_labels(vox_file), ssc_lut(self.table.learning_map), str(vox_file))
+        vl = remap(skio.read_voxel_labels(vox_file), ssc_lut(self.table.learning_map), str(vox_file), self._ids)
         inv_file = d / "voxels" / f"{frame:06d}.invalid"
         inv = skio.read_voxel_bits(inv_file) if inv_file.is_file() else np.zeros(vl.shape, bool)
         if self.p.rectify:

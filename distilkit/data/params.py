@@ -161,9 +161,13 @@ class SemanticKittiParams(BaseModel):
                     data[role] = data.pop(old) or None
         return data
 
-    @field_validator("train", "val", "test")
+    @field_validator("train", "val", "test", mode="before")
     @classmethod
     def _sequence_names(cls, v: Any) -> Any:
+        """A list of sequences, checked before the split's union is (whose own message would hide the hint)."""
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            raise ValueError(f"sequences are a list such as ['08'] (quoted in YAML) or a split's name (train, valid, "
+                             f"test), got {v!r}")
         if isinstance(v, list):
             bad = [s for s in v if not (isinstance(s, str) and s.isdigit())]
             if bad:

@@ -1,5 +1,6 @@
 """SSCBench-KITTI-360 (Li et al., SSCBench, IROS 2024): its folder layout, file formats, class table and splits, and
-the folder as a dataset (``sscbench-kitti360``). Facts from ai4ce/SSCBench at commit 9e767e1 (2025-04-09):
+the dataset's parameters (``sscbench-kitti360``; the folder read and checked as a dataset is
+:mod:`distilkit.data.sscbench_folder`'s). Facts from ai4ce/SSCBench at commit 9e767e1 (2025-04-09):
 ``dataset/KITTI-360/README.md`` (layout, sizes, splits), ``dataset/configs/kitti360.yaml`` (labels, colours, learning
 map, splits), ``method/MonoScene/monoscene/data/kitti_360/io_data.py`` (file formats) and ``preprocess.py`` (the
 target). The data is CC BY-NC-SA 3.0: nothing of it is bundled; a user points ``root`` at their own copy.
@@ -16,6 +17,11 @@ The root is the benchmark's ``KITTI-360`` folder:
 * ``preprocess/labels/2013_05_28_drive_NNNN_sync/FFFFFF_1_1.npy``: the same target already mapped to train ids
   0..18 with 255 ignored (MonoScene's and VoxFormer's input), read with ``targets: preprocess``.
 
+A drive's frames are its ``voxels/*.bin``, as the benchmark's loader lists them (a frame with a target but no
+``.bin`` is left out: :mod:`distilkit.data.sscbench_folder`). Frame counts: the README says train 8,487, valid
+1,812, test 2,566; the release holds train 8,483 and test 2,165 (the maintainers' answer in issue #23, 2025-04-06;
+the valid count is not restated there).
+
 The target (``preprocess.py``): a voxel is ignored (255) where ``.invalid`` marks it **and** its label is 0 — an
 occupied voxel keeps its label even where ``.invalid`` marks it (SemanticKITTI's evaluation drops every invalid
 voxel); raw ids the learning map sends to 0 (outlier, bicyclist, motorcyclist, trunk, ...) are ignored too. The grid
@@ -29,13 +35,11 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal, Union
 
 import numpy as np
-import torch
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from distilkit.data import semantickitti as skio
-from distilkit.data.classes import IGNORE_INDEX, ssc_lut
+from distilkit.data.classes import IGNORE_INDEX
 from distilkit.data.info import ClassTable, DataInfo
-from distilkit.data.kitti_folder import pool_all, pool_labels
 from distilkit.data.lidar import LIDAR_INPUTS, LIDAR_TARGETS
 from distilkit.data.params import FolderCameraParams, _check_scale
 from distilkit.errors import DataError
@@ -44,10 +48,14 @@ from distilkit.structures import VoxelGrid
 SHAPE = (256, 256, 32)
 VOXELS = int(np.prod(SHAPE))
 DRIVE = "2013_05_28_drive_{:04d}_sync"
-# kitti360.yaml's split (sequence numbers): README: train 8,487 frames, valid 1,812, test 2,566
+# kitti360.yaml's split (sequence numbers)
 SPLITS: dict[str, tuple[str, ...]] = {"train": tuple(DRIVE.format(s) for s in (0, 2, 3, 4, 5, 7, 10)),
                                       "valid": (DRIVE.format(6),), "test": (DRIVE.format(9),)}
-FRAMES = {"train": 8487, "valid": 1812, "test": 2566}
+# frames a split holds: as dataset/KITTI-360/README.md (at 9e767e1) says, and as the release holds them (ai4ce/SSCBench
+# issue #23, the maintainers' answer of 2025-04-06: 8,483 in the training drives' voxels/, 2,165 in the test drive's;
+# drive 0003's preprocess/labels/ has four label-only frames more, 000970-000985, which the loader leaves out)
+README_FRAMES = {"train": 8487, "valid": 1812, "test": 2566}
+RELEASE_FRAMES = {"train": 8483, "test": 2165}
 
 # kitti360.yaml: learning_map (raw id -> train id), learning_map_inv, and the names of MonoScene's params.py
 NAMES: tuple[str, ...] = (
@@ -92,9 +100,20 @@ def read_voxel_mask(path: str | Path, what: str, shape: tuple[int, int, int] = S
     return np.fromfile(path, np.uint8).reshape(shape) > 0
 
 
+def dtype_problem(dtype: np.dtype, num_classes: int) -> str | None:
+    """Why an array of ``dtype`` cannot hold train ids (a bool array is not class ids), or None: integers, or floats
+    holding whole numbers (``preprocess.py`` saves float32)."""
+    if dtype.kind == "b":
+        return (f"a bool array, not class ids (train ids 0..{num_classes - 1}, 255 ignored, in an integer or float "
+                "dtype)")
+    if dtype.kind not in "iuf":
+        return f"a {dtype} array, not class ids (train ids 0..{num_classes - 1}, 255 ignored)"
+    return None
+
+
 def read_train_ids(path: str | Path, num_classes: int, shape: tuple[int, int, int] = SHAPE) -> np.ndarray:
     """``preprocess/labels/.../FFFFFF_1_1.npy`` (or a prediction in that format) -> (X, Y, Z) uint8 train ids 0..K-1,
-    255 ignored (any integer-valued dtype; pickles are refused)."""
+    255 ignored (integers, or floats holding whole numbers; bool arrays and pickles are refused)."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: file not found")
@@ -104,6 +123,9 @@ def read_train_ids(path: str | Path, num_classes: int, shape: tuple[int, int, in
         raise DataError(f"{path}: not a readable .npy array ({exc})") from None
     if arr.shape != shape:
         raise DataError(f"{path}: shape {arr.shape}, expected {shape}")
+    kind_problem = dtype_problem(arr.dtype, num_classes)
+    if kind_problem:
+        raise DataError(f"{path}: {kind_problem}")
     ids = arr.astype(np.int64)
     bad = (ids != arr) | ((ids >= num_classes) & (ids != IGNORE_INDEX)) | (ids < 0)
     if bad.any():
@@ -117,7 +139,7 @@ def target(raw: np.ndarray, invalid: np.ndarray, lut: np.ndarray,
     is 0 (``preprocess.py``)."""
     from distilkit.data.classes import remap
 
-    return remap(raw, lut, what).astype(np.uint8), invalid & (raw == 0)
+    return remap(raw, lut, what, "SSCBench-KITTI-360").astype(np.uint8), invalid & (raw == 0)
 
 
 class SscbenchCameraParams(FolderCameraParams):
@@ -152,11 +174,15 @@ class SscbenchParams(BaseModel):
     ``preprocess/labels/``; dataset/KITTI-360/README.md of ai4ce/SSCBench at commit 9e767e1). Classes:
     dataset/configs/kitti360.yaml, 19 with empty (raw ids as SemanticKITTI's through its learning_map: bicyclist,
     motorcyclist, trunk and outlier ignored, bus and on-rails as other-vehicle, lane-marking as road; colours its BGR
-    color_map). Grid: 256 x 256 x 32 voxels at 0.2 m in the LiDAR frame, as SemanticKITTI's. Splits (kitti360.yaml;
-    frame counts from the README): train drives 00, 02-05, 07, 10 (8,487 frames), valid 06 (1,812), test 09
-    (2,566). Formats (method/MonoScene/monoscene/data/kitti_360/io_data.py): .label uint16 a voxel, .invalid one
-    byte a voxel; .bin, "voxelised input" (the README does not say how it is packed), is read bit-packed as
-    SemanticKITTI's or one byte a voxel, the size telling which. Target (its preprocess.py): ignored where .invalid
+    color_map). Grid: 256 x 256 x 32 voxels at 0.2 m in the LiDAR frame, as SemanticKITTI's. Splits (kitti360.yaml):
+    train drives 00, 02-05, 07, 10, valid 06, test 09; the release holds 8,483 training frames and 2,165 test frames
+    (ai4ce/SSCBench issue #23; its README says train 8,487, valid 1,812, test 2,566). A drive's frames are its
+    voxels/*.bin, as the benchmark's loader (method/MonoScene/monoscene/data/kitti_360/kitti_360_dataset.py) lists
+    them: a frame with a target but no .bin (the release's drive 0003 has four in preprocess/labels/, 000970-000985)
+    is left out and counted in a note. A drive is read once; a validation drive is not a training drive. Formats
+    (method/MonoScene/monoscene/data/kitti_360/io_data.py): .label uint16 a voxel, .invalid one byte a voxel; .bin,
+    "voxelised input" (the README does not say how it is packed), is read bit-packed as SemanticKITTI's or one byte a
+    voxel, the size telling which. Target (its preprocess.py): ignored where .invalid
     marks a voxel whose label is 0; occupied voxels keep their label (SemanticKITTI's evaluation drops them). The
     folder has no point scans: points are the occupied voxels of .bin. Licence CC BY-NC-SA 3.0: nothing bundled."""
 
@@ -176,16 +202,38 @@ class SscbenchParams(BaseModel):
 
     _scale = field_validator("scale")(_check_scale)
 
-    @field_validator("train", "val", "test")
+    @field_validator("train", "val", "test", mode="before")
     @classmethod
     def _drives(cls, v: Any) -> Any:
+        """A list of drives, checked before the split's union is (whose own message would hide the hint)."""
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            raise ValueError(f"drives are a list such as ['06'] (numbers quoted in YAML) or a split's name (train, "
+                             f"valid, test), got {v!r}")
         if isinstance(v, list):
             bad = [s for s in v if not (isinstance(s, str) and (s.isdigit() or s.startswith("2013_05_28_drive_")))]
             if bad:
-                raise ValueError(f"drives are numbers such as '06' (quoted in YAML) or folder names such as "
-                                 f"2013_05_28_drive_0006_sync, got {bad}")
+                raise ValueError(f"drives are numbers such as '06' (quoted in YAML: an unquoted 06 is the number 6) "
+                                 f"or folder names such as 2013_05_28_drive_0006_sync, got {bad}")
             return v or None
         return v
+
+    @model_validator(mode="after")
+    def _distinct_drives(self) -> "SscbenchParams":
+        """Drives to train on; none read twice by a role; no validation drive trained on."""
+        if self.train is None:
+            raise ValueError("train: none given (an official split's name, e.g. train, or a list of drives, e.g. "
+                             "['00', '02'])")
+        for role in ("train", "val", "test"):
+            drives = self.sequences(role)
+            twice = sorted({d for d in drives if drives.count(d) > 1})
+            if twice:
+                raise ValueError(f"{role}: {', '.join(twice)} given twice (a drive is read once)")
+        trained = set(self.sequences("train"))
+        both = [d for d in self.sequences("val") if d in trained]
+        if both:
+            raise ValueError(f"val: {', '.join(both)} is also a training drive (the best checkpoint would be chosen "
+                             "on frames it trained on; val: null trains without validation)")
+        return self
 
     def sequences(self, role: str) -> list[str]:
         """The drive folders role ``role`` (train, val, test) reads: [] when the recipe gives it none."""
@@ -194,6 +242,10 @@ class SscbenchParams(BaseModel):
 
     def table(self) -> ClassTable:
         return class_table()
+
+    def for_submission(self, root: str, test: str | list[str]) -> "SscbenchParams":
+        """These parameters reading ``test`` (a split's name or drives) of the folder at ``root``, for ``predict``."""
+        return type(self)(**{**self.model_dump(exclude={"root", "test"}), "root": root, "test": test})
 
 
 def sscbench_info(params: SscbenchParams) -> DataInfo:
@@ -210,146 +262,5 @@ def sscbench_info(params: SscbenchParams) -> DataInfo:
                     cameras=cameras)
 
 
-def _size_problem(path: Path, sizes: tuple[int, ...], what: str) -> str | None:
-    if not path.is_file():
-        return f"{path.name}: missing ({what})"
-    if path.stat().st_size not in sizes:
-        return (f"{path.name}: {path.stat().st_size:,} bytes, expected "
-                f"{' or '.join(f'{s:,}' for s in sizes)} ({what} of a 256 x 256 x 32 grid)")
-    return None
-
-
-def frame_problems(root: Path, drive: str, frame: str, p: SscbenchParams) -> list[str]:
-    """What one frame lacks or has at the wrong size, each as 'where: what' relative to ``root`` (stat only)."""
-    vox = Path("data_2d_raw") / drive / "voxels"
-    checks = [(f"{frame}.bin", (VOXELS // 8, VOXELS), "the voxelised input scan")]
-    if p.targets == "voxels":
-        checks += [(f"{frame}.label", (2 * VOXELS,), "uint16 voxel labels"),
-                   (f"{frame}.invalid", (VOXELS, VOXELS // 8), "the invalid mask")]
-    out = [f"{vox}/{msg}" for name, sizes, what in checks if (msg := _size_problem(root / vox / name, sizes, what))]
-    if p.targets == "preprocess":
-        npy = root / "preprocess" / "labels" / drive / f"{frame}_1_1.npy"
-        try:
-            shape = np.load(npy, mmap_mode="r", allow_pickle=False).shape if npy.is_file() else None
-        except (ValueError, OSError):
-            shape = "unreadable"
-        if shape != SHAPE:
-            out.append(f"{npy.relative_to(root)}: " + ("missing (the preprocessed target)" if shape is None else
-                                                       f"shape {shape}, expected {SHAPE}"))
-    if p.camera is not None:
-        image = Path("data_2d_raw") / drive / "image_00" / "data_rect" / f"{frame}.png"
-        if not (root / image).is_file():
-            out.append(f"{image}: missing (the camera's image)")
-    return out
-
-
-class SscbenchDataset(torch.utils.data.Dataset):
-    """An SSCBench-KITTI-360 folder's frames of one role (every frame with a target file of its drives)."""
-
-    def __init__(self, params: SscbenchParams, split: str, what: str | None = None) -> None:
-        self.p = params
-        self.table = class_table()
-        self.lut = ssc_lut(LEARNING_MAP)
-        self.root = root = Path(params.root).expanduser()
-        drives = params.sequences(split)
-        self.items: list[tuple[str, str]] = []
-        problems: list[str] = []
-        for drive in drives:
-            d = root / "data_2d_raw" / drive
-            if params.targets == "preprocess":
-                frames = sorted(f.name[:-len("_1_1.npy")] for f in
-                                (root / "preprocess" / "labels" / drive).glob("*_1_1.npy"))
-                where = f"preprocess/labels/{drive}/*_1_1.npy"
-            else:
-                frames = sorted(f.stem for f in (d / "voxels").glob("*.label"))
-                where = f"data_2d_raw/{drive}/voxels/*.label"
-            if not d.is_dir():
-                problems.append(f"data_2d_raw/{drive}: missing (expected {where} and the voxels/*.bin inputs)")
-                continue
-            if not frames:
-                problems.append(f"{where}: none there")
-            for f in frames:
-                problems += frame_problems(root, drive, f, params)
-            self.items += [(drive, f) for f in frames]
-        if problems or not self.items:
-            shown = problems[:12] + ([f"... and {len(problems) - 12} more"] if len(problems) > 12 else [])
-            raise DataError(f"{root}: {what or f'split {split!r}'} (drives {', '.join(drives) or 'none'}) is not a "
-                            "complete SSCBench-KITTI-360 folder:\n  " + "\n  ".join(shown or ["no frames"]))
-        self.info = sscbench_info(params)
-        self.has_targets = True
-        self._grid = VoxelGrid.semantickitti(1)
-
-    def __len__(self) -> int:
-        return len(self.items)
-
-    def sample_id(self, i: int) -> str:
-        """``<drive>/<frame>``, as the benchmark names its files."""
-        return "/".join(self.items[i])
-
-    def dense_target(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """(train ids 0..18 with 255, the ignored mask the train ids do not already carry) at full resolution."""
-        drive, frame = self.items[i]
-        if self.p.targets == "preprocess":
-            ids = read_train_ids(self.root / "preprocess" / "labels" / drive / f"{frame}_1_1.npy", len(NAMES))
-            return ids, np.zeros(SHAPE, bool)
-        vox = self.root / "data_2d_raw" / drive / "voxels"
-        raw = skio.read_voxel_labels(vox / f"{frame}.label", SHAPE)
-        return target(raw, read_voxel_mask(vox / f"{frame}.invalid", "invalid mask"), self.lut, str(vox))
-
-    def __getitem__(self, i: int) -> dict[str, np.ndarray]:
-        drive, frame = self.items[i]
-        labels, invalid = self.dense_target(i)
-        occupied = read_voxel_mask(self.root / "data_2d_raw" / drive / "voxels" / f"{frame}.bin", "input")
-        idx = np.argwhere(occupied)
-        xyz = self._grid.centers(torch.from_numpy(idx)).numpy()
-        point_label = labels[occupied]
-        points = np.concatenate([xyz, np.zeros((len(xyz), 1), np.float32)], 1).astype(np.float32)
-        vl, inv = pool_labels(labels, invalid, self.p.scale, len(NAMES))
-        out = {"points": points, "point_frame": np.zeros(len(points), np.uint8),
-               "point_label": np.where(point_label == IGNORE_INDEX, 0, point_label).astype(np.uint8),
-               "voxel_label": vl.astype(np.uint8), "invalid": pool_all(invalid, self.p.scale)}
-        if self.p.camera is not None:
-            from distilkit.data.sscbench_camera import camera_fields
-
-            out.update(camera_fields(self.root, drive, frame, self.p.camera, points))
-        return out
-
-
-def sscbench_check(params: SscbenchParams, split: str) -> str | None:
-    """What ``distilkit validate`` says of a role's drives: None where they can be read, else every problem (file
-    names and sizes only: cheap)."""
-    root = Path(params.root).expanduser()
-    if not (root / "data_2d_raw").is_dir():
-        return (f"{root}: no data_2d_raw/ folder there (an SSCBench-KITTI-360 folder holds data_2d_raw/"
-                "2013_05_28_drive_NNNN_sync/voxels/, ...)")
-    try:
-        SscbenchDataset(params, split)
-        if params.camera is not None:  # the calibration files, where the folder has them, must parse
-            from distilkit.data.sscbench_camera import calibration
-
-            calibration(root, params.camera.rectify_rotation)
-    except DataError as exc:
-        return str(exc)
-    return None
-
-
-def sscbench_fingerprint(params: SscbenchParams) -> dict[str, Any]:
-    """The parameters but the root, and a digest of the names, sizes and modification times of the files read."""
-    import hashlib
-
-    root = Path(params.root).expanduser()
-    lines = []
-    for drive in sorted({s for role in ("train", "val", "test") for s in params.sequences(role)}):
-        folders = [root / "data_2d_raw" / drive / "voxels", root / "preprocess" / "labels" / drive]
-        if params.camera is not None:
-            folders += [root / "data_2d_raw" / drive / "image_00" / "data_rect", root / "calibration"]
-        for f in (f for folder in folders for f in sorted(folder.glob("*"))):
-            st = f.stat()
-            lines.append(f"{f.relative_to(root).as_posix()} {st.st_size} {st.st_mtime_ns}")
-    return {"params": params.model_dump(mode="json", exclude={"root"}, exclude_defaults=True),
-            "files": len(lines), "digest": hashlib.sha256("\n".join(lines).encode()).hexdigest()}
-
-
-__all__ = ["LEARNING_MAP", "NAMES", "SHAPE", "SPLITS", "SscbenchDataset", "SscbenchParams", "class_table",
-           "drive_name", "read_train_ids", "read_voxel_mask", "sscbench_check", "sscbench_fingerprint",
-           "sscbench_info", "target"]
+__all__ = ["LEARNING_MAP", "NAMES", "README_FRAMES", "RELEASE_FRAMES", "SHAPE", "SPLITS", "SscbenchParams", "VOXELS",
+           "class_table", "drive_name", "dtype_problem", "read_train_ids", "read_voxel_mask", "sscbench_info", "target"]

@@ -1,15 +1,16 @@
 """The training loop's lifecycle hooks (as in Pointcept and mmengine) and the public view of the loop they get.
 
 A hook may implement any of ``before_train``, ``before_step``, ``after_step``, ``after_evaluation``,
-``after_train`` and ``after_publish``; each receives the :class:`Loop` (never the trainer's internals). The stage's
-own hooks run first, in this order, after every step: logging, progress, evaluation on the validation split
-(choosing ``best.pt``) and checkpointing (``last.pt``); then the recipe's registered hooks (``train.hooks``, e.g.
-``tensorboard``) and its trackers (``trackers``: :mod:`distilkit.engine.train.trackers`).
+``after_train``, ``after_publish`` and ``after_abort``; each receives the :class:`Loop` (never the trainer's
+internals). The stage's own hooks run first, in this order, after every step: logging, progress, evaluation on the
+validation split (choosing ``best.pt``) and checkpointing (``last.pt``); then the recipe's registered hooks
+(``train.hooks``, e.g. ``tensorboard``) and its trackers (``trackers``: :mod:`distilkit.engine.train.trackers`).
 Plugins register hooks in ``HOOKS`` like any component: ``HOOKS.add(name, factory(params, loop_info), params=...)``.
 """
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,12 +35,15 @@ class Loop:
     values: dict[str, float] = field(default_factory=dict)  # what the last step logged (loss terms, lr, ...)
     last_scores: dict[str, Any] | None = None
     evaluated: bool = False  # an evaluation ran at this step
+    saved: int = 0  # the step of the last ``last.pt`` written or resumed from (0: none)
+    per_class: dict[str, list[str]] = field(default_factory=dict)  # a per-class score's key -> its entries' classes
     t0: float = field(default_factory=time.perf_counter)
     seconds: float = 0.0  # the loop's time, once it has ended
     # what the stage's run provides
     _log: Callable[[dict[str, Any]], None] = lambda record: None
     _evaluate: Callable[[], dict[str, Any]] = lambda: {}
     _save: Callable[[str], None] = lambda which: None
+    _warn: Callable[[str], None] = lambda text: print(f"warning: {text}", file=sys.stderr)
     hooks: list["Hook"] = field(default_factory=list)
 
     @property
@@ -61,6 +65,13 @@ class Loop:
     def save(self, which: str) -> None:
         """Write ``last.pt`` (everything to resume from) or ``best.pt`` (the student and its scores)."""
         self._save(which)
+        if which == "last":
+            self.saved = self.step
+
+    def warn(self, text: str) -> None:
+        """One line for the user (on the stage's console, and in ``metrics.jsonl``): something went wrong that does
+        not stop the stage (a tracker that failed)."""
+        self._warn(text)
 
     def published(self, summary: dict[str, Any]) -> None:
         """Every hook's ``after_publish``: the finished stage's ``summary.json`` and report are written (a hook
@@ -69,6 +80,14 @@ class Loop:
             after = getattr(hook, "after_publish", None)
             if after is not None:
                 after(self, summary)
+
+    def aborted(self, error: BaseException) -> None:
+        """Every hook's ``after_abort``: the stage ends without publishing (a hook written before this moment
+        existed, without the method, is passed over)."""
+        for hook in self.hooks:
+            after = getattr(hook, "after_abort", None)
+            if after is not None:
+                after(self, error)
 
     def emit(self, event: str) -> None:
         """Call ``event`` (``before_train``, ``before_step``, ``after_step``, ``after_train``) on every hook."""
@@ -97,6 +116,10 @@ class Hook:
     def after_publish(self, loop: Loop, summary: dict[str, Any]) -> None:
         """Once, when a finished stage's ``summary.json`` and report (``report.md`` and its plots) are written, by
         the main process (not after a run stopped early)."""
+
+    def after_abort(self, loop: Loop, error: BaseException) -> None:
+        """Once, when the stage ends on an exception after ``before_train``: a failure (a non-finite loss, any
+        error) or a stop (SIGTERM, Ctrl-C: ``KeyboardInterrupt``; ``last.pt`` at ``loop.saved`` is kept)."""
 
 
 class LogHook(Hook):

@@ -6,7 +6,9 @@ Every ``sequences/NN/voxels/NNNNNN.label`` of the split's sequences is a frame t
 SSC table (raw -> 0..19, 255 ignored); voxels whose target is 255 or that are ``.invalid`` are left out; one
 confusion matrix over the whole split (frames are streamed: memory is one frame); mIoU over classes 1..19 with an
 absent class counting 0. A prediction that maps to 255 where it is scored is an error (the official script crashes
-there). VoxFormer's 25.6 m and 12.8 m boxes in front of the car are scored beside the whole 51.2 m grid.
+there). VoxFormer's 25.6 m and 12.8 m boxes in front of the car are scored beside the whole 51.2 m grid. The folders
+and each prediction's presence and size are checked before the first frame is read (:func:`plan_folder`): a missing
+predictions folder is named as a folder, a missing file as a frame.
 """
 
 from __future__ import annotations
@@ -57,12 +59,54 @@ def frames_of(dataset_root: Path, sequences: Sequence[str]) -> list[tuple[str, P
     return out
 
 
+def many(head: str, problems: list[str], shown: int = 12) -> str:
+    """One problem as its own line; several under ``head``, the first ``shown`` of them listed."""
+    if len(problems) == 1:
+        return problems[0]
+    more = [f"... and {len(problems) - shown} more"] if len(problems) > shown else []
+    return head + ":\n  " + "\n  ".join(problems[:shown] + more)
+
+
+def plan_folder(dataset_root: str | Path, predictions: str | Path,
+                sequences: Sequence[str]) -> list[tuple[str, Path, Path]]:
+    """(sequence, ground truth, prediction) of every frame to score, once the folders and each prediction's size
+    are checked (nothing of a voxel read): a missing folder is named as a folder, a missing file as a frame."""
+    root, preds = Path(dataset_root).expanduser(), Path(predictions).expanduser()
+    frames = frames_of(root, sequences)
+    if not preds.is_dir():
+        raise DataError(f"{preds}: no such folder (the predictions: sequences/NN/predictions/NNNNNN.label; "
+                        "`distilkit predict` writes them)")
+    problems = [f"{preds / 'sequences' / seq / 'predictions'}: no such folder (the predictions of sequence {seq})"
+                for seq in dict.fromkeys(seq for seq, _ in frames)
+                if not (preds / "sequences" / seq / "predictions").is_dir()]
+    jobs = []
+    for seq, gt_file in frames:
+        pred_file = preds / "sequences" / seq / "predictions" / gt_file.name
+        if not pred_file.parent.is_dir():
+            continue
+        if not pred_file.is_file():
+            problems.append(f"{pred_file}: no prediction for this frame (expected a uint16 .label per ground-truth "
+                            "frame)")
+        elif pred_file.stat().st_size != 2 * VOXELS:
+            problems.append(_size_problem(pred_file))
+        jobs.append((seq, gt_file, pred_file))
+    if problems:
+        raise DataError(many(f"{preds}: {len(problems)} predictions cannot be scored", problems))
+    return jobs
+
+
+def _size_problem(path: Path) -> str:
+    size = path.stat().st_size
+    return (f"{path}: {size // 2:,} voxels, expected {VOXELS:,} (256 x 256 x 32 uint16)" if size % 2 == 0 else
+            f"{path}: {size:,} bytes, expected {2 * VOXELS:,} (256 x 256 x 32 uint16)")
+
+
 def _read_prediction(path: Path) -> np.ndarray:
     if not path.is_file():
         raise DataError(f"{path}: no prediction for this frame (expected a uint16 .label per ground-truth frame)")
     raw = np.fromfile(path, dtype="<u2")
     if raw.size != VOXELS:
-        raise DataError(f"{path}: {raw.size} voxels, expected {VOXELS:,} (256 x 256 x 32 uint16)")
+        raise DataError(_size_problem(path))
     return raw.astype(np.int64)
 
 
@@ -73,17 +117,17 @@ def _regions() -> np.ndarray:
 
 
 def evaluate_folder(dataset_root: str | Path, predictions: str | Path, sequences: Sequence[str],
-                    progress: Callable[[int, int], None] | None = None, table: ClassTable | None = None) -> Evaluation:
+                    progress: Callable[[int, int], None] | None = None, table: ClassTable | None = None,
+                    jobs: list[tuple[str, Path, Path]] | None = None) -> Evaluation:
     """The official scores of ``predictions`` over the frames of ``sequences`` (see the module docstring);
-    ``table``: the labels' class table (default SemanticKITTI's; SemanticPOSS's for its folders)."""
-    root, preds = Path(dataset_root).expanduser(), Path(predictions).expanduser()
+    ``table``: the labels' class table (default SemanticKITTI's; SemanticPOSS's for its folders); ``jobs``: the
+    frames :func:`plan_folder` checked (else it is called here)."""
     table = table or ClassTable.semantickitti()
     lut, k = ssc_lut(dict(table.learning_map)), table.num_classes
     regions = _regions()
     conf = np.zeros((3, k, k), np.int64)  # per region code
-    jobs = frames_of(root, sequences)
-    for n, (seq, gt_file) in enumerate(jobs):
-        pred_file = preds / "sequences" / seq / "predictions" / gt_file.name
+    jobs = plan_folder(dataset_root, predictions, sequences) if jobs is None else jobs
+    for n, (seq, gt_file, pred_file) in enumerate(jobs):
         raw_pred = _read_prediction(pred_file)
         if raw_pred.max() >= len(lut):
             raise DataError(f"{pred_file}: raw id {int(raw_pred.max())} is not a SemanticKITTI label")
@@ -116,4 +160,5 @@ def scores_yaml(ev: Evaluation) -> dict[str, float]:
     return out
 
 
-__all__ = ["Evaluation", "RANGES", "evaluate_folder", "frames_of", "range_mask", "scores_yaml"]
+__all__ = ["Evaluation", "RANGES", "evaluate_folder", "frames_of", "many", "plan_folder", "range_mask",
+           "scores_yaml"]

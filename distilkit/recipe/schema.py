@@ -318,22 +318,33 @@ class Recipe(_Strict):
     name: str = Field(..., pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", max_length=MAX_NAME,
                       description=f"run name (folder under the output; at most {MAX_NAME} characters)")
     seed: int = 0
+    threads: int | None = Field(None, ge=1, le=4096, description="CPU threads each process computes with "
+                                "(torch.set_num_threads); default: OMP_NUM_THREADS, else Slurm's SLURM_CPUS_PER_TASK, "
+                                "else the CPUs of the process's affinity mask; on the command line --threads N. Not "
+                                "part of any stage's identity (each stage's summary records the count)")
     data: DataSpec = Field(default_factory=DataSpec)
     stages: dict[str, StageSpec] = Field(..., min_length=1)
     report: ReportSpec = Field(default_factory=ReportSpec)
     trackers: list[str | dict[str, dict[str, Any] | None]] = Field(
         default_factory=list, description="experiment trackers every stage logs to (registered hooks: tensorboard, "
-                                          "wandb, mlflow, trackio, or a plugin's), each a name or {NAME: {param: "
+                                          "wandb, mlflow, trackio, or a plugin's; each one's parameters: Trackers "
+                                          "in docs/recipe-reference.md), each once, as a name or {NAME: {param: "
                                           "value}}, e.g. [tensorboard, {wandb: {project: kd, mode: offline}}]; on the "
                                           "command line --set 'trackers=[mlflow]'. Not part of any stage's identity")
 
     @field_validator("trackers")
     @classmethod
     def _trackers(cls, v: list[Any]) -> list[Any]:
+        seen: dict[str, int] = {}
         for i, item in enumerate(v):
             if isinstance(item, dict) and len(item) != 1:
                 raise ValueError(f"trackers[{i}]: give one tracker per entry, as NAME or {{NAME: {{params}}}}, got "
                                  f"{len(item)} names ({', '.join(map(str, item)) or 'none'})")
+            name = item if isinstance(item, str) else next(iter(item))
+            if name in seen:  # one run per tracker and stage: a second entry would log into the first's run
+                raise ValueError(f"trackers[{i}]: {name} is given twice (trackers[{seen[name]}] and trackers[{i}]); "
+                                 "give each tracker once, with all its parameters")
+            seen[name] = i
         return v
 
     def tracker_specs(self) -> list[tuple[str, dict[str, Any]]]:

@@ -40,7 +40,39 @@ def config_diff(a: Path, b: Path) -> list[tuple[str, Any, Any]]:
 
 
 def _fmt_delta(col: tuple[str, str, float], d: float) -> str:
+    if d != d:  # NaN: a score one of the runs lacks
+        return "—"
     return f"{col[2] * d:+.2f}" if col[2] != 1.0 else f"{d:+.4g}"
+
+
+def class_scores(summary: dict[str, Any], row: dict[str, Any], view: ScoreView) -> dict[str, float]:
+    """A run's per-class scores at its best checkpoint by class name (its own class table)."""
+    names, _ = class_table(summary, view)
+    return dict(zip(names, row["class_scores"]))
+
+
+def class_rows(sa: dict[str, Any], ra: dict[str, Any], sb: dict[str, Any], rb: dict[str, Any],
+               view: ScoreView) -> tuple[list[tuple[str, float, float]], str | None]:
+    """(class, A's score, B's score) matched by class name — A's classes in A's order, then B's own (NaN where a
+    run has no such class) — and a line naming the classes either run lacks (None when both have the same)."""
+    a, b = class_scores(sa, ra, view), class_scores(sb, rb, view)
+    nan = float("nan")
+    rows = [(n, a.get(n, nan), b.get(n, nan)) for n in [*a, *(n for n in b if n not in a)]]
+    b_lacks, a_lacks = [n for n in a if n not in b], [n for n in b if n not in a]
+    if not b_lacks and not a_lacks:
+        return rows, None
+    parts = [f"B lacks {len(b_lacks)} of A's classes: {', '.join(b_lacks)}" if b_lacks else "",
+             f"A lacks {len(a_lacks)} of B's: {', '.join(a_lacks)}" if a_lacks else ""]
+    return rows, ("the two runs have different class tables (rows matched by class name; each mIoU averages its "
+                  f"own run's classes): {'; '.join(p for p in parts if p)}")
+
+
+def _class_cells(scale: float, va: float, vb: float) -> list[str]:
+    """A per-class row's A, B and B − A cells ("—" where a run has no such class)."""
+    def one(v: float, sign: str = "") -> str:
+        return "—" if v != v else f"{scale * v:{sign}.1f}"
+
+    return [one(va), one(vb), one(vb - va, "+")]
 
 
 def compare_rows(ra: dict[str, Any], rb: dict[str, Any]) -> list[list[str]]:
@@ -68,6 +100,8 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path | None = 
     la, lb = sa.get("label", a.name), sb.get("label", b.name)
     table_rows = compare_rows(ra, rb)
     diff = config_diff(a, b)
+    per_class = view.per_class if ra["class_scores"] and rb["class_scores"] else None
+    classes, lacking = class_rows(sa, ra, sb, rb, view) if per_class else ([], None)
     if console is not None:
         from rich.table import Table
 
@@ -79,6 +113,8 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path | None = 
         console.print(t)
         for k, va, vb in diff[:20]:
             console.print(f"  differs: {k}: {va} → {vb}")
+        if lacking:
+            console.print(f"[yellow]{lacking}[/]", highlight=False)
     lines = [f"# {la} (A) vs {lb} (B)", "", f"A: `{a}`  ", f"B: `{b}`", "",
              f"## Scores ({ra['split']} split, {view.title})", "",
              f"'best' = the checkpoint with the best validation {view.main[1]} (A: step {ra['best_step']}, B: step "
@@ -89,21 +125,20 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path | None = 
     lines += (["| key | A | B |", "|---|---|---|", *[f"| {k} | {va} | {vb} |" for k, va, vb in diff]]
               if diff else ["(none: the two runs have the same resolved configuration)"])
     lines.append("")
-    if view.per_class is not None and ra["class_scores"] and rb["class_scores"]:
-        _, name, scale = view.per_class
-        names, _ = class_table(sa, view)
-        lines += [f"## Per-class {name} (best checkpoint)", "", "| class | A | B | B − A |", "|---|---|---|---|"]
-        for n, va, vb in zip(names, ra["class_scores"], rb["class_scores"]):
-            lines.append(f"| {n} | {scale * va:.1f} | {scale * vb:.1f} | {scale * (vb - va):+.1f} |")
+    if per_class:
+        _, name, scale = per_class
+        lines += [f"## Per-class {name} (best checkpoint)", "", *([f"Note: {lacking}.", ""] if lacking else []),
+                  "| class | A | B | B − A |", "|---|---|---|---|"]
+        lines += [f"| {n} | {' | '.join(_class_cells(scale, va, vb))} |" for n, va, vb in classes]
         lines.append("")
-    _plot(folder / "compare.png", a, b, sa, ra, rb, la, lb)
+    _plot(folder / "compare.png", a, b, sa, sb, ra, rb, la, lb, classes)
     lines += ["![loss, per-class scores and previews of A and B](compare.png)", ""]
     atomic_write_text(folder / "compare.md", "\n".join(lines))
     return folder / "compare.md"
 
 
-def _plot(path: Path, a: Path, b: Path, sa: dict[str, Any], ra: dict[str, Any], rb: dict[str, Any], la: str,
-          lb: str) -> None:
+def _plot(path: Path, a: Path, b: Path, sa: dict[str, Any], sb: dict[str, Any], ra: dict[str, Any],
+          rb: dict[str, Any], la: str, lb: str, classes: list[tuple[str, float, float]]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -118,12 +153,11 @@ def _plot(path: Path, a: Path, b: Path, sa: dict[str, Any], ra: dict[str, Any], 
     plots.loss_curves(ax1, plots.task_loss(plots.read_log(b)[0]), prefix="B ", style="--")
     ax1.set_title("task loss, without distillation terms (A solid, B dashed)")
     ax2 = fig.add_subplot(n_rows, 2, 2)
-    if view.per_class is not None and ra["class_scores"] and rb["class_scores"]:
-        names, colours = class_table(sa, view)
-        k = min(len(names), len(ra["class_scores"]), len(rb["class_scores"]))
+    if view.per_class is not None and classes:
+        colour = {**dict(zip(*class_table(sb, view))), **dict(zip(*class_table(sa, view)))}  # A's where both
         s = view.per_class[2]
-        plots.class_bars(ax2, names[:k], colours[:k], [[s * v for v in ra["class_scores"][:k]],
-                                                       [s * v for v in rb["class_scores"][:k]]],
+        plots.class_bars(ax2, [n for n, _, _ in classes], [colour[n] for n, _, _ in classes],
+                         [[s * va for _, va, _ in classes], [s * vb for _, _, vb in classes]],  # NaN: no bar
                          [f"A {la}", f"B {lb} (hatched)"], f"{view.per_class[1]} (best checkpoint)")
     else:
         cols = view.headline

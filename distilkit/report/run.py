@@ -9,6 +9,7 @@ Everything is drawn from the files of the run folder — ``summary.json``, ``met
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -109,14 +110,23 @@ def write_run_report(run_dir: str | Path) -> Path:
 
 
 def report_targets(path: str | Path) -> list[Path]:
-    """A stage run folder, or every finished stage run under a recipe's or sweep's output folder."""
+    """A stage run folder, or every finished stage run under a folder at any depth (a recipe's output folder, a
+    sweep's, or ``runs/`` holding several): a folder with ``summary.json`` is a run and is not searched further."""
     p = Path(path)
     if (p / "summary.json").is_file():
         return [p]
-    found = sorted(d.parent for d in p.glob("*/summary.json"))
+    if not p.is_dir():
+        raise DistilkitError(f"{p}: no such folder (give a stage run folder or a folder of runs)")
+    found: list[Path] = []
+    for folder, subfolders, files in os.walk(p):
+        if "summary.json" in files:
+            found.append(Path(folder))
+            subfolders.clear()  # a run's own folders (checkpoints, predictions) hold no other run
+        else:
+            subfolders[:] = [d for d in subfolders if not d.startswith(".")]
     if not found:
-        raise DistilkitError(f"{p}: no finished stage run here (a stage run folder holds summary.json)")
-    return found
+        raise DistilkitError(f"{p}: no finished stage run here or under it (a stage run folder holds summary.json)")
+    return sorted(found)
 
 
 __all__ = ["read_run", "report_targets", "write_run_report"]

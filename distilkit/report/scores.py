@@ -46,18 +46,54 @@ class ScoreView:
     def of(cls, summary: dict[str, Any]) -> "ScoreView":
         """The view of a stage summary (summaries written before metrics were recorded: SSC by mIoU)."""
         spec = summary.get("metric") or {"name": "ssc", "key": "miou"}
-        metric = METRICS.get(spec["name"]) if spec["name"] in METRICS else None
+        metric = _layout(spec["name"])
         if metric is None:  # a plugin metric that is not installed now: its keys as they are
             keys = tuple(k for k, v in (summary.get("test", {}).get("best") or {}).items() if isinstance(v, float))
             return cls(spec["name"], spec["key"], f"{spec['name']} scores", tuple((k, k, 1.0) for k in keys))
-        return cls(spec["name"], spec["key"], metric.TITLE or f"{spec['name']} scores", metric.columns(),
-                   metric.PER_CLASS, metric.PER_CLASS_FROM, spec["key"] in metric.LOWER_IS_BETTER)
+        per_class = metric["per_class"]
+        return cls(spec["name"], spec["key"], metric["title"] or f"{spec['name']} scores",
+                   tuple((str(k), str(h), float(x)) for k, h, x in metric["columns"]),
+                   (str(per_class[0]), str(per_class[1]), float(per_class[2])) if per_class else None,
+                   int(metric["first_class"]), spec["key"] in metric["lower_is_better"])
 
     def fmt(self, column: tuple[str, str, float], value: float) -> str:
         """A score as shown; a score the summary lacks (written before its metric reported it) as "—"."""
         if value != value:  # NaN
             return "—"
         return f"{column[2] * value:.2f}" if column[2] != 1.0 else f"{value:.4g}"
+
+
+def _layout(name: str) -> dict[str, Any] | None:
+    """Metric ``name``'s table layout: from the registry where this process has loaded it or registered the metric
+    itself (a script's or a test's ``METRICS.add``), else from the catalogue, without importing the metrics; a name
+    the catalogue lacks is looked up in the registry (None: not installed)."""
+    from distilkit.catalogue import cached
+    from distilkit.registry import plugins_loaded
+
+    if METRICS.registered(name) is None and not plugins_loaded():
+        layout = cached("metrics", metric_layouts).get(name)
+        if layout is not None:
+            return layout
+    metric = METRICS.get(name) if name in METRICS else None
+    return _layout_of(metric) if metric is not None else None
+
+
+def _layout_of(m: Any) -> dict[str, Any]:
+    return {"title": m.TITLE, "columns": [list(c) for c in m.columns()],
+            "per_class": list(m.PER_CLASS) if m.PER_CLASS else None, "first_class": m.PER_CLASS_FROM,
+            "lower_is_better": sorted(m.LOWER_IS_BETTER)}
+
+
+def metric_layouts() -> dict[str, dict[str, Any]]:
+    """Every registered metric's table layout (title, columns, per-class column, lower-is-better keys), by each of
+    its names, as JSON data: kept in the catalogue (:mod:`distilkit.catalogue`), so a report does not import the
+    metrics (and torch) to read a summary."""
+    out: dict[str, dict[str, Any]] = {}
+    for e in METRICS:
+        layout = _layout_of(e.obj)
+        for name in (e.name, *METRICS.aliases_of(e.name)):
+            out[name] = layout
+    return out
 
 
 UNSCORED = "no split"  # a stage trained on everything (no validation or test split): scores are "—"

@@ -37,9 +37,13 @@ numpy integer, never a bool or a float. A ``TypeError`` (not an integer) or ``Va
 layer, the argument and the value; a ``SubMConv3d``'s kernel must be odd. (Unchecked, a dilation of 0 summed every
 kernel slice at the centre, a negative one flipped the kernel and a negative padding cropped the grid.)
 
-spconv's keywords that only tune speed (``algo``, ``fp32_accum``, ``large_kernel_fast_algo``,
-``record_voxel_count``, ``use_hash``, ``fused_bn``) are accepted and ignored, ``name`` names the layer in errors;
-any other keyword is a ``TypeError``.
+``indice_key`` must be a ``str`` or None (a ``SparseInverseConv3d``'s a ``str``) and ``bias`` a ``bool`` (or a numpy
+bool), else a ``TypeError`` naming the layer and the value. spconv's keywords that are real there but mean nothing
+here, as they only choose how spconv computes the same numbers, are accepted and ignored: ``algo`` (its GEMM
+algorithm), ``fp32_accum`` (float32 accumulation under half precision: this path's float32 accumulator is always
+on), ``large_kernel_fast_algo``, ``record_voxel_count`` (spconv 2.x), ``use_hash`` and ``fused_bn`` (spconv 1.x);
+``name`` names the layer in errors. Any other keyword is a ``TypeError`` naming it, as Python's for a function
+(``SubMConv3d.__init__() got an unexpected keyword argument 'foo'``).
 
 Pure PyTorch (:mod:`distilkit.sparse.rulebook`, :mod:`distilkit.sparse.function`): no dense grid is allocated,
 autograd flows through features and weights, and the CPU results are the same bits in any process.
@@ -50,6 +54,7 @@ from __future__ import annotations
 import math
 from typing import Any, Literal, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -63,14 +68,30 @@ SPEED_ONLY = frozenset({"algo", "fp32_accum", "large_kernel_fast_algo", "record_
 
 
 def _options(kind: str, options: dict[str, Any]) -> str | None:
-    """The layer's ``name`` among spconv's keywords; any keyword that is not speed-only is an error."""
+    """The layer's ``name`` among spconv's keywords; any keyword that is neither ``name`` nor speed-only is a
+    ``TypeError`` naming it, in Python's words."""
     unknown = sorted(set(options) - SPEED_ONLY - {"name"})
     if unknown:
-        raise TypeError(f"{kind}: unexpected keyword argument{'s' if len(unknown) > 1 else ''} "
-                        f"{', '.join(map(repr, unknown))} (accepted and ignored, as they only tune spconv's speed: "
-                        f"{', '.join(sorted(SPEED_ONLY))}; name: the layer's name in errors)")
+        what = ("an unexpected keyword argument" if len(unknown) == 1 else "unexpected keyword arguments")
+        raise TypeError(f"{kind}.__init__() got {what} {', '.join(map(repr, unknown))}")
     name = options.get("name")
     return None if name is None else str(name)
+
+
+def _key(indice_key: Any, who: str, required: bool) -> str | None:
+    """``indice_key`` checked: a str, or None where the layer may have no key (spconv compares keys as strings)."""
+    if isinstance(indice_key, str) or (indice_key is None and not required):
+        return indice_key
+    what = "a str" if required else "a str or None"
+    shown = "None" if indice_key is None else f"{indice_key!r} ({type(indice_key).__name__})"
+    raise TypeError(f"{who}: indice_key must be {what}, got {shown}")
+
+
+def _flag(bias: Any, who: str) -> bool:
+    """``bias`` checked: a bool (a numpy bool too), never a string or a number whose truth would be taken."""
+    if isinstance(bias, (bool, np.bool_)):
+        return bool(bias)
+    raise TypeError(f"{who}: bias must be a bool, got {bias!r} ({type(bias).__name__})")
 
 
 class _SparseConvolution(nn.Module):
@@ -79,15 +100,16 @@ class _SparseConvolution(nn.Module):
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Sequence[int], stride: int | Sequence[int],
                  padding: int | Sequence[int], dilation: int | Sequence[int], bias: bool,
-                 indice_key: str | None, semantics: str, options: dict[str, Any]) -> None:
+                 indice_key: str | None, semantics: str, options: dict[str, Any], key_required: bool = False) -> None:
         super().__init__()
         kind = type(self).__name__
         self.layer_name = _options(kind, options)
         if semantics not in SEMANTICS:
             raise ValueError(f"{kind}: semantics must be one of {', '.join(SEMANTICS)}, got {semantics!r}")
         self.semantics = semantics
-        self.indice_key = indice_key
         who = f"{self.layer_name}: {kind}" if self.layer_name else kind
+        self.indice_key = _key(indice_key, who, key_required)
+        bias = _flag(bias, who)
         self.in_channels = as_int(in_channels, "in_channels", 1, who)
         self.out_channels = as_int(out_channels, "out_channels", 1, who)
         self.kernel_size = triple(kernel_size, "kernel_size", 1, who)
@@ -284,7 +306,8 @@ class SparseInverseConv3d(_SparseConvolution):
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Sequence[int], indice_key: str,
                  bias: bool = True, semantics: Semantics = "spconv2", **options: Any) -> None:
-        super().__init__(in_channels, out_channels, kernel_size, 1, 0, 1, bias, indice_key, semantics, options)
+        super().__init__(in_channels, out_channels, kernel_size, 1, 0, 1, bias, indice_key, semantics, options,
+                         key_required=True)
 
     def forward(self, x: SparseConvTensor) -> SparseConvTensor:
         self._check_input(x)

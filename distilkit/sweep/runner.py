@@ -15,7 +15,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -29,25 +29,7 @@ from distilkit.engine.train.trackers.base import in_sweep, sweep_env
 from distilkit.errors import DistilkitError, RecipeError
 from distilkit.sweep.results import RunRecord, write_results
 from distilkit.sweep.spec import Sweep, load_sweep
-
-
-@dataclass(frozen=True)
-class Task:
-    """One ``distilkit run``: the variant's recipe at a seed, for ``stages`` (the variant, or its upstream)."""
-
-    variant: str
-    seed: int
-    stages: tuple[str, ...]
-    recipe_file: Path
-
-    def argv(self, output: Path) -> list[str]:
-        return ["run", str(self.recipe_file), "--seed", str(self.seed), "--output", str(output),
-                "--stage", *self.stages]
-
-    @property
-    def title(self) -> str:
-        what = self.variant if self.stages == (self.variant,) else f"{', '.join(self.stages)} (for {self.variant})"
-        return f"{what}, seed {self.seed}"
+from distilkit.sweep.tasks import Task, variants_phrase
 
 
 class SweepRun:
@@ -91,19 +73,20 @@ class SweepRun:
                                   + text)
 
     def upstream_tasks(self) -> list[Task]:
-        """One task per distinct set of upstream runs (by identity): with a shared teacher, one in all."""
-        seen: set[tuple[str, ...]] = set()
-        out = []
+        """One task per distinct set of upstream runs (by identity): with a shared teacher, one in all. Each is named
+        by the variants whose runs wait on it (at its seed)."""
+        found: dict[tuple[str, ...], tuple[Task, list[str]]] = {}  # upstream runs -> (the task, the variants)
         for seed in self.seeds:
             for variant in self.sweep.recipes:
                 names = self.sweep.upstream_stages(variant)
                 if not names:
                     continue
-                key = self.upstream_key(Task(variant, seed, tuple(names), self.recipe_file(variant)))
-                if key not in seen:
-                    seen.add(key)
-                    out.append(Task(variant, seed, tuple(names), self.recipe_file(variant)))
-        return out
+                task = Task(variant, seed, tuple(names), self.recipe_file(variant))
+                users = found.setdefault(self.upstream_key(task), (task, []))[1]
+                if variant not in users:  # a teacher shared over seeds: each variant once
+                    users.append(variant)
+        every = list(self.sweep.recipes)
+        return [replace(task, upstream_of=variants_phrase(users, every)) for task, users in found.values()]
 
     def upstream_key(self, task: Task) -> tuple[str, ...]:
         """The folders of the upstream runs a task's variant needs at its seed (what one upstream task trains)."""
@@ -226,14 +209,26 @@ class SweepRun:
             ups += [n for n in self.sweep.upstream_stages(variant) if n not in ups]
         return [*self.sweep.recipes, *ups]
 
+    @property
+    def results_console(self) -> Any:
+        """Where the sweep's table (and the runs left out of it) is printed: the console, or a loud one where it is
+        quiet — quiet means no progress chatter, not no results."""
+        if not getattr(self.console, "quiet", False):
+            return self.console
+        from distilkit.console import make_console
+
+        return make_console()
+
     def collect(self) -> Path | None:
+        """Print the table of the finished runs (even under ``quiet``) and write the results' files."""
         records, missing = self.records()
+        console = self.results_console
         if not records:
-            self.console.print(f"sweep {self.sweep.name}: no finished runs yet under {self.root}")
+            console.print(f"sweep {self.sweep.name}: no finished runs yet under {self.root}")
             return None
         if missing:
-            self.console.print(f"[yellow]not finished (left out of the table):[/] {', '.join(missing)}")
-        return write_results(self.root, self.sweep.name, records, self.sweep.baseline, self.order(), self.console,
+            console.print(f"[yellow]not finished (left out of the table):[/] {', '.join(missing)}")
+        return write_results(self.root, self.sweep.name, records, self.sweep.baseline, self.order(), console,
                              missing)
 
 
@@ -341,27 +336,31 @@ def _local_plan(sweep: SweepRun, path: str | Path, output: str | Path) -> None:
 def _slurm_plan(sweep: SweepRun, cluster: dict[str, Any]) -> None:
     """``--plan --launcher slurm``: the jobs, their dependencies and sbatch scripts that a submission would queue,
     on stdout; no executor is built, no Slurm command runs and nothing is written."""
-    from distilkit.sweep.slurm import Resources, parse_slurm_options
     from distilkit.sweep.slurm_plan import describe_plan, plan
 
-    res = Resources.merge(sweep.sweep.spec.launcher, {**cluster, "extra": parse_slurm_options(cluster.get("extra"))})
+    res = _resources(sweep, cluster)
     print(describe_plan(sweep, res, plan(sweep, res)))
+
+
+def _resources(sweep: SweepRun, cluster: dict[str, Any]) -> Any:
+    """One run's Slurm allocation: the command line's ``cluster`` values over the sweep file's ``launcher:``."""
+    from distilkit.sweep.slurm import Resources, parse_slurm_options
+
+    return Resources.merge(sweep.sweep.spec.launcher, {**cluster, "extra": parse_slurm_options(cluster.get("extra"))})
 
 
 def _on_slurm(sweep: SweepRun, path: str | Path, launcher: str, cluster: dict[str, Any], status: bool, wait: bool,
               quiet: bool) -> Path | None:
-    from distilkit.sweep import slurm
+    from distilkit.sweep import slurm, slurm_status
 
     console = sweep.console
     if status:
-        for line in slurm.status(sweep):
+        for line in slurm_status.status(sweep):
             print(f"{line.state:8} {line.job_id:>12}  {line.title}  log {line.log}"
                   + (f"  — {line.detail}" if line.detail else ""))
         return None
     if launcher == "slurm":
-        from distilkit.sweep.slurm import Resources, parse_slurm_options
-
-        res = Resources.merge(sweep.sweep.spec.launcher, {**cluster, "extra": parse_slurm_options(cluster.get("extra"))})
+        res = _resources(sweep, cluster)
         with in_sweep(sweep.sweep.name, list(sweep.sweep.recipes)):  # sbatch exports it to the jobs' trackers
             submitted = slurm.submit(sweep, res)
         total = len(sweep.variant_tasks())
@@ -375,7 +374,7 @@ def _on_slurm(sweep: SweepRun, path: str | Path, launcher: str, cluster: dict[st
             console.print(f"`distilkit sweep {path} --status` shows their states, `--wait` follows them, and "
                           f"`distilkit sweep {path}` collects the table once they have ended", highlight=False)
             return None
-    states = slurm.wait(sweep, console, quiet=quiet)
+    states = slurm_status.wait(sweep, console, quiet=quiet)
     failed = [s for s in states if s.state == "failed"]
     result = sweep.collect()
     if failed:
@@ -384,4 +383,4 @@ def _on_slurm(sweep: SweepRun, path: str | Path, launcher: str, cluster: dict[st
     return result
 
 
-__all__ = ["SweepRun", "Task", "run_sweep"]
+__all__ = ["SweepRun", "run_sweep"]

@@ -19,10 +19,8 @@ checkpoint and ends with the bits of an uninterrupted run. The job's Python repl
 ``srun``): ``srun`` ends its step on SIGTERM and a shell dies of it, either of which would end the job before the
 requeue; so the signal is sent to the batch shell (``--signal=B:TERM@90``), which is that Python.
 
-What ran where is kept in ``<output>/<sweep>/slurm/jobs.json``; :func:`status` reads it with ``squeue`` and
-``scontrol`` (states of queued and recently ended jobs) and the runs' own ``summary.json`` (done). Slurm's accounting
-(``sacct``, slurmdbd with a database) is not needed: a run is done exactly when its summary exists, and a job that
-has left the queue without one has failed (its log's last line says why).
+What ran where is kept in ``<output>/<sweep>/slurm/jobs.json``; :mod:`distilkit.sweep.slurm_status` reads
+the jobs' states from it.
 """
 
 from __future__ import annotations
@@ -31,7 +29,6 @@ import json
 import os
 import re
 import shlex
-import shutil
 import signal
 import subprocess
 import sys
@@ -41,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from distilkit.errors import DistilkitError
+from distilkit.sweep.slurm_status import status
 
 EXTRA = "pip install 'distilkit[slurm]'"
 PREEMPT_ENV = "SUBMITIT_PREEMPT_SIGNAL"
@@ -240,9 +238,10 @@ class PlannedJob:
     after: list[str]
 
 
-def schedule(run: Any, queued: dict[str, str] | None = None) -> list[PlannedJob]:
+def schedule(run: Any, queued: dict[tuple[str, int, tuple[str, ...]], str] | None = None) -> list[PlannedJob]:
     """The jobs :func:`submit` queues for ``run``: one per unfinished upstream task, then one per set of unfinished
-    variant tasks needing the same upstream jobs; ``queued`` (title -> job id) are not queued again. Runs nothing."""
+    variant tasks needing the same upstream jobs; ``queued`` (a task's key -> job id) are not queued again. Runs
+    nothing."""
     queued = queued or {}
     jobs: list[PlannedJob] = []
     upstream_job: dict[tuple[str, ...], str] = {}  # the upstream runs' folders -> the job that trains them
@@ -250,14 +249,14 @@ def schedule(run: Any, queued: dict[str, str] | None = None) -> list[PlannedJob]
         if run.finished(task):
             continue
         key = run.upstream_key(task)
-        if task.title in queued:
-            upstream_job[key] = queued[task.title]
+        if task.key in queued:
+            upstream_job[key] = queued[task.key]
             continue
         upstream_job[key] = f"job-{len(jobs) + 1}"
         jobs.append(PlannedJob(upstream_job[key], [task], []))
     groups: dict[tuple[str, ...], list[Any]] = {}
     for task in run.variant_tasks():
-        if run.finished(task) or task.title in queued:
+        if run.finished(task) or task.key in queued:
             continue
         key = run.upstream_key(task)
         groups.setdefault((upstream_job[key],) if key in upstream_job else (), []).append(task)
@@ -281,7 +280,7 @@ def submit(run: Any, res: Resources) -> list[Submitted]:
     run.write_recipes()
     folder = run.root / "slurm"
     folder.mkdir(parents=True, exist_ok=True)
-    queued = {s.title: s.job_id for s in (status(run) if (folder / "jobs.json").is_file() else [])
+    queued = {s.key: s.job_id for s in (status(run) if (folder / "jobs.json").is_file() else [])
               if s.state in ("pending", "running")}  # submitted before and still queued: not again
     ids: dict[str, str] = {}  # planned job key -> Slurm's job id
     submitted: list[Submitted] = []
@@ -301,100 +300,5 @@ def submit(run: Any, res: Resources) -> list[Submitted]:
     return submitted
 
 
-# -- status -------------------------------------------------------------------------------------------------------
-
-def _queue_states(ids: list[str]) -> dict[str, str]:
-    """Job id -> state of the jobs ``squeue`` still lists (PENDING, RUNNING, ...), array tasks by ``N_i``."""
-    if not ids or shutil.which("squeue") is None:
-        return {}
-    done = subprocess.run(["squeue", "-h", "-r", "-o", "%i|%T|%r", "-j", ",".join(sorted({i.split("_")[0]
-                                                                                          for i in ids}))],
-                          capture_output=True, text=True)
-    out = {}
-    for line in done.stdout.splitlines():
-        parts = line.strip().split("|")
-        if len(parts) == 3:
-            out[parts[0]] = parts[1] + (f" ({parts[2]})" if parts[2] not in ("None", "") else "")
-    return out
-
-
-def _ended_state(job_id: str) -> str | None:
-    """The state ``scontrol`` remembers of a job that left the queue (for MinJobAge), else None."""
-    if shutil.which("scontrol") is None:
-        return None
-    done = subprocess.run(["scontrol", "show", "job", job_id], capture_output=True, text=True)
-    match = re.search(r"JobState=(\S+)", done.stdout)
-    return match.group(1) if match else None
-
-
-def _last_line(path: str) -> str:
-    try:
-        lines = [ln for ln in Path(path).read_text(encoding="utf-8", errors="replace").splitlines() if ln.strip()]
-    except OSError:
-        return "(no log)"
-    errors = [ln for ln in lines if "Error" in ln or "error:" in ln]
-    return (errors or lines or ["(empty log)"])[-1].strip()
-
-
-@dataclass
-class TaskStatus:
-    title: str
-    state: str  # pending | running | done | failed
-    job_id: str
-    log: str
-    detail: str = ""
-
-
-def status(run: Any) -> list[TaskStatus]:
-    """One line per submitted task, newest submission of each task first: done (its summary exists), pending or
-    running (``squeue``), else failed (the job left the queue without finishing the run)."""
-    record = run.root / "slurm" / "jobs.json"
-    if not record.is_file():
-        raise DistilkitError(f"no Slurm jobs recorded for sweep {run.sweep.name} under {run.root} (submit with "
-                             "--launcher slurm first)")
-    latest: dict[tuple[str, int, tuple[str, ...]], dict[str, Any]] = {}
-    for item in json.loads(record.read_text(encoding="utf-8")):
-        latest[item["variant"], item["seed"], tuple(item["stages"])] = item
-    queued = _queue_states([i["job_id"] for i in latest.values()])
-    out = []
-    for (variant, seed, stages), item in latest.items():
-        task = run.task(variant, seed, stages)
-        if run.finished(task):
-            out.append(TaskStatus(item["title"], "done", item["job_id"], item["log"]))
-            continue
-        state = queued.get(item["job_id"])
-        if state is not None:
-            word = "running" if state.startswith(("RUNNING", "COMPLETING")) else "pending"
-            out.append(TaskStatus(item["title"], word, item["job_id"], item["log"], state))
-            continue
-        ended = _ended_state(item["job_id"]) or "left the queue"
-        if item["after"] and not Path(item["log"]).is_file():  # cancelled by --kill-on-invalid-dep
-            why = f"never ran: the upstream job {', '.join(item['after'])} did not finish"
-        else:
-            why = _last_line(item["log"])
-        out.append(TaskStatus(item["title"], "failed", item["job_id"], item["log"], f"{ended}: {why}"))
-    return out
-
-
-def wait(run: Any, console: Any, poll: float = 5.0, quiet: bool = False) -> list[TaskStatus]:
-    """Show the jobs' progress until none is pending or running; the final states."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    with Progress(TextColumn(f"[cyan]sweep[/] {run.sweep.name} on Slurm"), BarColumn(), MofNCompleteColumn(),
-                  TextColumn("{task.fields[states]}"), TimeElapsedColumn(), console=console,
-                  disable=quiet) as progress:
-        bar = None
-        while True:
-            states = status(run)
-            counts = {s: sum(t.state == s for t in states) for s in ("pending", "running", "done", "failed")}
-            text = ", ".join(f"{n} {s}" for s, n in counts.items() if n)
-            if bar is None:
-                bar = progress.add_task("jobs", total=len(states), states=text)
-            progress.update(bar, completed=counts["done"] + counts["failed"], states=text)
-            if not counts["pending"] and not counts["running"]:
-                return states
-            time.sleep(poll)
-
-
-__all__ = ["EXTRA", "PlannedJob", "Resources", "RunJob", "Submitted", "TaskStatus", "job_argv", "minutes",
-           "parse_slurm_options", "sbatch_parameters", "schedule", "status", "submit", "wait"]
+__all__ = ["EXTRA", "PlannedJob", "Resources", "RunJob", "Submitted", "job_argv", "minutes", "parse_slurm_options",
+           "sbatch_parameters", "schedule", "submit"]

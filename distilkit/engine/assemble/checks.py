@@ -52,10 +52,10 @@ def model_shapes(model: Any, info: Any) -> dict[str, tuple[int, ...]]:
 def fit_problem(path: Path, model: Any, info: Any, strict: bool, whole: bool = False) -> str | None:
     """None where the weights file at ``path`` loads (read by the adapter's ``read_weights``) and fits ``model``;
     else what is wrong with it. ``whole``: the file must hold the whole model (a teacher's), not a part of it."""
-    from distilkit.weights import mismatch, not_finite, spelling, whole_problem
+    from distilkit.weights import mismatch, not_a_file, not_finite, spelling, whole_problem
 
-    if not path.is_file():
-        return f"{path}: no such file"
+    if not_a_file(path):  # missing, or a folder (what it holds)
+        return not_a_file(path)
     try:
         weights = model.cls.read_weights(str(path))
     except DataError as exc:

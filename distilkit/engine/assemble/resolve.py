@@ -68,8 +68,9 @@ def extra_metrics(names: list[str], model: ResolvedModel, info: Any, path: str,
 
 def resolve_hooks(specs: list[Any], path: str, problems: list[tuple[str, str]],
                   where: str | None = None) -> list[ResolvedHook]:
-    """``train.hooks`` (or the recipe's ``trackers``, ``where``): registered hooks with their parameters, and
-    whatever each needs installed."""
+    """``train.hooks`` (or the recipe's ``trackers``, ``where``): registered hooks with their parameters, whatever
+    each needs installed (its ``check``) and what its parameters need of this machine (its ``ready(params)``: an
+    MLflow store's packages or setting, a W&B login), each a one-line problem."""
     out = []
     where = where or f"{path}.train.hooks"
     for i, spec in enumerate(specs):
@@ -82,6 +83,10 @@ def resolve_hooks(specs: list[Any], path: str, problems: list[tuple[str, str]],
         missing = entry.meta.get("check", lambda: None)()
         if missing:
             problems.append((f"{where}[{i}]", missing))
+        ready = entry.meta.get("ready")
+        unready = ready(params) if ready is not None and params is not None and not missing else None
+        if unready:
+            problems.append((f"{where}[{i}]", unready))
         if params is not None:
             out.append(ResolvedHook(entry.name, params))
     return out
@@ -90,7 +95,8 @@ def resolve_hooks(specs: list[Any], path: str, problems: list[tuple[str, str]],
 def resolve_trackers(recipe: Recipe, problems: list[tuple[str, str]]) -> list[ResolvedHook]:
     """The recipe's ``trackers``: registered hooks (``tensorboard``, ``wandb``, ``mlflow``, ``trackio``, a
     plugin's) that every stage runs after its own ``train.hooks``; a tracker's missing library is a problem that
-    names its ``pip install`` line."""
+    names its ``pip install`` line, what its store or login needs another (a tracker given twice is refused by the
+    recipe's schema)."""
     from distilkit.recipe.schema import HookSpec
 
     specs = [HookSpec(name=name, params=params) for name, params in recipe.tracker_specs()]

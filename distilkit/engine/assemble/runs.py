@@ -14,23 +14,15 @@ from typing import Any
 import torch
 
 from distilkit.adapter import Adapter
+from distilkit.engine.store.checkpoints import checkpoint_file
 from distilkit.weights import load_checkpoint, load_weights, whole_problem
 from distilkit.errors import DataError
 
 
 def checkpoint_path(source: str | Path, which: str = "best") -> Path:
     """The checkpoint file of ``source``: a file as it is, or a run folder's ``checkpoints/<which>.pt``
-    (``which="any"``: best, else last)."""
-    path = Path(source).expanduser()
-    if path.is_dir():
-        names = ("best.pt", "last.pt") if which == "any" else (f"{which}.pt",)
-        for name in names:
-            if (path / "checkpoints" / name).is_file():
-                return path / "checkpoints" / name
-        raise DataError(f"{path}: no checkpoints/{' or checkpoints/'.join(names)} in this run folder")
-    if not path.is_file():
-        raise DataError(f"{path}: no such checkpoint")
-    return path
+    (``which="any"``: best, else last); what a folder holds named otherwise (``store.checkpoints``)."""
+    return checkpoint_file(source, which)
 
 
 def run_config(checkpoint: Path) -> dict[str, Any]:

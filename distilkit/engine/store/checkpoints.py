@@ -10,7 +10,7 @@ from typing import Any, Callable
 
 from distilkit.errors import DataError
 from distilkit.files import atomic_torch_save
-from distilkit.weights import load_checkpoint
+from distilkit.weights import folder_hint, load_checkpoint
 
 
 class Checkpoints:
@@ -54,4 +54,24 @@ class Checkpoints:
         return f"the last checkpoint ({self.folder / 'last.pt'}, step {self.saved_step}) is kept"
 
 
-__all__ = ["Checkpoints"]
+def checkpoint_file(source: str | Path, which: str = "best") -> Path:
+    """The checkpoint file of ``source``: a file as it is, or a stage run folder's ``checkpoints/<which>.pt``
+    (``which="any"``: best, else last); a DataError in one line otherwise, a folder's naming what it holds."""
+    path = Path(source).expanduser()
+    if path.is_dir():
+        names = ("best.pt", "last.pt") if which == "any" else (f"{which}.pt",)
+        for name in names:
+            if (path / "checkpoints" / name).is_file():
+                return path / "checkpoints" / name
+        wanted = "checkpoints/" + " or checkpoints/".join(names)
+        if (path / "checkpoints").is_dir() or (path / "summary.json").is_file():
+            raise DataError(f"{path}: no {wanted} in this stage's run folder; {folder_hint(path)}")
+        raise DataError(f"{path}: not a stage's run folder: no {wanted} in it (a stage's run folder "
+                        f"runs/<recipe>/<stage>-<hash> holds {'it' if len(names) == 1 else 'them'}); "
+                        f"{folder_hint(path)}")
+    if not path.is_file():
+        raise DataError(f"{path}: no such file or folder")
+    return path
+
+
+__all__ = ["Checkpoints", "checkpoint_file"]

@@ -71,8 +71,10 @@ class Pipeline(RecipeRun):
         describe part of the recipe). A stage another process is training is waited for and then reused
         (``wait=False``: :class:`~distilkit.errors.RunLockedError` instead)."""
         from distilkit.engine.assemble.devices import stage_devices
+        from distilkit.engine.train.cpus import apply_threads
         from distilkit.engine.train.distributed import world_from_env
 
+        apply_threads(self.recipe.threads)  # --threads, the recipe's, OMP_NUM_THREADS, Slurm's, the affinity mask
         if only:
             self.check_stages("--stage", only)
         self.world = world_from_env(stage_devices(self.recipe, only))

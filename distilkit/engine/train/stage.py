@@ -86,15 +86,11 @@ class StageRun:
         self.device = pick_device(self.spec.device)
         self.nondeterministic: list[str] = []  # ops that ran without a deterministic variant (warn_only)
         self.sparse_backends: set[str] = set()  # which backends computed its sparse convolutions
+        self.live: Loop | None = None  # the loop, once built: its hooks hear of a failure or a stop
 
     # -- the whole run -----------------------------------------------------------------------
     def run(self) -> StageResult | None:
         """Reuse the finished stage, or build, train, evaluate and publish it (None: stopped early on request)."""
-        from distilkit.console import progress_bar, stage_progress
-        from distilkit.engine.train.oom import is_out_of_memory, out_of_memory
-        from distilkit.repro import nondeterministic_ops
-        from distilkit.sparse.backend import record as record_backends
-
         done = read_summary(self.run_dir)
         if done is not None:
             self.pipeline.console.print(f"[green]✓[/] stage [bold]{self.name}[/] reused from {self.run_dir}")
@@ -102,6 +98,20 @@ class StageRun:
             # the label is cosmetic (not part of the identity): show the recipe's current one
             return StageResult(self.name, self.run_dir, {**done, "label": self.stage.spec.label or self.name}, True)
         self._prepare_folder()
+        try:
+            return self._train_and_publish()
+        except BaseException as exc:  # a failure, SIGTERM, Ctrl-C: the hooks (the trackers) record it
+            if self.live is not None:
+                self.live.aborted(exc)
+            raise
+
+    def _train_and_publish(self) -> StageResult | None:
+        """Build, train, evaluate and publish (None: stopped early on request)."""
+        from distilkit.console import progress_bar, stage_progress
+        from distilkit.engine.train.oom import is_out_of_memory, out_of_memory
+        from distilkit.repro import nondeterministic_ops
+        from distilkit.sparse.backend import record as record_backends
+
         with nondeterministic_ops() as self.nondeterministic, record_backends() as self.sparse_backends:
             try:
                 with stage_progress(self.pipeline.console, self.name) as bar:
@@ -110,7 +120,9 @@ class StageRun:
                     loop = self.loop(bar)
                 assert self.trainer is not None
                 if loop.step < self.trainer.total_steps:
-                    self.pipeline.console.print(f"stage {self.name} stopped after {loop.step} steps (checkpoint kept)")
+                    kept = (f"a resume starts from last.pt at step {loop.saved}" if loop.saved else
+                            "no checkpoint yet: a resume starts from step 0")
+                    self.pipeline.console.print(f"stage {self.name} stopped after {loop.step} steps ({kept})")
                     return None
                 split = self.report_split()
                 best = self.best_model()  # read once: scored on the test split, previewed on a validation scene
@@ -232,8 +244,9 @@ class StageRun:
         assert trainer is not None
         loop = Loop(self.name, self.run_dir, self.spec, trainer.total_steps, trainer.steps_per_epoch,
                     self.spec.eval_every or trainer.steps_per_epoch, self.world.main,
-                    _log=self.log, _evaluate=lambda: self.evaluate(self.split("val")),
-                    _save=lambda which: self.save(which, loop))
+                    per_class=self.per_class(), _log=self.log, _evaluate=lambda: self.evaluate(self.split("val")),
+                    _save=lambda which: self.save(which, loop), _warn=self.warn)
+        self.live = loop
         unreadable: list[Path] = []  # tried first and passed over: resume reads last.pt, then last.prev.pt
 
         def passed_over(exc: Exception, path: Path) -> None:
@@ -246,6 +259,7 @@ class StageRun:
             set_rng_state(ckpt["rng"])
             trainer.rank_rng(int(ckpt["step"]))
             loop.step, loop.best = int(ckpt["step"]), ckpt["best"]
+            loop.saved = loop.step
             self._truncate_log(loop.step)
             self.log({"event": "resume", "step": loop.step})
             read = "last.prev.pt" if any(p.name == "last.pt" for p in unreadable) else "last.pt"
@@ -274,6 +288,28 @@ class StageRun:
         loop.seconds = time.perf_counter() - loop.t0
         loop.emit("after_train")
         return loop
+
+    def per_class(self) -> dict[str, list[str]]:
+        """Each per-class score's key (the first metric's as it is, the others' as ``<name>.<key>``, as
+        :func:`~distilkit.engine.train.evaluate.evaluate` reports them) -> the class of each of its entries."""
+        names = list(self.info.classes.names)
+        out = {}
+        for i, metric in enumerate(self.stage.metrics):
+            if metric.cls.PER_CLASS is not None:
+                key = metric.cls.PER_CLASS[0]
+                out[key if i == 0 else f"{metric.name}.{key}"] = names[metric.cls.PER_CLASS_FROM:]
+        return out
+
+    def warn(self, text: str) -> None:
+        """One warning line (a tracker that failed): on the console (standard error under ``-q``) and in
+        ``metrics.jsonl``."""
+        import sys
+
+        self.log({"event": "warning", "step": self.live.step if self.live is not None else 0, "text": text})
+        if self.pipeline.quiet:
+            print(f"warning: {text}", file=sys.stderr)
+        else:
+            self.pipeline.console.print(f"[yellow]warning: {text}[/]", highlight=False, soft_wrap=True)
 
     def log(self, record: dict[str, Any]) -> None:
         """A record appended to ``metrics.jsonl`` (the main process writes)."""

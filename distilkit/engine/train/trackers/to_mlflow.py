@@ -1,17 +1,26 @@
 """The MLflow tracker (``trackers: [{mlflow: {tracking_uri: ..., experiment: ...}}]``; ``pip install
-'distilkit[mlflow]'``: MLflow's client, ``mlflow-skinny``, with SQLAlchemy for a local SQLite store): one MLflow run
-per stage run, through :class:`mlflow.MlflowClient` only (MLflow's active-run stack is left alone). The resolved
-configuration as parameters (``a/b/c`` keys), the identity as ``distilkit.*`` tags, values as metrics at distilkit's
-steps, the final scores as metrics at the last step, the report, its plots and the summary as artifacts.
+'distilkit[mlflow]'``: MLflow's client, ``mlflow-skinny``, with SQLAlchemy and Alembic for a database store such as
+MLflow's default ``sqlite:///mlflow.db``): one MLflow run per stage run, through :class:`mlflow.MlflowClient` only
+(MLflow's active-run stack is left alone). The resolved configuration as parameters (``a/b/c`` keys), the identity
+as ``distilkit.*`` tags, values as metrics at distilkit's steps, the final scores as metrics at the last step, the
+report, its plots and the summary as artifacts. A stage that fails ends its run ``FAILED`` (the error in the tag
+``distilkit.ended``), one stopped (SIGTERM, ``--stop-after``) ``KILLED``; a finished one ``FINISHED``.
 
 A sweep's runs are nested (``mlflow.parentRunId``) under one parent run named after the sweep, found or created by
 the first of them under a lock in the sweep's folder, so MLflow's table shows the sweep with every variant x seed
-under it. A resumed stage continues its run (the run id kept in ``trackers.json``).
+under it.
 
 MLflow's own variables win over the recipe: ``MLFLOW_TRACKING_URI`` (default, MLflow's: ``sqlite:///mlflow.db`` in
-the working folder), ``MLFLOW_EXPERIMENT_ID`` and ``MLFLOW_EXPERIMENT_NAME`` (default: the recipe's name, a sweep's
-name for its runs); ``MLFLOW_RUN_ID`` is not used (each stage is a run of its own). A
-hard kill after values were logged past the checkpoint logs those steps again (MLflow keeps both entries).
+the working folder, or ``./mlruns`` where that holds runs), ``MLFLOW_EXPERIMENT_ID`` and ``MLFLOW_EXPERIMENT_NAME``
+(default: the recipe's name, a sweep's name for its runs); ``MLFLOW_RUN_ID`` is not used (each stage is a run of
+its own). A file store needs ``MLFLOW_ALLOW_FILE_STORE=true`` (MLflow 3 refuses it otherwise): ``validate`` checks
+what the store needs.
+
+A resumed stage continues its run in the store it was recorded in: the run id and the tracking URI (made absolute)
+are kept in ``trackers.json``, so a resume from another working folder, or with another ``MLFLOW_TRACKING_URI``,
+still finds it; a run no longer there is one warning and a new run in the current store. Each step's values go in
+one ``log_batch`` with the tag ``distilkit.logged_step``, read back on a resume: the steps up to the checkpoint the
+run lacks are logged from ``metrics.jsonl``, none twice.
 """
 
 from __future__ import annotations
@@ -24,15 +33,22 @@ from typing import Any
 
 from pydantic import Field
 
-from distilkit.engine.train.trackers.base import RunIdentity, Tracker, TrackerParams, flatten, missing, setting
+from distilkit.engine.train.trackers.base import (RunIdentity, Tracker, TrackerParams, flatten, missing, one_line,
+                                                  quiet, setting)
 from distilkit.registry import HOOKS
 
-BATCH = 100  # parameters, tags or metrics per log_batch call (MLflow's limit for parameters)
+BATCH = 100  # parameters per log_batch call (MLflow's limit)
+METRICS_BATCH = 900  # metrics per log_batch call (MLflow's limit: 1000 metrics, 1000 entities in all)
+LOGGED = "distilkit.logged_step"  # the run's tag: the last step whose values were logged (in the same batch)
+STATUS = {"finished": "FINISHED", "stopped": "KILLED", "failed": "FAILED"}
+DATABASES = ("sqlite", "postgresql", "mysql", "mssql")  # MLflow's SQLAlchemy stores
 
 
 class MlflowParams(TrackerParams):
     tracking_uri: str | None = Field(None, description="where runs are recorded (MLFLOW_TRACKING_URI; default "
-                                                       "MLflow's: sqlite:///mlflow.db in the working folder)")
+                                                       "MLflow's: sqlite:///mlflow.db in the working folder, which "
+                                                       "needs SQLAlchemy; a file store such as ./mlruns needs "
+                                                       "MLFLOW_ALLOW_FILE_STORE=true)")
     experiment: str | None = Field(None, description="experiment name (MLFLOW_EXPERIMENT_NAME; default: the "
                                                      "recipe's name, a sweep's name for its runs)")
     tags: dict[str, str] = Field(default_factory=dict, description="tags of every run")
@@ -71,6 +87,51 @@ def sweep_parent(client: Any, experiment: str, identity: RunIdentity) -> str:
         return str(run.info.run_id)
 
 
+def tracking_uri(params: MlflowParams) -> tuple[str, bool]:
+    """The tracking URI a run would use here and whether it is MLflow's default (no variable, no recipe value):
+    ``./mlruns`` where that holds runs, else ``sqlite:///mlflow.db`` (MLflow's rule, read without importing it)."""
+    uri = os.environ.get("MLFLOW_TRACKING_URI") or params.tracking_uri
+    if uri:
+        return uri, False
+    try:
+        has_runs = any(p.name.isdigit() and (p / "meta.yaml").exists() for p in Path("mlruns").iterdir())
+    except OSError:  # none (or unreadable: MLflow's rule says no runs)
+        has_runs = False
+    return ("./mlruns" if has_runs else "sqlite:///mlflow.db"), True
+
+
+def store_problem(params: MlflowParams) -> str | None:
+    """What the run's tracking URI needs that this machine lacks (one line), else None: a database store
+    SQLAlchemy and Alembic (``mlflow-skinny`` has neither), a file store ``MLFLOW_ALLOW_FILE_STORE=true``."""
+    from urllib.parse import urlparse
+
+    uri, default = tracking_uri(params)
+    named = f"{uri} (MLflow's default)" if default else uri
+    scheme = urlparse(uri).scheme.split("+", 1)[0].lower()
+    scheme = "file" if len(scheme) <= 1 else scheme  # a path (C: is a drive)
+    if scheme in DATABASES:
+        lacking = [m for m in ("sqlalchemy", "alembic") if missing(m, "mlflow", "mlflow")]
+        if lacking:
+            return (f"MLflow's store {named} needs {' and '.join(lacking)}, not installed: pip install "
+                    "'distilkit[mlflow]' (or a file store: MLFLOW_TRACKING_URI=./mlruns with "
+                    "MLFLOW_ALLOW_FILE_STORE=true)")
+    elif scheme == "file" and os.environ.get("MLFLOW_ALLOW_FILE_STORE", "").strip().lower() not in ("true", "1"):
+        return (f"MLflow's file store {named} needs MLFLOW_ALLOW_FILE_STORE=true (MLflow 3 refuses a file store "
+                "without it): export MLFLOW_ALLOW_FILE_STORE=true, or use a database store (tracking_uri: "
+                "sqlite:///mlflow.db, with pip install 'distilkit[mlflow]')")
+    return None
+
+
+def absolute_uri(uri: str) -> str:
+    """A local store's URI made absolute (``sqlite:///mlflow.db``, ``mlruns``: relative to the working folder),
+    so that a resume from another folder finds the same store; others as they are."""
+    if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////") and ":memory:" not in uri:
+        return "sqlite:///" + str(Path(uri[len("sqlite:///"):]).resolve())
+    if "://" not in uri and not uri.startswith("file:"):
+        return Path(uri).resolve().as_uri()
+    return uri
+
+
 class MlflowTracker(Tracker):
     key = "mlflow"
 
@@ -81,18 +142,41 @@ class MlflowTracker(Tracker):
         self.run_id: str | None = None
         self.parent: str | None = None  # a sweep's parent run
         self.step = 0
+        self.logged = 0  # the run's last step logged (its tag), read on a resume
 
     def start(self, identity: RunIdentity, resume: Any, step: int) -> None:
+        self.step = step
+        if isinstance(resume, dict) and resume.get("run_id"):
+            with quiet():
+                gone = self._continue(resume)
+            if gone is None:
+                return
+            self.warn(gone)
+        with quiet():
+            self._create(identity)
+
+    def _continue(self, kept: dict[str, Any]) -> str | None:
+        """Continue the run kept in ``trackers.json``, in its store; where it is not there, what to warn of."""
+        from mlflow import MlflowClient
+
+        uri = kept.get("tracking_uri") or setting(self.params.tracking_uri, "MLFLOW_TRACKING_URI")
+        try:
+            self.client = MlflowClient(tracking_uri=uri)
+            run = self.client.get_run(str(kept["run_id"]))
+        except Exception as exc:  # noqa: BLE001  not there (another store, deleted): a new run
+            return (f"MLflow run {kept['run_id']} (kept in trackers.json) is not in {uri} ({one_line(exc)}); a new "
+                    "run is started in the current store, with every value the stage kept")
+        self.run_id, self.parent = str(kept["run_id"]), kept.get("parent")
+        self.logged = int(run.data.tags.get(LOGGED, 0) or 0)
+        self.client.update_run(self.run_id, status="RUNNING")
+        return None
+
+    def _create(self, identity: RunIdentity) -> None:
         from mlflow import MlflowClient
 
         p = self.params
         self.client = MlflowClient(tracking_uri=setting(p.tracking_uri, "MLFLOW_TRACKING_URI"))
-        self.step = step
-        if isinstance(resume, dict) and resume.get("run_id"):
-            self.run_id = str(resume["run_id"])
-            self.parent = resume.get("parent")
-            self.client.update_run(self.run_id, status="RUNNING")
-            return
+        self.logged = 0
         experiment = os.environ.get("MLFLOW_EXPERIMENT_ID") or experiment_id(
             self.client, os.environ.get("MLFLOW_EXPERIMENT_NAME") or p.experiment or identity.group)
         tags = {**identity.tags(), **p.tags}
@@ -100,41 +184,58 @@ class MlflowTracker(Tracker):
             self.parent = tags["mlflow.parentRunId"] = sweep_parent(self.client, experiment, identity)
         run = self.client.create_run(experiment, run_name=identity.name, tags=tags)
         self.run_id = str(run.info.run_id)
-        self.keep({"run_id": self.run_id, "tracking_uri": self.client.tracking_uri, "parent": self.parent})
-        self._batch(params={k: _text(v) for k, v in flatten(identity.full_config()).items()})
+        self.keep({"run_id": self.run_id, "tracking_uri": absolute_uri(self.client.tracking_uri),
+                   "parent": self.parent})
+        self._params({k: _text(v) for k, v in flatten(identity.full_config()).items()})
 
-    def _batch(self, metrics: dict[str, float] | None = None, step: int = 0,
-               params: dict[str, str] | None = None) -> None:
-        from mlflow.entities import Metric, Param
+    def held(self, step: int) -> int:
+        return self.logged
+
+    def _params(self, params: dict[str, str]) -> None:
+        from mlflow.entities import Param
+
+        items = [Param(_name(k), v) for k, v in params.items()]
+        for i in range(0, len(items), BATCH):
+            self.client.log_batch(self.run_id, params=items[i:i + BATCH])
+
+    def _metrics(self, metrics: dict[str, float], step: int, mark: bool) -> None:
+        """The step's metrics; ``mark``: with the tag that says the step is logged, in the last batch."""
+        from mlflow.entities import Metric, RunTag
 
         now = int(time.time() * 1000)
-        items: list[Any] = [Param(_name(k), v) for k, v in (params or {}).items()]
-        items += [Metric(k, v, now, step) for k, v in (metrics or {}).items()]
-        for i in range(0, len(items), BATCH):
-            chunk = items[i:i + BATCH]
-            self.client.log_batch(self.run_id, metrics=[m for m in chunk if isinstance(m, Metric)],
-                                  params=[m for m in chunk if isinstance(m, Param)])
+        items = [Metric(k, v, now, step) for k, v in metrics.items()]
+        chunks = [items[i:i + METRICS_BATCH] for i in range(0, len(items), METRICS_BATCH)] or [[]]
+        with quiet():
+            for n, chunk in enumerate(chunks, 1):
+                tags = [RunTag(LOGGED, str(step))] if mark and n == len(chunks) else []
+                self.client.log_batch(self.run_id, metrics=chunk, tags=tags)
 
     def scalars(self, values: dict[str, float], step: int) -> None:
         self.step = step
-        self._batch(values, step)
+        self._metrics(values, step, mark=True)
 
     def files(self, paths: list[Path]) -> None:
-        for path in paths:
-            self.client.log_artifact(self.run_id, str(path))
+        with quiet():
+            for path in paths:
+                self.client.log_artifact(self.run_id, str(path))
 
     def summary(self, values: dict[str, Any]) -> None:
-        self._batch({k: float(v) for k, v in values.items() if isinstance(v, (int, float))}, self.step)
-        for key, value in values.items():
-            if not isinstance(value, (int, float)):
-                self.client.set_tag(self.run_id, f"distilkit.{key}", str(value))
+        self._metrics({k: float(v) for k, v in values.items() if isinstance(v, (int, float))}, self.step, mark=False)
+        with quiet():
+            for key, value in values.items():
+                if not isinstance(value, (int, float)):
+                    self.client.set_tag(self.run_id, f"distilkit.{key}", str(value))
 
-    def finish(self, finished: bool) -> None:
-        if self.run_id is not None:
-            self.client.set_terminated(self.run_id, "FINISHED" if finished else "KILLED")
-            if finished and self.parent is not None:  # the sweep's parent ends with its latest run
+    def finish(self, status: str, why: str = "") -> None:
+        if self.run_id is None:
+            return
+        with quiet():
+            if why:
+                self.client.set_tag(self.run_id, "distilkit.ended", why[:5000])
+            self.client.set_terminated(self.run_id, STATUS[status])
+            if status == "finished" and self.parent is not None:  # the sweep's parent ends with its latest run
                 self.client.set_terminated(self.parent, "FINISHED")
-            self.run_id = None
+        self.run_id = None
 
 
 def _name(key: str) -> str:
@@ -151,6 +252,6 @@ def _text(value: Any) -> str:
 HOOKS.add("mlflow", MlflowTracker, description="MLflow runs: parameters, training values, validation scores, final "
                                                "scores, report artifacts; a sweep's runs nested under one parent",
           paper="MLflow (mlflow.MlflowClient)", params=MlflowParams,
-          check=lambda: missing("mlflow", "mlflow", "mlflow"), tracker=True)
+          check=lambda: missing("mlflow", "mlflow", "mlflow"), ready=store_problem, tracker=True)
 
-__all__ = ["MlflowParams", "MlflowTracker"]
+__all__ = ["MlflowParams", "MlflowTracker", "absolute_uri", "store_problem", "tracking_uri"]

@@ -5,24 +5,41 @@ as the run's summary, the report and its plots as the run's files.
 
 W&B's own variables win over the recipe: ``WANDB_MODE``, ``WANDB_PROJECT``, ``WANDB_ENTITY``, ``WANDB_DIR``,
 ``WANDB_RUN_GROUP`` (a setting whose variable is set is not passed); ``WANDB_RUN_ID`` is not used (each stage is
-a run of its own, with the id kept in its folder). ``mode: offline`` writes
-``<dir>/wandb/offline-run-*`` (default dir: the stage's run folder) and needs no login; ``wandb sync`` uploads it.
-A resumed stage continues its run (the id kept in ``trackers.json``, ``resume="allow"``): offline, each process
-writes a folder of its own with that one id, which ``wandb sync`` joins. W&B drops values at a step below one it
-already has, so after a hard kill (no ``last.pt`` at the last logged step) the steps logged twice keep their
-first values (a deterministic run logs the same ones again).
+a run of its own, with the id kept in its folder). ``mode: offline`` writes ``<dir>/wandb/offline-run-*`` (default
+dir: the stage's run folder) and needs no login; ``wandb sync`` uploads it. ``mode: disabled`` (or
+``WANDB_MODE=disabled``, or ``mode = disabled`` in wandb's settings) logs nothing: W&B is not even started. An
+online run needs a login, which ``validate`` looks for (``WANDB_API_KEY``, a netrc entry for the host, wandb's
+settings) without the network.
+
+A stage that fails ends its run with exit code 1 (W&B: failed); one stopped (SIGTERM, ``--stop-after``) is marked
+preempting and ends with exit code 1 (W&B: preempted, resumable).
+
+A resumed stage continues its run (the id kept in ``trackers.json``, ``resume="allow"``); offline, each process
+writes a folder of its own with that one id, which ``wandb sync`` joins in order. W&B's service writes an offline
+run's records when it ends, so a process killed outright (SIGKILL, out of memory) leaves a file with none of the
+steps it logged (or only those of the 32 KiB blocks it filled): the resumed process reads the run's earlier
+folders (:func:`logged_step`) and logs again, from ``metrics.jsonl``, every step up to its checkpoint that they
+lack, and no step they have. Together the folders hold each step once, with the values the run kept.
 """
 
 from __future__ import annotations
 
+import configparser
+import netrc
+import os
 import secrets
+import struct
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Iterator, Literal
+from urllib.parse import urlsplit
 
 from pydantic import Field
 
 from distilkit.engine.train.trackers.base import RunIdentity, Tracker, TrackerParams, missing, setting
 from distilkit.registry import HOOKS
+
+HOST = "https://api.wandb.ai"
+BLOCK = 32768  # the offline file's block (LevelDB's log format, with W&B's 7-byte header)
 
 
 class WandbParams(TrackerParams):
@@ -30,11 +47,97 @@ class WandbParams(TrackerParams):
                                                   "sweep's name for its runs)")
     entity: str | None = Field(None, description="W&B entity, a user or team (WANDB_ENTITY; default: W&B's)")
     mode: Literal["online", "offline", "disabled"] | None = Field(None, description="WANDB_MODE; default W&B's "
-                                                                                    "(online)")
+                                                                                    "(online: needs `wandb login`); "
+                                                                                    "disabled logs nothing")
     dir: str | None = Field(None, description="where W&B writes its files (WANDB_DIR; default: the stage's run "
                                               "folder)")
     group: str | None = Field(None, description="run group (WANDB_RUN_GROUP; default: the sweep, else the recipe)")
     tags: list[str] = Field(default_factory=list, description="tags of every run")
+
+
+def settings_files() -> dict[str, str]:
+    """wandb's settings (``[default]`` of ``$WANDB_CONFIG_DIR/settings``, default ``~/.config/wandb/settings``,
+    then ``./wandb/settings``, which wins), read as files: ``mode``, ``base_url``, ``api_key``."""
+    out: dict[str, str] = {}
+    home = Path(os.environ.get("WANDB_CONFIG_DIR") or Path("~/.config/wandb").expanduser())
+    for path in (home / "settings", Path("wandb") / "settings"):
+        parser = configparser.ConfigParser()
+        try:
+            parser.read(path, encoding="utf-8")
+            out.update(parser["default"] if parser.has_section("default") else {})
+        except (OSError, configparser.Error, UnicodeDecodeError):
+            continue
+    return out
+
+
+def mode(params: WandbParams) -> str:
+    """The mode a run would have here: ``WANDB_MODE``, else the recipe's, else wandb's settings, else online
+    (``dryrun`` is offline, ``run`` online)."""
+    value = os.environ.get("WANDB_MODE") or params.mode or settings_files().get("mode") or "online"
+    return {"dryrun": "offline", "run": "online"}.get(value.strip().lower(), value.strip().lower())
+
+
+def login_problem(params: WandbParams) -> str | None:
+    """For an online run, one line where no W&B login is found (``WANDB_API_KEY``, ``WANDB_IDENTITY_TOKEN_FILE``,
+    a netrc entry for the host, an ``api_key`` in wandb's settings), read without the network; else None."""
+    if mode(params) != "online" or os.environ.get("WANDB_API_KEY") or os.environ.get("WANDB_IDENTITY_TOKEN_FILE"):
+        return None
+    settings = settings_files()
+    host = urlsplit(os.environ.get("WANDB_BASE_URL") or settings.get("base_url") or HOST).netloc
+    path = Path(os.environ.get("NETRC") or "~/.netrc").expanduser()
+    if not os.environ.get("NETRC") and not path.exists() and Path("~/_netrc").expanduser().exists():
+        path = Path("~/_netrc").expanduser()
+    try:
+        entry = netrc.netrc(str(path)).authenticators(host)
+    except (OSError, netrc.NetrcParseError):
+        entry = None
+    if (entry and entry[2]) or settings.get("api_key"):
+        return None
+    return (f"the wandb tracker logs online but finds no W&B login for {host} (WANDB_API_KEY, {path}, wandb's "
+            "settings): run `wandb login`, or log offline with {wandb: {mode: offline}} and upload with `wandb "
+            "sync` later")
+
+
+def records(path: Path) -> Iterator[Any]:
+    """The complete records of a W&B run file (``run-<id>.wandb``): a ``:W&B`` header, then records in 32 KiB
+    blocks, each chunk with a 7-byte header (checksum, length, type: full, first, middle, last); a record cut by a
+    kill is left out."""
+    from wandb.proto import wandb_internal_pb2 as pb
+
+    data = path.read_bytes()
+    if data[:4] != b":W&B":
+        return
+    pos, parts = 7, []
+    while pos + 7 <= len(data):
+        left = BLOCK - pos % BLOCK
+        if left < 7:
+            pos += left
+            continue
+        _, length, kind = struct.unpack("<IHB", data[pos:pos + 7])
+        if length == 0 and kind == 0:  # the rest of the block
+            pos += left
+            continue
+        if pos + 7 + length > len(data):
+            return
+        parts.append(data[pos + 7:pos + 7 + length])
+        pos += 7 + length
+        if kind in (1, 4):  # full, last
+            record = pb.Record()
+            record.ParseFromString(b"".join(parts))
+            parts = []
+            yield record
+
+
+def logged_step(wandb_dir: Path, run_id: str, this: Path) -> int:
+    """The last history step the run's other folders in ``wandb_dir`` (``*-<id>``, not ``this`` process's) hold."""
+    last = 0
+    for path in wandb_dir.glob(f"*-{run_id}/run-{run_id}.wandb"):
+        if path.parent.resolve() == this.resolve():
+            continue
+        for record in records(path):
+            if record.WhichOneof("record_type") == "history":
+                last = max(last, int(record.history.step.num))
+    return last
 
 
 class WandbTracker(Tracker):
@@ -46,9 +149,11 @@ class WandbTracker(Tracker):
         self.run: Any = None
 
     def start(self, identity: RunIdentity, resume: Any, step: int) -> None:
+        p = self.params
+        if mode(p) == "disabled":  # nothing logged, nothing kept
+            return
         import wandb
 
-        p = self.params
         run_id = resume if isinstance(resume, str) and resume else secrets.token_hex(6)  # W&B's id rules: [a-z0-9]
         self.keep(run_id)  # before the run exists: a kill during init still resumes this id
         tags = [*p.tags, *([identity.sweep] if identity.sweep else []), identity.variant or identity.stage]
@@ -59,31 +164,44 @@ class WandbTracker(Tracker):
             group=setting(p.group, "WANDB_RUN_GROUP", identity.group), job_type=identity.variant or identity.stage,
             name=identity.name, config=identity.full_config(), tags=list(dict.fromkeys(tags)),
             settings=wandb.Settings(console="off", silent=True))
+        if self.run.disabled:  # disabled where distilkit does not look (a settings file of its own): nothing
+            self.run.finish()
+            self.run = None
+
+    def held(self, step: int) -> int:
+        if self.run is None:
+            return step
+        folder = Path(self.run.dir).parent  # <dir>/wandb/<this process's folder>/files
+        return logged_step(folder.parent, self.run.id, folder)
 
     def scalars(self, values: dict[str, float], step: int) -> None:
-        self.run.log(values, step=step)
+        if self.run is not None:
+            self.run.log(values, step=step)
 
     def files(self, paths: list[Path]) -> None:
         """Copied into the run's files folder, which W&B uploads when the run ends (``wandb sync`` offline)."""
         import shutil
 
+        if self.run is None:
+            return
         for path in paths:
             shutil.copy2(path, Path(self.run.dir) / path.name)
 
     def summary(self, values: dict[str, Any]) -> None:
-        self.run.summary.update(values)
+        if self.run is not None:
+            self.run.summary.update(values)
 
-    def finish(self, finished: bool) -> None:
+    def finish(self, status: str, why: str = "") -> None:
         if self.run is None:
             return
-        if not finished:
-            self.run.mark_preempting()
-        self.run.finish()
-        self.run = None
+        run, self.run = self.run, None
+        if status == "stopped":  # resumable: W&B shows it preempted (a sweep requeues it)
+            run.mark_preempting()
+        run.finish(exit_code=0 if status == "finished" else 1)
 
 
 HOOKS.add("wandb", WandbTracker, description="Weights & Biases runs: config, training values, validation scores, "
                                              "summary, report files", paper="Weights & Biases (wandb)",
-          params=WandbParams, check=lambda: missing("wandb", "wandb", "wandb"), tracker=True)
+          params=WandbParams, check=lambda: missing("wandb", "wandb", "wandb"), ready=login_problem, tracker=True)
 
-__all__ = ["WandbParams", "WandbTracker"]
+__all__ = ["WandbParams", "WandbTracker", "logged_step", "login_problem", "mode", "records"]
