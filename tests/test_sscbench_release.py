@@ -63,6 +63,17 @@ def test_validate_passes_on_the_release_layout(release) -> None:
     assert sscbench_check(SscbenchParams(root=str(root), train=["03"], targets="preprocess"), "train") is None
 
 
+def test_validate_says_which_frames_it_leaves_out(release, tmp_path, capsys) -> None:
+    from distilkit.cli import main
+
+    root, _ = release
+    path = _recipe(tmp_path, root, train=["03"], val=None, test=None, targets="preprocess")
+    assert main(["validate", str(path), "--static"]) == 0
+    said = _said(capsys)
+    assert f"note: data_2d_raw/{D03}: 4 frames with a target but no voxels/*.bin input left out" in said
+    assert "000970" in said and "000985" in said
+
+
 def test_the_frame_counts_are_the_releases_with_the_readmes_beside_them() -> None:
     from distilkit.data import sscbench
 

@@ -31,7 +31,7 @@ def add(sub: Any) -> None:
 
 
 def validate(args: argparse.Namespace) -> int:
-    from distilkit.engine.assemble.checks import describe, run_problems
+    from distilkit.engine.assemble.checks import data_notes, describe, run_problems
     from distilkit.engine.assemble.resolve import resolve
     from distilkit.errors import RecipeError
     from distilkit.recipe import load_recipe
@@ -52,6 +52,8 @@ def validate(args: argparse.Namespace) -> int:
         for line in networks:
             print(f"  {line}")
         print(f"  {_threads_line(res.recipe.threads)}")
+        for note in data_notes(res):
+            print(f"  note: {note}")
         _report(res, lines)
     return 0
 

@@ -21,7 +21,7 @@ from distilkit.data.params import (SceneParams, SemanticKittiParams, SemanticKit
 from distilkit.data.probe import cloud_plan, grid_plan
 from distilkit.data.render import CAMERA_VERSION
 from distilkit.data.sscbench import SscbenchParams, sscbench_info
-from distilkit.data.sscbench_folder import sscbench_check, sscbench_fingerprint
+from distilkit.data.sscbench_folder import sscbench_check, sscbench_fingerprint, sscbench_notes
 from distilkit.data.synthetic import GENERATOR_VERSION
 from distilkit.structures import VoxelGrid
 from distilkit.registry import DATASETS
@@ -127,7 +127,7 @@ DATASETS.add(
     paper="Li et al., SSCBench, IROS 2024 (ai4ce/SSCBench, dataset/configs/kitti360.yaml)",
     params=SscbenchParams, info=sscbench_info, collate=collate_street, version=1,
     has_split=lambda p, split: bool(p.sequences(split)), probe=grid_plan,
-    fingerprint=sscbench_fingerprint, check=sscbench_check)
+    fingerprint=sscbench_fingerprint, check=sscbench_check, notes=sscbench_notes)
 
 
 def _scenes_factory(params: Any, split: str, progress: Any = None) -> Any:

@@ -109,10 +109,7 @@ class SscbenchDataset(torch.utils.data.Dataset):
         for drive in drives:
             frames, label_only, where = drive_frames(root, drive, params.targets, reads)
             if label_only:
-                n = len(label_only)
-                self.notes.append(f"data_2d_raw/{drive}: {n} frame{'s' * (n > 1)} with a target but no "
-                                  f"voxels/*.bin input left out, as SSCBench's loader lists frames from voxels/*.bin "
-                                  f"({_listed(label_only)})")
+                self.notes.append(_left_out(drive, label_only))
             if not frames:
                 problems.append(_no_frames(root, drive, where, label_only))
                 continue
@@ -228,6 +225,24 @@ def sscbench_check(params: SscbenchParams, split: str) -> str | None:
     return "\n  ".join(problems) or None
 
 
+def _left_out(drive: str, label_only: list[str]) -> str:
+    n = len(label_only)
+    return (f"data_2d_raw/{drive}: {n} frame{'s' * (n > 1)} with a target but no voxels/*.bin input left out, as "
+            f"SSCBench's loader lists frames from voxels/*.bin ({_listed(label_only)})")
+
+
+def sscbench_notes(params: SscbenchParams, split: str) -> list[str]:
+    """What ``distilkit validate`` tells of a role's drives beside its problems: the frames left out (a target but
+    no input scan), per drive (file names only)."""
+    root = Path(params.root).expanduser()
+    out = []
+    for drive in params.sequences(split):
+        _, label_only, _ = drive_frames(root, drive, params.targets)
+        if label_only:
+            out.append(_left_out(drive, label_only))
+    return out
+
+
 def sscbench_fingerprint(params: SscbenchParams) -> dict[str, Any]:
     """The parameters but the root, and a digest of the names, sizes and modification times of the files read."""
     import hashlib
@@ -245,5 +260,5 @@ def sscbench_fingerprint(params: SscbenchParams) -> dict[str, Any]:
             "files": len(lines), "digest": hashlib.sha256("\n".join(lines).encode()).hexdigest()}
 
 
-__all__ = ["Reads", "SscbenchDataset", "drive_frames", "frame_problems", "sscbench_check", "sscbench_fingerprint",
+__all__ = ["Reads", "SscbenchDataset", "drive_frames", "frame_problems", "sscbench_check", "sscbench_fingerprint", "sscbench_notes",
            "unmapped_problem"]

@@ -27,6 +27,19 @@ def data_problems(res: Any, has_split: Any) -> list[tuple[str, str]]:
     return out
 
 
+def data_notes(res: Any) -> list[str]:
+    """What the dataset says of the splits a run would read beside their problems (a dataset's ``notes``: frames
+    left out, ...), once each."""
+    from distilkit.registry import DATASETS
+
+    notes = DATASETS.entry(res.recipe.data.dataset).meta.get("notes")
+    out: list[str] = []
+    for split in ("train", "val", "test"):
+        if notes is not None and res.has_split(split):
+            out += [n for n in notes(res.data_params, split) if n not in out]
+    return out
+
+
 def weights_problems(res: Any) -> list[tuple[str, str]]:
     """(field, problem) for every checkpoint a stage would start from that is missing, unreadable or does not fit."""
     out = []
@@ -199,5 +212,5 @@ def _built(model: Any, info: Any) -> Any:
             return build_model(model, info)
 
 
-__all__ = ["data_problems", "describe", "fit_problem", "model_shapes", "run_problems", "sparse_calls", "sparse_lines",
+__all__ = ["data_notes", "data_problems", "describe", "fit_problem", "model_shapes", "run_problems", "sparse_calls", "sparse_lines",
            "sparse_problems", "weights_problems"]
