@@ -31,8 +31,8 @@ def test_the_default_is_omp_then_slurm_then_the_affinity_mask(clean_env: pytest.
     assert default_threads() == (1, "SLURM_CPUS_PER_TASK")
     clean_env.setenv("OMP_NUM_THREADS", "1,1")  # OMP's nested form: the first level
     assert default_threads() == (1, "OMP_NUM_THREADS")
-    clean_env.setenv("OMP_NUM_THREADS", str(cpus + 7))  # never above the CPUs the process may use
-    assert default_threads() == (cpus, "OMP_NUM_THREADS")
+    clean_env.setenv("OMP_NUM_THREADS", str(cpus + 7))  # as given, as OpenMP takes it (a test pins 2 on 1 CPU)
+    assert default_threads() == (cpus + 7, "OMP_NUM_THREADS")
     clean_env.setenv("OMP_NUM_THREADS", "zero")  # not a count: the next source
     assert default_threads() == (1, "SLURM_CPUS_PER_TASK")
     assert run_threads(3) == (3, "threads")  # the recipe's or the command line's, as given

@@ -28,14 +28,13 @@ def _positive(text: str | None) -> int | None:
 
 def default_threads() -> tuple[int, str]:
     """The threads a run uses when neither the command line nor the recipe says, and where the figure comes from:
-    ``OMP_NUM_THREADS``, else ``SLURM_CPUS_PER_TASK``, else the CPUs of this process's affinity mask. None of them
-    is taken above the affinity mask's CPUs (more threads than cores only spin)."""
-    cpus = usable_cpus()
+    ``OMP_NUM_THREADS``, else ``SLURM_CPUS_PER_TASK``, else the CPUs of this process's affinity mask. A count the
+    environment names is taken as it is, above the affinity mask's CPUs too, as OpenMP itself takes it."""
     for name in SOURCES:
         value = _positive(os.environ.get(name))
         if value is not None:
-            return min(value, cpus), name
-    return cpus, "the CPUs this process may use"
+            return value, name
+    return usable_cpus(), "the CPUs this process may use"
 
 
 def run_threads(requested: int | None) -> tuple[int, str]:
