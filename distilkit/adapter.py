@@ -12,6 +12,10 @@ An adapter is an ``nn.Module`` registered in :data:`distilkit.registry.ADAPTERS`
 * ``NETWORKS``: for each ``size`` the model has ("" when it has none), whether it builds the paper's network or a
   CPU stand-in; ``validate`` and ``distilkit list adapters`` show it (override ``network`` when other fields decide).
 
+The declarations live in :class:`~distilkit.cards.base.AdapterCard` (torch-free, so a recipe is checked without
+importing torch); a built-in adapter's card subclasses it and the adapter subclasses its card. ``CAPABILITIES``
+names the methods a term may call (``denoise``), so ``validate`` checks them from the card.
+
 ``forward(batch)`` takes the collated :class:`~distilkit.data.batch.Batch` (built by the dataset's
 registered collate) and returns a dict with (at least) every declared tap. ``check_data`` lets an
 adapter reject parameters the data cannot serve (e.g. more frames than it has); ``describe`` gives the
@@ -23,28 +27,18 @@ format (recipes: ``init: {checkpoint: ...}`` and ``teacher: {checkpoint: ...}``)
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel
 from torch import nn
 
+from distilkit.cards.base import AdapterCard, NoParams
 from distilkit.data.batch import Batch
-from distilkit.data.info import Camera, DataInfo
-from distilkit.structures import VoxelGrid
+from distilkit.data.info import DataInfo
 
 
-class NoParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class Adapter(nn.Module, ABC):
-    Params: ClassVar[type[BaseModel]] = NoParams
-    INPUTS: ClassVar[frozenset[str]] = frozenset()
-    TAPS: ClassVar[dict[str, str]] = {}
-    PREDICTION_TAP: ClassVar[str] = "logits"
-    DEFAULT_TASK_LOSSES: ClassVar[list[dict[str, Any]]] = [{"name": "ce", "weight": 1.0}]
-    VERSION: ClassVar[int] = 1
-    NETWORKS: ClassVar[dict[str, str]] = {}  # by ``params.size`` ("" without one): the paper's network or a stand-in
+class Adapter(AdapterCard, nn.Module, ABC):
+    """A teacher or student model (its declarations are :class:`~distilkit.cards.base.AdapterCard`'s)."""
 
     def __init__(self, params: BaseModel, info: DataInfo) -> None:
         super().__init__()
@@ -57,29 +51,6 @@ class Adapter(nn.Module, ABC):
         """Run the model on a collated batch; return every declared tap."""
 
     @classmethod
-    def inputs(cls, params: BaseModel) -> frozenset[str]:
-        """The batch fields ``forward`` reads with these parameters (default: ``INPUTS``); ``validate`` checks the
-        data provides them, and a stage's identity follows the versions of the fields it reads."""
-        return cls.INPUTS
-
-    @classmethod
-    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> VoxelGrid | None:
-        """The voxel grid (geometry: origin, voxel size, shape) a voxel tap lives on, known before training
-        (default: the data's SSC grid); None for taps that are not on a voxel grid. ``validate`` checks
-        alignments with it."""
-        if info.grid is not None and cls.TAPS.get(tap) in ("sparse_features", "voxel_logits"):
-            return info.grid
-        return None
-
-    @classmethod
-    def tap_camera(cls, tap: str, params: BaseModel, info: DataInfo) -> Camera | None:
-        """The camera an ``image_features`` tap sees through (default: the data's camera when it has one);
-        ``validate`` refuses to pair image features of different cameras."""
-        if cls.TAPS.get(tap) == "image_features" and len(info.cameras) == 1:
-            return info.cameras[0]
-        return None
-
-    @classmethod
     def read_weights(cls, path: str) -> dict[str, Any]:
         """The model's weights (a state dict) from a file, loaded safely. Default: a distilkit checkpoint
         (its ``student``), or a file holding a state dict (also under ``state_dict`` or ``model``, as many
@@ -88,24 +59,5 @@ class Adapter(nn.Module, ABC):
 
         return read_state_dict(path)
 
-    @classmethod
-    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
-        """(parameter, problem) pairs for parameters this data cannot serve (default: none)."""
-        return []
 
-    @classmethod
-    def network(cls, params: BaseModel) -> str:
-        """What these parameters build — the paper's network or a CPU stand-in — for ``validate`` and ``list
-        adapters`` (default: ``NETWORKS`` at ``params.size``, or at "" for an adapter without sizes)."""
-        return cls.NETWORKS.get(str(getattr(params, "size", "")), "")
-
-    @classmethod
-    def describe(cls, params: BaseModel) -> str:
-        """A short description of the model's input for the results table (default: empty)."""
-        return ""
-
-    @classmethod
-    def taps_of_kind(cls, kind: str) -> list[str]:
-        from distilkit.taps import kind_fits
-
-        return [name for name, k in cls.TAPS.items() if kind_fits(k, kind)]
+__all__ = ["Adapter", "NoParams"]

@@ -29,16 +29,99 @@ T = TypeVar("T")
 ENTRY_POINT_GROUP = "distilkit.plugins"
 
 
+_LAZY: dict[Any, str] = {}  # a declared card -> "module:attr" of its implementation
+_LOADED: dict[str, Any] = {}  # "module:attr" -> the implementation, once imported
+
+
+def _load(impl: str, card: Any, name: str) -> Any:
+    """The implementation ``module:attr`` names, imported once; a class must subclass its card."""
+    if impl not in _LOADED:
+        module, _, attr = impl.partition(":")
+        try:
+            obj = getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as exc:
+            raise PluginError(f"{name!r}: its implementation {impl} cannot be imported: {type(exc).__name__}: "
+                              f"{exc}") from exc
+        if isinstance(card, type) and not (isinstance(obj, type) and issubclass(obj, card)):
+            raise PluginError(f"{name!r}: its implementation {impl} is not a subclass of its card "
+                              f"{card.__module__}.{card.__qualname__}")
+        _LOADED[impl] = obj
+    return _LOADED[impl]
+
+
+def implementation(card: Any) -> Any:
+    """What a card stands for: the implementation it was declared with (imported now, once), else the card itself
+    (a component registered with :meth:`Registry.add` is its own card)."""
+    impl = _LAZY.get(card) if _hashable(card) else None
+    return card if impl is None else _load(impl, card, getattr(card, "__name__", impl))
+
+
+def _hashable(obj: Any) -> bool:
+    try:
+        hash(obj)
+    except TypeError:
+        return False
+    return True
+
+
+class Lazy:
+    """A callable named by ``"module:attr"``, imported the first time it is called: a declared component's ``meta``
+    that only running needs (a dataset's collate, its memory probe) without importing it to describe the component.
+    Two lazies of the same target are equal, so a component declared twice with the same metadata is one."""
+
+    __slots__ = ("target",)
+
+    def __init__(self, target: str) -> None:
+        if ":" not in target:
+            raise ValueError(f"a lazy callable is named 'module:attr', got {target!r}")
+        self.target = target
+
+    def load(self) -> Any:
+        return _load(self.target, None, self.target)
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        return self.load()(*args, **kwargs)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Lazy) and other.target == self.target
+
+    def __hash__(self) -> int:
+        return hash(self.target)
+
+    def __repr__(self) -> str:
+        return f"Lazy({self.target!r})"
+
+
+def lazy(target: str) -> Lazy:
+    """A callable imported from ``"module:attr"`` the first time it is called (see :class:`Lazy`)."""
+    return Lazy(target)
+
+
 @dataclass(frozen=True)
 class Entry(Generic[T]):
-    """A registered component and its metadata."""
+    """A registered component and its metadata.
+
+    ``card`` is what describing and checking a recipe read (a component's parameters, taps, roles, declared
+    without importing torch); ``obj`` is the component itself. A component registered with :meth:`Registry.add` is
+    its own card; one registered with :meth:`Registry.declare` is imported from ``impl`` the first time ``obj`` is
+    read, so that ``distilkit validate --static`` and ``sweep --plan`` never import what they do not run."""
 
     name: str
-    obj: T
+    card: Any
     description: str
     paper: str = ""
     consumes: tuple[str, ...] = ()
     meta: dict[str, Any] = field(default_factory=dict)
+    impl: str = ""  # "module:attr" of the implementation ("": the card is the component)
+
+    @property
+    def obj(self) -> T:
+        return self.card if not self.impl else _load(self.impl, self.card, self.name)
+
+    @property
+    def loaded(self) -> bool:
+        """Whether ``obj`` can be read without importing anything."""
+        return not self.impl or self.impl in _LOADED
 
 
 class Registry(Generic[T]):
@@ -60,12 +143,39 @@ class Registry(Generic[T]):
         override: bool = False,
         **meta: Any,
     ) -> T:
+        self._put(Entry(name, obj, description.strip(), paper, tuple(consumes), dict(meta)), override)
+        return obj
+
+    def declare(
+        self,
+        name: str,
+        impl: str,
+        *,
+        card: Any = None,
+        description: str,
+        paper: str = "",
+        consumes: tuple[str, ...] | list[str] = (),
+        override: bool = False,
+        **meta: Any,
+    ) -> None:
+        """Register ``name`` without importing it: ``impl`` ("module:attr") is imported the first time the
+        component itself is used; until then ``card`` (a class the implementation subclasses, declaring what a
+        recipe is checked against: its ``Params``, taps, roles) and ``meta`` stand for it. ``card=None``: the
+        component is used only through ``meta`` until it runs (a dataset's builder, an optimizer)."""
+        if ":" not in impl:
+            raise ValueError(f"{self.kind} {name!r}: impl must be 'module:attr', got {impl!r}")
+        if card is not None:
+            _LAZY[card] = impl
+        self._put(Entry(name, card, description.strip(), paper, tuple(consumes), dict(meta), impl), override)
+
+    def _put(self, entry: Entry[T], override: bool) -> None:
+        name = entry.name
         if not name or not isinstance(name, str):
             raise ValueError(f"{self.kind} name must be a non-empty string, got {name!r}")
-        if name in self._entries and not override and self._entries[name].obj is not obj:
+        old = self._entries.get(name)
+        if old is not None and not override and (old.card, old.impl) != (entry.card, entry.impl):
             raise ValueError(f"{self.kind} {name!r} is already registered (pass override=True to replace it)")
-        self._entries[name] = Entry(name, obj, description.strip(), paper, tuple(consumes), dict(meta))
-        return obj
+        self._entries[name] = entry
 
     def alias(self, other: str, name: str, deprecated: bool = False) -> None:
         """Let ``other`` name the component registered as ``name``. Names are part of stage identities, so a
@@ -111,6 +221,10 @@ class Registry(Generic[T]):
 
     def get(self, name: str) -> T:
         return self.entry(name).obj
+
+    def card(self, name: str) -> Any:
+        """What checking a recipe reads of ``name`` (its card), without importing its implementation."""
+        return self.entry(name).card
 
     def registered(self, name: str) -> T | None:
         """The component ``name`` names if it is registered in this process so far (built-in components, plugins
@@ -160,15 +274,15 @@ ALL_REGISTRIES = {"adapters": ADAPTERS, "objectives": OBJECTIVES, "task losses":
                   "datasets": DATASETS, "metrics": METRICS, "optimizers": OPTIMIZERS, "schedules": SCHEDULES,
                   "connectors": CONNECTORS, "hooks": HOOKS, "recorders": RECORDERS}
 
-_BUILTIN_MODULES = (
-    "distilkit.objectives",
-    "distilkit.losses.task",
-    "distilkit.data.datasets",
-    "distilkit.metrics.registered",
-    "distilkit.engine.train.optim",
-    "distilkit.engine.train.tensorboard",
-    "distilkit.engine.train.trackers",
-    "distilkit.engine.assemble.recorders",
+_BUILTIN_MODULES = (  # the cards: torch-free declarations, each component imported when it runs
+    "distilkit.cards.objectives",
+    "distilkit.cards.connectors",
+    "distilkit.cards.task_losses",
+    "distilkit.cards.metrics",
+    "distilkit.cards.optim",
+    "distilkit.cards.recorders",
+    "distilkit.cards.datasets",
+    "distilkit.cards.trackers",
 )
 _loaded = False
 _loading = False

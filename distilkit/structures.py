@@ -5,9 +5,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import torch
-from torch import Tensor
+if TYPE_CHECKING:  # torch is imported where a method computes, so describing a grid needs no torch
+    import torch
+    from torch import Tensor
 
 
 @dataclass(frozen=True)
@@ -30,6 +32,8 @@ class VoxelGrid:
 
     def index(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
         """Voxel indices (M,3) int64 of points (M,3) and a bool mask of points inside the grid."""
+        import torch
+
         origin = torch.tensor(self.origin, dtype=xyz.dtype, device=xyz.device)
         idx = torch.floor((xyz - origin) / self.voxel_size).long()
         shape = torch.tensor(self.shape, device=xyz.device)
@@ -38,6 +42,8 @@ class VoxelGrid:
 
     def centers(self, idx: Tensor) -> Tensor:
         """Voxel centres (M,3) of integer indices (M,3)."""
+        import torch
+
         origin = torch.tensor(self.origin, dtype=torch.float32, device=idx.device)
         return origin + (idx.float() + 0.5) * self.voxel_size
 
@@ -94,6 +100,8 @@ class PointCloud:
     lengths: Tensor
 
     def __post_init__(self) -> None:
+        import torch
+
         if self.points.dim() != 3:
             raise ValueError(f"PointCloud.points must be (B, M, D), got {tuple(self.points.shape)}")
         if self.lengths.shape != self.points.shape[:1] or self.lengths.dtype != torch.int64:
@@ -109,6 +117,8 @@ class PointCloud:
     @classmethod
     def from_list(cls, clouds: list[Tensor]) -> "PointCloud":
         """Pad a list of (M_b, D) clouds."""
+        import torch
+
         m = max((len(c) for c in clouds), default=0)
         d = clouds[0].shape[1] if clouds else 3
         points = clouds[0].new_zeros((len(clouds), m, d)) if clouds else torch.zeros(0, 0, 3)

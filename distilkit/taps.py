@@ -26,11 +26,9 @@ a kind with :func:`register_tap_kind`.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from typing import Any, Callable
-
-import torch
-from torch import Tensor
 
 from distilkit.structures import PointCloud, SparseVoxels  # noqa: F401  (the values of two kinds; re-exported)
 
@@ -46,27 +44,33 @@ class TapKind:
     parent: str | None = None
 
 
+def _is_tensor(value: Any) -> bool:
+    """Whether ``value`` is a tensor (without importing torch: no tensor exists before torch is imported)."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(value, torch.Tensor)
+
+
 def _shape(value: Any) -> str:
-    return str(tuple(value.shape)) if isinstance(value, Tensor) else type(value).__name__
+    return str(tuple(value.shape)) if _is_tensor(value) else type(value).__name__
 
 
 def _tensor(dims: tuple[int, ...], what: str) -> Callable[[Any], str | None]:
     def check(value: Any) -> str | None:
-        if isinstance(value, Tensor) and value.dim() in dims:
+        if _is_tensor(value) and value.dim() in dims:
             return None
         return f"expected {what}, got {_shape(value)}"
     return check
 
 
 def _labels(value: Any) -> str | None:
-    if isinstance(value, Tensor) and value.dim() == 1 and not value.dtype.is_floating_point:
+    if _is_tensor(value) and value.dim() == 1 and not value.dtype.is_floating_point:
         return None
     return f"expected (M,) integer labels, got {_shape(value)}" + (
-        f" {value.dtype}" if isinstance(value, Tensor) else "")
+        f" {value.dtype}" if _is_tensor(value) else "")
 
 
 def _two_classes(value: Any) -> str | None:
-    if isinstance(value, Tensor) and value.dim() == 5 and value.shape[1] == 2:
+    if _is_tensor(value) and value.dim() == 5 and value.shape[1] == 2:
         return None
     return f"expected (B, 2, X, Y, Z) empty/occupied scores, got {_shape(value)}"
 
@@ -119,13 +123,21 @@ register_tap_kind("scalar", _tensor((0,), "a 0-d tensor"), "one number")
 
 def to_float32(value: Any) -> Any:
     """A tap value with its floating tensors in float32 (reduced-precision model outputs, before the loss terms)."""
-    if isinstance(value, Tensor):
+    if _is_tensor(value):
+        import torch
+
         return value.float() if value.is_floating_point() and value.dtype != torch.float64 else value
     if isinstance(value, SparseVoxels):
         return value.with_feats(to_float32(value.feats))
     if isinstance(value, PointCloud):
         return PointCloud(to_float32(value.points), value.lengths)
     return value
+
+
+def publishable(kind: str | None) -> bool:
+    """Whether a prediction of this kind can be published as labels (``publish``, a ``labels`` edge): class ids per
+    voxel or point clouds."""
+    return kind in ("voxel_logits", "points")
 
 
 def check_tap(value: Any, kind: str, where: str) -> None:
@@ -139,5 +151,5 @@ def check_tap(value: Any, kind: str, where: str) -> None:
         raise TapError(f"{where}: {problem} for a {kind} tap")
 
 
-__all__ = ["PointCloud", "SparseVoxels", "TAP_KINDS", "TapKind", "check_tap", "kind_fits", "register_tap_kind",
-           "to_float32"]
+__all__ = ["PointCloud", "SparseVoxels", "TAP_KINDS", "TapKind", "check_tap", "kind_fits", "publishable",
+           "register_tap_kind", "to_float32"]

@@ -21,12 +21,13 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar, Iterable
+from typing import Any, Callable, Iterable
 
 import torch
 from pydantic import BaseModel
 from torch import Tensor, nn
 
+from distilkit.cards.base import TermCard
 from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES
 from distilkit.data.info import DataInfo
@@ -47,51 +48,19 @@ class TermContext:
     info: DataInfo | None = None
 
 
-class Term(nn.Module, ABC):
-    """A weighted scalar term of a stage's loss (see the module docstring for the roles and lifecycle)."""
-
-    Params: ClassVar[type[BaseModel]]
-    CONSUMES: ClassVar[dict[str, str]] = {}  # role -> tap kind (student's, or the teacher's for TEACHER_ROLES)
-    TEACHER_ROLES: ClassVar[frozenset[str]] = frozenset()
-    OPTIONAL: ClassVar[frozenset[str]] = frozenset()  # tap roles used only when the recipe names a tap
-    # role -> the batch field read for it, or candidates in order of preference (the first the data provides)
-    BATCH: ClassVar[dict[str, str | tuple[str, ...]]] = {}
-    BATCH_HINTS: ClassVar[dict[str, str]] = {}  # role -> what to do when the data lacks its field (validate says it)
-    REQUIRES: ClassVar[frozenset[str]] = frozenset()  # teacher capabilities called through the context
-    STUDENT_REQUIRES: ClassVar[frozenset[str]] = frozenset()  # student capabilities called through the context
-    DEFAULT_WEIGHT: ClassVar[float] = 1.0
-    DEFAULT_CONNECTOR: ClassVar[str | None] = None  # e.g. "linear": the student tap is projected first
-    DEFAULT_PARAM_GROUPS: ClassVar[list[dict[str, Any]]] = []  # optimizer groups asked for by default
-    VERSION: ClassVar[int] = 1  # bump when the term's numbers change: stages using it retrain
+class Term(TermCard, nn.Module, ABC):
+    """A weighted scalar term of a stage's loss (see the module docstring for the roles and lifecycle; its
+    declarations are :class:`~distilkit.cards.base.TermCard`'s)."""
 
     def __init__(self, params: BaseModel) -> None:
         super().__init__()
         self.params = params
         self.context: TermContext | None = None
 
-    @classmethod
-    def roles(cls) -> dict[str, str]:
-        """Every role and its source: ``student``, ``teacher`` or ``batch``."""
-        out = {role: "teacher" if role in cls.TEACHER_ROLES else "student" for role in cls.CONSUMES}
-        return {**out, **{role: "batch" for role in cls.BATCH}}
-
-    @classmethod
-    def default_field(cls, role: str, fields: frozenset[str] | set[str]) -> str:
-        """The batch field a batch role reads unless a recipe names another: the first of its candidates that
-        ``fields`` holds (the first one when none does, or when ``fields`` is unknown)."""
-        default = cls.BATCH[role]
-        candidates = (default,) if isinstance(default, str) else tuple(default)
-        return next((c for c in candidates if c in fields), candidates[0])
-
     def batch_roles(self, batch: Batch) -> dict[str, Any]:
         """Every batch role's value from ``batch`` by its default field (calling a term outside a stage)."""
         present = batch.fields | frozenset(batch.meta)
         return {role: batch.field(self.default_field(role, present)) for role in self.BATCH}
-
-    @classmethod
-    def student_requires(cls, params: BaseModel) -> frozenset[str]:
-        """The student capabilities this term calls with these parameters (default: ``STUDENT_REQUIRES``)."""
-        return cls.STUDENT_REQUIRES
 
     def prepare(self, train_set: Any) -> None:
         """Statistics of the training split the term needs (e.g. class weights); default: none."""

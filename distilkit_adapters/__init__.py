@@ -3,11 +3,10 @@
 
 
 def register() -> None:
-    """Import the adapter modules; each registers itself in ``distilkit.registry.ADAPTERS``."""
-    from distilkit_adapters.dean import adapter as _dean  # noqa: F401
-    from distilkit_adapters.js3cnet import adapter as _js3c  # noqa: F401
-    from distilkit_adapters.lidiff import adapter as _lidiff  # noqa: F401
-    from distilkit_adapters.lidiff import loss as _lidiff_loss  # noqa: F401
-    from distilkit_adapters.lidiff import refine as _lidiff_refine  # noqa: F401
-    from distilkit_adapters.scpnet import adapter as _scp  # noqa: F401
-    from distilkit_adapters.voxformer import adapter as _voxformer  # noqa: F401
+    """Import the adapters' cards (torch-free): each declares its components in ``distilkit.registry`` (``ADAPTERS``,
+    and LiDiff's task loss in ``TASK_LOSSES``), whose implementations are imported the first time they run."""
+    from distilkit_adapters.dean import card as _dean  # noqa: F401
+    from distilkit_adapters.js3cnet import card as _js3c  # noqa: F401
+    from distilkit_adapters.lidiff import card as _lidiff  # noqa: F401
+    from distilkit_adapters.scpnet import card as _scp  # noqa: F401
+    from distilkit_adapters.voxformer import card as _voxformer  # noqa: F401

@@ -3,44 +3,16 @@
 from __future__ import annotations
 
 import torch
-from pydantic import BaseModel
 from torch import Tensor, nn
 
 from distilkit.adapter import Adapter
-from distilkit.data.info import DataInfo
-from distilkit.data.lidar import LIDAR_INPUTS, frames_problems
 from distilkit.structures import VoxelGrid
+from distilkit_adapters._cards import MultiFrameLidarCard, fields_of_one_size
 
 
-def fields_of_one_size(params: BaseModel, only: dict[str, tuple[str, ...]]) -> None:
-    """Refuse a field the recipe set, away from its default, for the other ``size`` (``only``: each size's fields that
-    the other one does not read) — it would be ignored without a word (e.g. ``channels: 16`` with ``size: paper``,
-    whose widths are the release's). A default written out (a saved checkpoint's parameters) passes."""
-    size = getattr(params, "size")
-    fields = type(params).model_fields
-    for other, names in only.items():
-        given = [n for n in names if n in params.model_fields_set
-                 and getattr(params, n) != fields[n].get_default(call_default_factory=True)]
-        if other != size and given:
-            raise ValueError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} read by size {other} only; "
-                             f"size {size} does not use {'it' if len(given) == 1 else 'them'} (remove "
-                             f"{'it' if len(given) == 1 else 'them'}, or set size: {other})")
-
-
-class MultiFrameLidarAdapter(Adapter):
-    """An adapter on LiDAR points with a ``frames`` parameter (scans fused): declares the LiDAR inputs,
-    rejects more frames than the data has, and shows "N frames" in the results table."""
-
-    INPUTS = LIDAR_INPUTS
-
-    @classmethod
-    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
-        return frames_problems(params, info)
-
-    @classmethod
-    def describe(cls, params: BaseModel) -> str:
-        frames = int(getattr(params, "frames"))
-        return f"{frames} frame{'s' if frames > 1 else ''}"
+class MultiFrameLidarAdapter(MultiFrameLidarCard, Adapter):
+    """An adapter on LiDAR points with a ``frames`` parameter (scans fused): its declarations are
+    :class:`~distilkit_adapters._cards.MultiFrameLidarCard`'s."""
 
 
 def channels_last(module: nn.Module) -> nn.Module:
@@ -119,3 +91,7 @@ class DenseUNet3d(nn.Module):
         m = self.mid(self.down(e1))
         d = self.dec(torch.cat([self.up(m), e1], dim=1))
         return self.head(d)
+
+
+__all__ = ["DenseUNet3d", "MultiFrameLidarAdapter", "PointVoxelizer", "channels_last", "conv_bn", "fields_of_one_size",
+           "point_features", "point_voxel_index"]

@@ -58,7 +58,8 @@ BY_FILE = {
                 "test_bench_step.py"},
     "processes": {"test_faults.py", "test_distributed.py", "test_slurm_plan.py", "test_slurm_real.py",
                   "test_new_user_faults.py", "test_ema_teacher.py", "test_sweep.py", "test_reproducible.py",
-                  "test_gpu_check.py", "test_trackers.py", "test_catalogue.py", "test_threads.py"},
+                  "test_gpu_check.py", "test_trackers.py", "test_catalogue.py", "test_threads.py", "test_cards.py",
+                  "test_adapter_cards.py"},
 }
 
 

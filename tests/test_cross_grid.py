@@ -90,7 +90,7 @@ def test_different_adapters_distil_both_ways_with_dskd_across_grids(tmp_path, te
 def test_validate_rejects_grids_that_cannot_be_aligned(tmp_path, monkeypatch) -> None:
     from distilkit.registry import ADAPTERS
 
-    cls = ADAPTERS.get("js3cnet")
+    cls = ADAPTERS.card("js3cnet")  # what validate reads
     monkeypatch.setattr(cls, "tap_grid", classmethod(lambda c, tap, params, info: (24, 24, 3)))
     recipe = _cross("js3cnet", "scpnet", [{"name": "dskd", "taps": {"student": "completion", "teacher": "completion"}}])
     with pytest.raises(RecipeError, match=r"stages\.student\.distill\[0\].*\(32, 32, 4\).*\(24, 24, 3\)"):
@@ -158,7 +158,7 @@ def test_validate_refuses_a_declared_grid_off_the_others_volume(tmp_path, monkey
     from distilkit.geometry.voxel import VoxelGrid
     from distilkit.registry import ADAPTERS
 
-    cls = ADAPTERS.get("js3cnet")
+    cls = ADAPTERS.card("js3cnet")  # what validate reads
     monkeypatch.setattr(cls, "tap_grid", classmethod(
         lambda c, tap, params, info: VoxelGrid((1.0, -25.6, -2.0), (32, 32, 4), 1.6) if tap == "completion" else None))
     recipe = _cross("js3cnet", "scpnet", [{"name": "dskd", "taps": {"student": "completion", "teacher": "completion"}}])

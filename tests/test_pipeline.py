@@ -174,9 +174,9 @@ def test_js3cnet_dskd_recipe_runs(tmp_path) -> None:
 
 
 def test_a_changed_component_version_retrains_exactly_its_stages(tmp_path, monkeypatch) -> None:
-    from distilkit.losses.task import VoxelLovasz
-    from distilkit.objectives.dskd import DSKD
+    from distilkit.registry import OBJECTIVES, TASK_LOSSES
 
+    DSKD, VoxelLovasz = OBJECTIVES.card("dskd"), TASK_LOSSES.card("lovasz")  # a component's version is its card's
     base = pipeline(tmp_path, tiny_recipe()).hashes
     monkeypatch.setattr(DSKD, "VERSION", DSKD.VERSION + 1)  # only the student uses DSKD
     bumped = pipeline(tmp_path, tiny_recipe()).hashes

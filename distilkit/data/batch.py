@@ -8,10 +8,11 @@ registers the collate that builds it; adapters declare the inputs they read (``A
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-from torch import Tensor
+if TYPE_CHECKING:  # torch is imported where a batch is built or moved, not to name the batch's fields
+    import torch
+    from torch import Tensor
 
 
 @dataclass
@@ -26,6 +27,8 @@ class Batch:
         return int(self.meta["size"])
 
     def to(self, device: torch.device) -> "Batch":
+        from torch import Tensor
+
         def move(d: dict[str, Any]) -> dict[str, Any]:
             return {k: v.to(device, non_blocking=True) if isinstance(v, Tensor) else v for k, v in d.items()}
 

@@ -10,14 +10,16 @@ Batch fields (every frame's calibration is a per-sample tensor, so a model needs
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from distilkit.data.batch import Batch
 from distilkit.data.info import Camera
 from distilkit.data.params import CameraParams
+
+if TYPE_CHECKING:
+    import torch
 
 CAMERA_INPUTS = frozenset({"image", "intrinsics", "lidar_to_camera"})
 CAMERA_TARGETS = frozenset({"depth"})
@@ -64,6 +66,7 @@ def add_camera(batch: Batch, samples: list[dict[str, Any]]) -> Batch:
     """The batch with the samples' camera fields (when they have them): images as float 0..1, calibration, depth."""
     if not samples or "image" not in samples[0]:
         return batch
+    import torch
 
     def stack(key: str, dtype: torch.dtype) -> torch.Tensor:
         return torch.stack([torch.from_numpy(np.ascontiguousarray(s[key])) for s in samples]).to(dtype)

@@ -1,7 +1,11 @@
-"""Registered datasets: the synthetic LiDAR scenes and SemanticKITTI-format folders.
+"""The datasets' builders: the synthetic LiDAR scenes and SemanticKITTI-format folders (and the builders of the
+SSCBench-KITTI-360 folder and the synthetic scene pairs), each imported the first time a run builds its data.
+:mod:`distilkit.cards.datasets` declares them with what checking a recipe reads (their parameters, their
+:class:`~distilkit.data.info.DataInfo`, checks and fingerprints: torch-free).
 
-Both give LiDAR samples (:mod:`distilkit.data.lidar`) and register :func:`~distilkit.data.lidar.collate_lidar`
-as their collate; their :class:`~distilkit.data.info.DataInfo` names the fields it provides.
+All but ``synthetic-scenes`` give LiDAR samples (:mod:`distilkit.data.lidar`) and are declared with
+:func:`collate_street` (:func:`~distilkit.data.lidar.collate_lidar` and the camera's fields) as their collate; their
+:class:`~distilkit.data.info.DataInfo` names the fields it provides.
 """
 
 from __future__ import annotations
@@ -12,19 +16,12 @@ import numpy as np
 import torch
 
 from distilkit.data.batch import Batch
-from distilkit.data.camera import CAMERA_FIELDS, add_camera, rig
-from distilkit.data.info import DataInfo, FieldGroup
-from distilkit.data.kitti_folder import SemanticKittiDataset, kitti_check, kitti_fingerprint, kitti_info
-from distilkit.data.lidar import LIDAR_INPUTS, LIDAR_TARGETS, collate_lidar
-from distilkit.data.params import (SceneParams, SemanticKittiParams, SemanticKittiScanParams, SemanticPossParams,
-                                   SyntheticParams)
-from distilkit.data.probe import cloud_plan, grid_plan
-from distilkit.data.render import CAMERA_VERSION
-from distilkit.data.sscbench import SscbenchParams, sscbench_info
-from distilkit.data.sscbench_folder import sscbench_check, sscbench_fingerprint, sscbench_notes
-from distilkit.data.synthetic import GENERATOR_VERSION
-from distilkit.structures import VoxelGrid
-from distilkit.registry import DATASETS
+from distilkit.data.camera import CAMERA_FIELDS, add_camera
+from distilkit.data.facts import synthetic_info
+from distilkit.data.info import DataInfo
+from distilkit.data.kitti_folder import SemanticKittiDataset
+from distilkit.data.lidar import collate_lidar
+from distilkit.data.params import SemanticKittiParams, SyntheticParams
 
 
 class ArrayDataset(torch.utils.data.Dataset):
@@ -63,14 +60,6 @@ def build_synthetic(params: SyntheticParams, split: str,
     return ArrayDataset(arrays, synthetic_info(params))
 
 
-def synthetic_info(params: SyntheticParams) -> DataInfo:
-    camera = params.camera is not None
-    return DataInfo(VoxelGrid.semantickitti(params.scale),
-                    fields=LIDAR_INPUTS | LIDAR_TARGETS | {"scribble"} | (CAMERA_FIELDS if camera else frozenset()),
-                    cameras=(rig(params.camera, params.ego_speed),) if params.camera is not None else (),
-                    input_frames=params.input_frames)
-
-
 def collate_street(samples: list[dict[str, np.ndarray]]) -> Batch:
     """A synthetic street's batch: the LiDAR fields, and the camera's where the data renders them."""
     return add_camera(collate_lidar(samples), samples)
@@ -84,50 +73,10 @@ def _kitti_factory(params: SemanticKittiParams, split: str, progress: Any = None
     return SemanticKittiDataset(params, split)
 
 
-DATASETS.add(
-    "synthetic-lidar", _synthetic_factory,
-    description="procedural street scenes, ray-cast LiDAR scans, multi-frame input, SSC ground truth and scribbles; "
-                "with `camera` also a KITTI-like camera's images, depth and calibration (cached on disk)",
-    paper="distilkit (SemanticKITTI conventions, Behley et al. ICCV 2019)",
-    params=SyntheticParams, info=synthetic_info, collate=collate_street, version=GENERATOR_VERSION,
-    has_split=lambda p, split: True, probe=grid_plan,
-    field_groups={"camera": FieldGroup(CAMERA_FIELDS, CAMERA_VERSION)},
-)
-for _name, _params, _description, _paper in (
-        ("semantickitti", SemanticKittiParams, "a SemanticKITTI-format folder: velodyne/, labels/, "
-         "voxels/*.label|.invalid (|.occluded), poses.txt, calib.txt (scans fused through the poses, SSC targets); "
-         "with `camera` also image_2/ and P2 (the camera batch fields, sparse LiDAR depth)",
-         "Behley et al., SemanticKITTI, ICCV 2019"),
-        ("semantickitti-ssc", SemanticKittiParams, "the same as semantickitti (the name the SSC benchmark goes by)",
-         "Behley et al., SemanticKITTI, ICCV 2019"),
-        ("semantickitti-scan", SemanticKittiScanParams, "every scan of a SemanticKITTI folder (stride 1) with its "
-         "point labels, fused with the next input_frames - 1 scans through the poses (SCPNet's multi-frame teacher); "
-         "the voxel targets of the labelled every-5th frames, ignored on the others",
-         "Behley et al., SemanticKITTI, ICCV 2019; Xia et al., SCPNet, CVPR 2023"),
-        ("semanticposs-ssc", SemanticPossParams, "a SemanticPOSS folder in SemanticKITTI's layout with JS3C-Net's "
-         "completion labels: 11 classes + empty, train 00/01/03/04/05, valid 02", "Pan et al., SemanticPOSS, IV "
-         "2020; completion labels: Yan et al., JS3C-Net, AAAI 2021")):
-    DATASETS.add(_name, _kitti_factory, description=_description, paper=_paper, params=_params,
-                 info=kitti_info, collate=collate_street, version=1,
-                 has_split=lambda p, split: bool(p.sequences(split)), probe=grid_plan,
-                 fingerprint=kitti_fingerprint, check=kitti_check)
-
-
 def _sscbench_factory(params: Any, split: str, progress: Any = None) -> Any:
     from distilkit.data.sscbench_folder import SscbenchDataset
 
     return SscbenchDataset(params, split)
-
-
-DATASETS.add(
-    "sscbench-kitti360", _sscbench_factory,
-    description="an SSCBench-KITTI-360 folder: data_2d_raw/2013_05_28_drive_NNNN_sync/voxels/*.label|.invalid|.bin "
-                "(or preprocess/labels/*_1_1.npy), 19 classes, train 00/02-05/07/10, valid 06, test 09; the input "
-                "is the voxelised scan; with `camera` also image_00/data_rect/ and its calibration",
-    paper="Li et al., SSCBench, IROS 2024 (ai4ce/SSCBench, dataset/configs/kitti360.yaml)",
-    params=SscbenchParams, info=sscbench_info, collate=collate_street, version=1,
-    has_split=lambda p, split: bool(p.sequences(split)), probe=grid_plan,
-    fingerprint=sscbench_fingerprint, check=sscbench_check, notes=sscbench_notes)
 
 
 def _scenes_factory(params: Any, split: str, progress: Any = None) -> Any:
@@ -136,23 +85,4 @@ def _scenes_factory(params: Any, split: str, progress: Any = None) -> Any:
     return build_scenes(params, split, progress)
 
 
-def _scenes_info(params: Any) -> DataInfo:
-    from distilkit.data.scenes import scenes_info
-
-    return scenes_info(params)
-
-
-def _collate_scenes(samples: list[dict[str, Any]]) -> Any:
-    from distilkit.data.scenes import collate_scenes
-
-    return collate_scenes(samples)
-
-
-DATASETS.add(
-    "synthetic-scenes", _scenes_factory,
-    description="partial scan / dense static scene pairs from the synthetic streets, as LiDiff trains on them "
-                "(padded point clouds; cached on disk)",
-    paper="Nunes et al., LiDiff, CVPR 2024 (data pipeline); distilkit synthetic streets",
-    params=SceneParams, info=_scenes_info, collate=_collate_scenes, version=1,
-    has_split=lambda p, split: True, probe=cloud_plan,
-)
+__all__ = ["ArrayDataset", "build_synthetic", "collate_street", "synthetic_info"]

@@ -18,7 +18,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import torch
 from pydantic import BaseModel
 
 from distilkit.data.batch import Batch
@@ -31,6 +30,8 @@ LIDAR_TARGETS = frozenset({"point_label", "voxel_label", "invalid", "voxel_targe
 
 def collate_lidar(samples: list[dict[str, np.ndarray]]) -> Batch:
     """Concatenate points (with ``point_batch``) into inputs and stack voxel grids into targets."""
+    import torch
+
     pts = [torch.from_numpy(np.ascontiguousarray(s["points"], dtype=np.float32)) for s in samples]
     inputs = {
         "points": torch.cat(pts),

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from distilkit.data.batch import Batch
-from distilkit.data.info import ClassTable, DataInfo
+from distilkit.data.facts import SCENE_FIELDS, scenes_info
 from distilkit.data.params import SceneParams
 from distilkit.data.raycast import ray_directions
 from distilkit.data.cache import cached_samples
@@ -38,7 +38,6 @@ from distilkit.data.synthetic import cast_scan
 
 SCENES_VERSION = 3  # 2: the untiled evaluation ground truth ``scene_eval``; 3: LiDiff's crops (3-D range, viewpoint
 # grid at the scan's minimum bound, one original point per map voxel, 3.5 m around each sensor dropped)
-SCENE_FIELDS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths", "scene_eval", "scene_eval_lengths"})
 EVAL_MAX_Z = 4.4  # LiDiff's evaluation keeps -4 < z < 4.4
 
 
@@ -198,10 +197,6 @@ def collate_scenes(samples: list[dict[str, Any]]) -> Batch:
         targets["scene_eval"], targets["scene_eval_lengths"] = pad("scene_eval")
     return Batch({"scan": scan, "scan_lengths": scan_len}, targets,
                  {"size": len(samples), "scene_id": [s.get("scene_id", "") for s in samples]})
-
-
-def scenes_info(params: SceneParams) -> DataInfo:
-    return DataInfo(None, ClassTable(("scene",), ((160, 160, 160),)), SCENE_FIELDS)
 
 
 def build_scenes(params: SceneParams, split: str, progress: Any = None) -> SceneDataset:

@@ -1,20 +1,26 @@
-"""Registered task losses (supervised terms of a stage): CE, Lovász-softmax, uncertainty weighting."""
+"""The task losses (supervised terms of a stage): CE, Lovász-softmax, uncertainty weighting. Their declarations
+and registrations are their cards' (:mod:`distilkit.cards.task_losses`); this module holds what computes."""
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 
+from distilkit.cards.base import NoParams
+from distilkit.cards.task_losses import (ChamferCard, ClassWeightedCard, DepthL1Card, GeoScalCard,
+                                         GeometryWeightedCECard, OccupancyCECard, PartialCECard, SemScalCard,
+                                         UncertaintyMultiTaskCard, VoxelCECard, VoxelLossCard, VoxelLovaszCard,
+                                         WeightedCECard, _CEParams, _DepthParams, _GeometryCEParams, _LovaszParams,
+                                         _OccupancyParams, _PartialParams, _UncParams, _WeightedCEParams,
+                                         _WeightedParams)
 from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.data.classes import IGNORE_INDEX, NUM_CLASSES
+from distilkit.errors import DistilkitError
 from distilkit.losses.chamfer import chamfer
 from distilkit.losses.segmentation import cross_entropy, lovasz_softmax
-from distilkit.errors import DistilkitError
-from distilkit.registry import TASK_LOSSES, NoParams
 from distilkit.term import Term
 
 
@@ -22,45 +28,18 @@ class TaskLoss(Term):
     """A supervised term (:class:`~distilkit.term.Term` with no teacher role): its targets are batch roles."""
 
 
-class _CEParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    ignore_index: int = IGNORE_INDEX
-
-
-class VoxelCE(TaskLoss):
+class VoxelCE(VoxelCECard, TaskLoss):
     """Cross entropy on voxel logits against ``voxel_target`` (invalid voxels ignored)."""
-
-    Params = _CEParams
-    CONSUMES = {"student": "voxel_logits"}
-    BATCH = {"target": "voxel_target"}
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         return cross_entropy(taps["student"], taps["target"], self.params.ignore_index)
 
 
-class _LovaszParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    classes: str = Field("present", pattern="^(present|all)$")
-    ignore_index: int = IGNORE_INDEX
-
-
-class VoxelLovasz(TaskLoss):
+class VoxelLovasz(VoxelLovaszCard, TaskLoss):
     """Lovász-softmax on voxel logits (SCPNet eq. 4, alpha term)."""
-
-    Params = _LovaszParams
-    CONSUMES = {"student": "voxel_logits"}
-    BATCH = {"target": "voxel_target"}
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         return lovasz_softmax(taps["student"], taps["target"], self.params.ignore_index, self.params.classes)
-
-
-class _UncParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    init_log_var: float = Field(0.0, description="initial s = log sigma^2 of both tasks")
-    class_weights: str = Field("auto", pattern="^(auto|none)$",
-                               description="auto: (max f / f_c)^(1/3) from the training split's label frequencies "
-                                           "(JS3C-Net); none: unweighted CE")
 
 
 def frequency_weights(counts: Tensor, power: float = 1.0 / 3.0) -> Tensor:
@@ -74,7 +53,7 @@ def frequency_weights(counts: Tensor, power: float = 1.0 / 3.0) -> Tensor:
     return w.masked_fill(~present, float(w[present].max())).float()
 
 
-class UncertaintyMultiTask(TaskLoss):
+class UncertaintyMultiTask(UncertaintyMultiTaskCard, TaskLoss):
     """JS3C-Net eq. 2 (Kendall et al. 2018): L = sum_i 1/(2 sigma_i^2) L_i + log sigma_i.
 
     Parametrised by s_i = log sigma_i^2 (always finite, unlike the authors' raw sigma, seed_code.md §4):
@@ -83,12 +62,6 @@ class UncertaintyMultiTask(TaskLoss):
     frequencies of the training split (the authors hard-code SemanticKITTI's counts). The s_i are
     trained with the student at 10x its learning rate, as the authors do (a default parameter group).
     """
-
-    Params = _UncParams
-    CONSUMES = {"student": "voxel_logits", "points": "point_logits", "point_target": "point_labels"}
-    BATCH = {"target": "voxel_target"}
-    DEFAULT_PARAM_GROUPS = [{"match": "log_var", "lr_scale": 10.0}]
-    VERSION = 2  # 2: class weights, sigma at 10x the learning rate
 
     def __init__(self, params: _UncParams) -> None:
         super().__init__(params)
@@ -118,25 +91,9 @@ class UncertaintyMultiTask(TaskLoss):
         return 0.5 * torch.exp(-s[0]) * l_seg + 0.5 * s[0] + 0.5 * torch.exp(-s[1]) * l_comp + 0.5 * s[1]
 
 
-class _WeightedParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    class_weights: Literal["none", "log_frequency"] = Field(
-        "log_frequency", description="log_frequency: scale / ln(f_c + 0.001) from the training split's voxel counts "
-                                     "(VoxFormer's, scale 10; a class never seen gets the largest weight); none")
-    scale: float = Field(10.0, gt=0, description="VoxFormer 10, MonoScene 1")
-
-
-class _WeightedCEParams(_WeightedParams):
-    normalize: Literal["valid", "weight"] = Field("valid", description="divide by the valid voxels (VoxFormer) or by "
-                                                                       "the sum of their weights (MonoScene)")
-
-
-class _ClassWeighted(TaskLoss):
+class _ClassWeighted(ClassWeightedCard, TaskLoss):
     """A voxel loss with class weights from the training split's counts of ``COUNTED`` (computed once, in
     ``prepare``, over the labels the stage trains on: a label overlay's pseudo-labels, not the data's own)."""
-
-    CONSUMES = {"student": "voxel_logits"}
-    COUNTED = "voxel_label"
 
     def __init__(self, params: _WeightedParams) -> None:
         super().__init__(params)
@@ -152,11 +109,8 @@ class _ClassWeighted(TaskLoss):
         self.weight = w.to(self.weight)
 
 
-class WeightedCE(_ClassWeighted):
+class WeightedCE(WeightedCECard, _ClassWeighted):
     """Class-weighted voxel CE (VoxFormer's Σ w_y ℓ / N_valid, or MonoScene's Σ w_y ℓ / Σ w_y)."""
-
-    Params = _WeightedCEParams
-    BATCH = {"target": "voxel_target"}
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.losses.ssc import weighted_ce
@@ -165,14 +119,7 @@ class WeightedCE(_ClassWeighted):
         return weighted_ce(taps["student"], taps["target"], weight, self.params.normalize, self.ignore_index)
 
 
-class _PartialParams(_WeightedParams):
-    class_weights: Literal["none", "log_frequency"] = Field(
-        "none", description="none: unweighted, as Scribble2Scene eq. 1 (default); log_frequency: scale / ln(f_c + "
-                            "0.001) with f_c counted over the training split's scribbled voxels only (never the "
-                            "dense labels)")
-
-
-class PartialCE(_ClassWeighted):
+class PartialCE(PartialCECard, _ClassWeighted):
     """Scribble2Scene's partial CE (the Dean-Labeler's loss, eq. 1): the unweighted mean CE over the voxels a scribble
     labels with a class. Optional class weights count scribbles only, so the scribble setting never reads dense
     labels."""
@@ -182,11 +129,6 @@ class PartialCE(_ClassWeighted):
                "the Dean-Labeler's training is not released", "`class_weights: log_frequency` (scribble counts)"),
     )
 
-    Params = _PartialParams
-    BATCH = {"target": "scribble"}
-    COUNTED = "scribble"
-    VERSION = 2  # 2: unweighted by default (was: weights from the dense labels' counts)
-
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.losses.ssc import partial_ce
 
@@ -194,18 +136,7 @@ class PartialCE(_ClassWeighted):
         return partial_ce(taps["student"], taps["target"], weight, self.ignore_index)
 
 
-class _GeometryCEParams(_WeightedParams):
-    class_weights: Literal["none", "log_frequency", "release"] = Field(
-        "log_frequency", description="log_frequency: scale / ln(f_c + 0.001) from the training split's voxel counts "
-                                     "(the release's table is this formula on SemanticKITTI's counts); release: that "
-                                     "table itself (20 classes); none")
-    reduce: Literal["per_sample", "pooled"] = Field(
-        "per_sample", description="the mean over each sample's valid voxels, then over the samples (the release: one "
-                                  "sample per GPU, DDP averaging), or over the batch's valid voxels pooled (distilkit "
-                                  "before v2)")
-
-
-class GeometryWeightedCE(_ClassWeighted):
+class GeometryWeightedCE(GeometryWeightedCECard, _ClassWeighted):
     """HASSC's geometry-weighted CE: w_y · CE · (1 + LGA) per valid voxel, the mean over each sample's valid voxels,
     then over the samples (``reduce``: the release's one sample per GPU; ``pooled``: over the batch's valid voxels),
     with LGA (the count of face neighbours with another label,
@@ -222,9 +153,6 @@ class GeometryWeightedCE(_ClassWeighted):
                "not stated", "one sample per GPU (samples_per_gpu=1), DDP averaging: the mean of per-sample means "
                "(each its valid voxels' mean)", "`reduce: pooled` (the batch's valid voxels pooled)"),
     )
-    Params = _GeometryCEParams
-    BATCH = {"target": "voxel_target"}
-    VERSION = 2  # 2: per-sample means by default (was: the batch's valid voxels pooled)
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.losses.hardness import geometry_weighted_ce, local_geometric_anisotropy
@@ -235,12 +163,9 @@ class GeometryWeightedCE(_ClassWeighted):
         return geometry_weighted_ce(taps["student"], target, weight, lga, self.ignore_index, self.params.reduce)
 
 
-class _VoxelLoss(TaskLoss):
+class _VoxelLoss(VoxelLossCard, TaskLoss):
     """A parameterless loss ``FUNCTION(logits, target, ignore_index)`` of :mod:`distilkit.losses.ssc`."""
 
-    Params = NoParams
-    CONSUMES = {"student": "voxel_logits"}
-    BATCH = {"target": "voxel_target"}
     FUNCTION = ""
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
@@ -249,51 +174,20 @@ class _VoxelLoss(TaskLoss):
         return getattr(ssc, self.FUNCTION)(taps["student"], taps["target"], self.ignore_index)
 
 
-class GeoScal(_VoxelLoss):
+class GeoScal(GeoScalCard, _VoxelLoss):
     """MonoScene's geometry scene-class affinity loss (precision, recall, specificity of occupancy)."""
 
     FUNCTION = "geo_scal"
 
 
-class SemScal(_VoxelLoss):
+class SemScal(SemScalCard, _VoxelLoss):
     """MonoScene's semantic scene-class affinity loss (per present class: precision, recall, specificity)."""
 
     FUNCTION = "sem_scal"
 
 
-TASK_LOSSES.add("ce", VoxelCE, description="voxel cross entropy, ignore 255 and invalid voxels",
-                paper="SCPNet eq. 4 (L_ce)", consumes=("voxel_logits",))
-TASK_LOSSES.add("lovasz", VoxelLovasz, description="Lovász-softmax over classes present in the batch",
-                paper="Berman et al. CVPR 2018; SCPNet eq. 4 (alpha = 1)", consumes=("voxel_logits",))
-TASK_LOSSES.add("uncertainty_multitask", UncertaintyMultiTask,
-                description="uncertainty-weighted point segmentation + completion CE (log-variance form)",
-                paper="JS3C-Net eq. 2 (Kendall et al. CVPR 2018)", consumes=("voxel_logits", "point_logits", "point_labels"))
-
-TASK_LOSSES.add("weighted_ce", WeightedCE, description="class-weighted voxel CE, normalised by valid voxels or weights",
-                paper="VoxFormer (Li et al. CVPR 2023); MonoScene (Cao & de Charette CVPR 2022)",
-                consumes=("voxel_logits",))
-TASK_LOSSES.add("hassc_ce", GeometryWeightedCE, description="class-weighted voxel CE × (1 + local geometric "
-                "anisotropy), the mean over each sample's valid voxels, then over the samples", paper="HASSC (Wang et al. CVPR 2024), eq. of L_ssc with LGA; "
-                "dense_heads/hassc_voxformer_head.py", consumes=("voxel_logits",))
-TASK_LOSSES.add("partial_ce", PartialCE, description="CE over the voxels a scribble labels with a class",
-                paper="Scribble2Scene (Wang et al. IJCAI 2024), Dean-Labeler", consumes=("voxel_logits",))
-TASK_LOSSES.add("geo_scal", GeoScal, description="scene-class affinity loss on geometry (occupancy)",
-                paper="MonoScene (Cao & de Charette CVPR 2022), scene-class affinity loss", consumes=("voxel_logits",))
-TASK_LOSSES.add("sem_scal", SemScal, description="scene-class affinity loss on semantics, per present class",
-                paper="MonoScene (Cao & de Charette CVPR 2022), scene-class affinity loss", consumes=("voxel_logits",))
-
-
-class _OccupancyParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    alpha: float = Field(0.54, gt=0, lt=1, description="weight of the occupied class (VoxFormer: 0.54)")
-
-
-class OccupancyCE(TaskLoss):
+class OccupancyCE(OccupancyCECard, TaskLoss):
     """VoxFormer's stage-1 loss: weighted two-class CE of the proposals against the pooled dense geometry."""
-
-    Params = _OccupancyParams
-    CONSUMES = {"student": "occupancy_logits"}
-    BATCH = {"target": "voxel_target"}
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.losses.proposal import occupancy_ce
@@ -301,21 +195,8 @@ class OccupancyCE(TaskLoss):
         return occupancy_ce(taps["student"], taps["target"], self.params.alpha, self.ignore_index)
 
 
-class _DepthParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    sky_depth: float | None = Field(None, gt=0, description="pixels with no surface count as this far (metres; "
-                                                            "e.g. the camera's max_depth); none: left out. Only "
-                                                            "on dense depth maps: where the data's depth is sparse "
-                                                            "LiDAR depth (a real folder), 0 means unknown and is "
-                                                            "always left out")
-
-
-class DepthL1(TaskLoss):
+class DepthL1(DepthL1Card, TaskLoss):
     """Depth regression of a camera model (metres, pixels with a true depth)."""
-
-    Params = _DepthParams
-    CONSUMES = {"student": "depth_map"}
-    BATCH = {"target": "depth"}
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.losses.proposal import depth_l1
@@ -325,22 +206,9 @@ class DepthL1(TaskLoss):
         return depth_l1(taps["student"], taps["target"], None if sparse else self.params.sky_depth)
 
 
-TASK_LOSSES.add("occupancy_ce", OccupancyCE, description="weighted empty/occupied CE at the proposals' resolution",
-                paper="VoxFormer (Li et al. CVPR 2023), stage 1 (BCE_ssc_loss, alpha 0.54)",
-                consumes=("occupancy_logits",))
-TASK_LOSSES.add("depth_l1", DepthL1, description="L1 depth error over pixels with a true depth",
-                paper="VoxFormer (Li et al. CVPR 2023), stage 1 depth (stand-in for its stereo depth network)",
-                consumes=("depth_map",))
-
-
-
-class Chamfer(TaskLoss):
+class Chamfer(ChamferCard, TaskLoss):
     """Squared-L2 Chamfer distance between predicted points and the ground-truth scene (LiDiff's refinement loss):
     the evaluation ground truth ``scene_eval`` when the data has it (the untiled map crop), else ``scene``."""
-
-    Params = NoParams
-    CONSUMES = {"student": "points"}
-    BATCH = {"target": ("scene_eval", "scene"), "target_lengths": ("scene_eval_lengths", "scene_lengths")}
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.structures import PointCloud
@@ -348,6 +216,8 @@ class Chamfer(TaskLoss):
         return chamfer(taps["student"], PointCloud(taps["target"], taps["target_lengths"]))
 
 
-TASK_LOSSES.add("chamfer", Chamfer, description="squared-L2 Chamfer distance to the ground-truth scene (both "
-                                                "directions, per-set means summed)",
-                paper="Nunes et al., LiDiff, CVPR 2024 (refinement; pytorch3d's chamfer_distance)", consumes=("points",))
+# the parameters' models live with the cards (distilkit.cards.task_losses) and stay importable from here
+__all__ = ["Chamfer", "DepthL1", "GeoScal", "GeometryWeightedCE", "NoParams", "OccupancyCE", "PartialCE", "SemScal",
+           "TaskLoss", "UncertaintyMultiTask", "VoxelCE", "VoxelLovasz", "WeightedCE", "_CEParams", "_DepthParams",
+           "_GeometryCEParams", "_LovaszParams", "_OccupancyParams", "_PartialParams", "_UncParams",
+           "_WeightedCEParams", "_WeightedParams", "frequency_weights"]

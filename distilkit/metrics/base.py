@@ -11,28 +11,15 @@ for that kind, so a point-cloud model is scored by a point-cloud metric with not
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import Any
 
+from distilkit.cards.base import MetricCard
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 
 
-class Metric(ABC):
-    SCORES: ClassVar[str]
-    TARGETS: ClassVar[frozenset[str]] = frozenset()
-    KEYS: ClassVar[tuple[str, ...]] = ()
-    LOWER_IS_BETTER: ClassVar[frozenset[str]] = frozenset()
-    SELECTS: ClassVar[str] = ""  # the score that picks best.pt when a recipe names none ("": never by default)
-    # how reports show the scores: a title, (key, header, scale) columns (default: every key as it is),
-    # and a per-class list with the train id of its first entry
-    TITLE: ClassVar[str] = ""
-    COLUMNS: ClassVar[tuple[tuple[str, str, float], ...]] = ()
-    PER_CLASS: ClassVar[tuple[str, str, float] | None] = None  # (key of a per-class list, header, scale)
-    PER_CLASS_FROM: ClassVar[int] = 0
-
-    @classmethod
-    def columns(cls) -> tuple[tuple[str, str, float], ...]:
-        return cls.COLUMNS or tuple((k, k, 1.0) for k in cls.KEYS)
+class Metric(MetricCard, ABC):
+    """A registered accumulator (its declarations are :class:`~distilkit.cards.base.MetricCard`'s)."""
 
     def __init__(self, info: DataInfo) -> None:
         self.info = info

@@ -1,4 +1,5 @@
-"""Registry entries for the metrics."""
+"""The registered metrics' accumulators; their declarations and registrations are their cards'
+(:mod:`distilkit.cards.metrics`)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from distilkit.cards.metrics import EMDScoreCard, OccupancyScoreCard, SSCScoreCard, SceneCompletionScoreCard, \
+    range_key
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.metrics.base import Metric
@@ -15,7 +18,6 @@ from distilkit.metrics.bev import thin, top_class
 from distilkit.metrics.points import auc, chamfer_distance, emd, jsd_3d, jsd_bev, precision_recall_curves, \
     voxel_confusion
 from distilkit.metrics.ssc import SSCMetric
-from distilkit.registry import METRICS
 
 
 def camera_image(batch: Batch) -> np.ndarray | None:
@@ -29,11 +31,6 @@ def camera_image(batch: Batch) -> np.ndarray | None:
     return (first.permute(1, 2, 0).clamp(0, 1) * 255).round().byte().cpu().numpy()
 
 
-def range_key(r: float) -> str:
-    """The score-key suffix of a range: 12.8 -> ``12_8m`` (keys hold no dots: ``train.metric`` splits on them)."""
-    return f"{r:g}".replace(".", "_") + "m"
-
-
 def range_box(grid: Any, r: float) -> Tensor:
     """(X, Y, Z) bool: the voxels whose centres lie in VoxFormer's evaluation box of range ``r`` in front of the
     sensor, x in [0, r) and y in [-r/2, r/2) metres (z uncropped; data_metrics.md §2.4)."""
@@ -45,21 +42,9 @@ def range_box(grid: Any, r: float) -> Tensor:
     return inside[:, :, None].expand(*grid.shape)
 
 
-class SSCScore(Metric):
+class SSCScore(SSCScoreCard, Metric):
     """Voxel logits scored as SemanticKITTI SSC: the argmax class per voxel against ``voxel_label``, voxels
     flagged ``invalid`` left out, one confusion matrix over the split."""
-
-    SCORES = "voxel_logits"
-    SELECTS = "miou"
-    TARGETS = frozenset({"voxel_label", "invalid"})
-    RANGES = (12.8, 25.6)  # VoxFormer's inner boxes; the whole grid (51.2 m on SemanticKITTI) is miou / iou
-    KEYS = ("miou", "iou", "precision", "recall", *(f"{s}_{range_key(r)}" for r in RANGES for s in ("miou", "iou")))
-    TITLE = "SSC metrics in %"
-    COLUMNS = (("miou", "mIoU", 100.0), ("iou", "IoU", 100.0), ("precision", "precision", 100.0),
-               ("recall", "recall", 100.0),
-               *((f"{s}_{range_key(r)}", f"{name} {r:g} m", 100.0) for r in RANGES
-                 for s, name in (("miou", "mIoU"), ("iou", "IoU"))))
-    PER_CLASS, PER_CLASS_FROM = ("class_iou", "IoU", 100.0), 1  # classes 1..K-1 (0 = empty is not semantic)
 
     def __init__(self, info: DataInfo) -> None:
         super().__init__(info)
@@ -107,17 +92,10 @@ class SSCScore(Metric):
         return out
 
 
-class OccupancyScore(Metric):
+class OccupancyScore(OccupancyScoreCard, Metric):
     """Empty / occupied scores (query proposals) against the occupancy of ``voxel_label`` pooled to their grid
     (invalid voxels left out): IoU, precision and recall of the occupied class over the split (VoxFormer's stage-1
     numbers)."""
-
-    SCORES = "occupancy_logits"
-    SELECTS = "iou"
-    TARGETS = frozenset({"voxel_label", "invalid"})
-    KEYS = ("iou", "precision", "recall")
-    TITLE = "occupancy (query proposals) in %"
-    COLUMNS = (("iou", "IoU", 100.0), ("precision", "precision", 100.0), ("recall", "recall", 100.0))
 
     def __init__(self, info: DataInfo) -> None:
         super().__init__(info)
@@ -136,7 +114,7 @@ class OccupancyScore(Metric):
         return {k: scores[k] for k in self.KEYS}
 
 
-class SceneCompletionScore(Metric):
+class SceneCompletionScore(SceneCompletionScoreCard, Metric):
     """Point-cloud completions scored as LiDiff's ``eval_path.py`` scores them (data_metrics.md §3): against the
     untiled evaluation ground truth ``scene_eval`` (the map crop, -4 < z < 4.4), predicted points with a 3-D range
     of 50 m or more dropped first; Chamfer distance (m) and BEV Jensen-Shannon distance averaged over scenes (also
@@ -145,19 +123,6 @@ class SceneCompletionScore(Metric):
     precision, recall and F (per scene and threshold F = 2PR / (P + R)) averaged over scenes per threshold, then the
     normalised area over 5-10 cm. (The z-crop post-processing of LiDiff's pipeline is the model's: LiDiff's
     completion applies it before any refinement.)"""
-
-    SCORES = "points"
-    SELECTS = "cd"
-    TARGETS = frozenset({"scene_eval", "scene_eval_lengths"})
-    KEYS = ("cd", "jsd", "iou_50cm", "iou_20cm", "iou_10cm", "precision", "recall", "fscore", "jsd_3d",
-            "iou_50cm_rounded", "iou_20cm_rounded", "iou_10cm_rounded")
-    LOWER_IS_BETTER = frozenset({"cd", "jsd", "jsd_3d"})
-    TITLE = "scene completion (LiDiff's evaluation: CD in m, IoU, precision, recall and F in %)"
-    COLUMNS = (("cd", "CD", 1.0), ("jsd", "JSD", 1.0), ("iou_50cm", "IoU 0.5 m", 100.0),
-               ("iou_20cm", "IoU 0.2 m", 100.0), ("iou_10cm", "IoU 0.1 m", 100.0), ("precision", "precision", 100.0),
-               ("recall", "recall", 100.0), ("fscore", "F", 100.0), ("seconds_per_sample", "s / scene", 1.0))
-    VOXELS = {"iou_50cm": 0.5, "iou_20cm": 0.2, "iou_10cm": 0.1}
-    MAX_RANGE = 50.0
 
     def __init__(self, info: DataInfo) -> None:
         super().__init__(info)
@@ -218,36 +183,11 @@ class SceneCompletionScore(Metric):
         return out
 
 
-METRICS.add(
-    "ssc",
-    SSCScore,
-    description="SemanticKITTI SSC: completion IoU/precision/recall and semantic mIoU over classes 1..K-1",
-    paper="Behley et al., SemanticKITTI, ICCV 2019 (evaluate_completion.py)",
-    consumes=(SSCScore.SCORES,),
-)
-
-
-METRICS.add(
-    "occupancy",
-    OccupancyScore,
-    description="binary occupancy (query proposals) at the scores' resolution: IoU, precision, recall",
-    paper="VoxFormer (Li et al. CVPR 2023), stage 1 (labels pooled as its half-resolution geometry)",
-    consumes=(OccupancyScore.SCORES,),
-)
-
-
-class EMDScore(Metric):
+class EMDScore(EMDScoreCard, Metric):
     """The earth mover's distance of each completion to its evaluation ground truth (``scene_eval``; predicted points
     of 3-D range 50 m or more dropped, as :class:`SceneCompletionScore`), averaged over scenes: exact on 2,048-point
     seeded subsamples (:func:`distilkit.metrics.points.emd`). About 0.7 s a scene on a 2-core CPU, so it is a metric of
     its own (``train.metrics: [emd]``)."""
-
-    SCORES = "points"
-    TARGETS = frozenset({"scene_eval", "scene_eval_lengths"})
-    KEYS = ("emd",)
-    LOWER_IS_BETTER = frozenset({"emd"})
-    TITLE = "earth mover's distance (m, 2,048-point subsamples)"
-    COLUMNS = (("emd", "EMD", 1.0),)
 
     def __init__(self, info: DataInfo) -> None:
         super().__init__(info)
@@ -264,20 +204,4 @@ class EMDScore(Metric):
         return {"emd": sum(self.values) / max(len(self.values), 1)}
 
 
-METRICS.add(
-    "emd",
-    EMDScore,
-    description="earth mover's distance of point-cloud completions (exact, 2,048-point subsamples)",
-    paper="reported by Distillation-DPO (Zhang et al., arXiv 2504.11447); its released Sinkhorn is degenerate",
-    consumes=(EMDScore.SCORES,),
-)
-
-
-METRICS.add(
-    "completion",
-    SceneCompletionScore,
-    description="point-cloud scene completion: Chamfer and BEV Jensen-Shannon distances, voxel IoU at 0.5/0.2/0.1 m, "
-                "precision/recall/F over 5-10 cm",
-    paper="Nunes et al., LiDiff, CVPR 2024 (eval_path.py, metrics as fixed in LiDiff#45)",
-    consumes=(SceneCompletionScore.SCORES,),
-)
+__all__ = ["EMDScore", "OccupancyScore", "SSCScore", "SceneCompletionScore", "camera_image", "range_box", "range_key"]

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 from abc import abstractmethod
-from typing import Any, ClassVar
+from typing import Any
 
 from torch import Tensor
 
+from distilkit.cards.base import ObjectiveCard
 from distilkit.data.batch import Batch
 from distilkit.term import Term, TermContext
 
 
-class Objective(Term):
+class Objective(ObjectiveCard, Term):
     """A distillation term (:class:`~distilkit.term.Term`) whose ``teacher`` role reads the teacher.
 
     Roles in ``TEACHER_ROLES`` read the teacher's outputs, the others the student's (the teacher runs only
@@ -19,8 +20,6 @@ class Objective(Term):
     e.g. ``denoise``) the objective calls through ``self.context``; ``validate`` checks that the teacher has
     them. A two-role objective implements ``forward(student, teacher, batch)``.
     """
-
-    TEACHER_ROLES: ClassVar[frozenset[str]] = frozenset({"teacher"})
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         """The loss from the taps of every role (default: ``forward(student, teacher, batch)``)."""

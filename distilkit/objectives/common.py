@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import contextlib
-from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from distilkit.cards.objectives.common import MaskName
 from distilkit.data.classes import IGNORE_INDEX
 from distilkit.errors import GridMismatchError
 from distilkit.geometry.voxel import align_across_grids
@@ -16,7 +16,8 @@ from distilkit.losses.ce import deterministic_form_needed
 from distilkit.losses.proposal import linear_resize_matrix
 from distilkit.structures import SparseVoxels
 
-MaskName = Literal["all", "valid", "occupied"]
+__all__ = ["MaskName", "adaptive_pool_matrix", "aligned_pairs", "conv1x1", "match_spatial", "occupied_at",
+           "release_labels", "voxel_mask"]
 
 
 def voxel_mask(target: Tensor, which: str, ignore_index: int = IGNORE_INDEX) -> Tensor | None:

@@ -7,7 +7,8 @@ batch, trained with the student, saved with its checkpoints. A registered connec
 ``build(student_channels, teacher_channels, spatial_dims) -> nn.Module`` acting on (B, C, *S) maps (``dims`` 2
 or 3) or on (N, C) rows (``dims`` 0: rows, and the features of sparse voxels). Built in: ``linear`` (also
 ``conv1x1``: a 1x1 convolution on maps, a linear layer on rows), ``mlp`` (two of them with a ReLU between, as wide
-as the wider side) and ``conv3`` (a 3x3(x3) convolution on maps, for spatial context).
+as the wider side) and ``conv3`` (a 3x3(x3) convolution on maps, for spatial context), declared in
+:mod:`distilkit.cards.connectors`.
 """
 
 from __future__ import annotations
@@ -45,14 +46,6 @@ def _conv3(cs: int, ct: int, dims: int) -> nn.Module:
         raise TapError("connector conv3 needs a dense feature map (B, C, H, W) or (B, C, X, Y, Z); use linear or mlp "
                        "for rows and sparse voxels")
     return (nn.Conv3d if dims == 3 else nn.Conv2d)(cs, ct, 3, padding=1)
-
-
-CONNECTORS.add("linear", _linear, description="1x1 convolution on maps, linear layer on rows and sparse voxels",
-               paper="FitNets' regressor (Romero et al., ICLR 2015)")
-CONNECTORS.alias("conv1x1", "linear")
-CONNECTORS.add("mlp", _mlp, description="two linear layers (1x1 on maps) with a ReLU, as wide as the wider side",
-               paper="—")
-CONNECTORS.add("conv3", _conv3, description="a 3x3 (3-D: 3x3x3) convolution on dense maps", paper="—")
 
 
 class Connector(nn.Module):

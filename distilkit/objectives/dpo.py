@@ -3,41 +3,23 @@ completions, scored against the ground truth, steer a VSD-style score distillati
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 import torch
-from pydantic import Field
 from torch import Tensor, nn
 
+from distilkit.cards.objectives.dpo import DistillationDPOCard, DPOParams
 from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.losses.dpo import distillation_dpo
 from distilkit.metrics.points import chamfer_distance, jsd_3d, jsd_bev
-from distilkit.objectives.base import register_objective
 from distilkit.objectives.score import VSD, VSDParams
 from distilkit.structures import PointCloud
 
 RANKINGS = {"chamfer": chamfer_distance, "jsd": jsd_bev, "jsd_3d": jsd_3d}  # lower is better
 
 
-class DPOParams(VSDParams):
-    noise_scale: float = Field(1.1, gt=0, description="the second completion starts from this multiple of the first "
-                                                      "one's noise (the released code: 1.1)")
-    rank_by: Literal["chamfer", "jsd", "jsd_3d"] = Field(
-        "chamfer", description="the completion with the lower value against the ground-truth scene wins: LiDiff's "
-                               "Chamfer distance (the released code's ranking), its BEV Jensen-Shannon distance, or the "
-                               "3-D point-count one (jsd_3d: the released code's calc_jsd)")
-    sign: Literal["release", "paper"] = Field(
-        "release", description="release: the winner moves towards the teacher's score and the loser away (the released "
-                               "DistillationDPO.py, lines 485-486; it distils); paper: eq. 16-18 as printed, both "
-                               "gradients negated (distilkit.losses.distillation_dpo states the conflict)")
-    beta: float | None = Field(
-        None, gt=0, description="None: the linear surrogate (the release; unbounded in the log-ratios); beta > 0: "
-                                "Diffusion-DPO's log-sigmoid with this beta on the implicit-reward margin, bounded: its "
-                                "gradient vanishes once the winner leads by much more than 1 / beta")
-
-
-class DistillationDPO(VSD):
+class DistillationDPO(DistillationDPOCard, VSD):
     """Each step: the student's ``samples`` (from its ``start_noise`` eps) and a second completion of the same scans
     from ``noise_scale`` eps (the student's ``generate``); per scene the one closer to the ground truth (``rank_by``)
     is the winner. Two auxiliary score networks (copies of the teacher, as the release; ``aux: lora`` for LoRAs; one
@@ -56,12 +38,6 @@ class DistillationDPO(VSD):
         Choice("EMD", "the `emd` metric: exact, on 2,048-point subsamples", "reported (Table 1)",
                "Sinkhorn with epsilon 0.001 m on 0.5 m voxels: its kernel underflows (not an EMD)"),
     )
-
-    Params = DPOParams
-    CONSUMES = {"student": "points", "noise": "points"}
-    BATCH = {"condition": "scan", "target": "scene", "target_lengths": "scene_lengths"}
-    STUDENT_REQUIRES = frozenset({"generate"})
-    VERSION = 2  # 2: copies as auxiliary networks fitted on a fresh pair; sign and beta
 
     def setup(self, taps: dict[str, Any], batch: Batch) -> None:
         super().setup(taps, batch)
@@ -118,14 +94,4 @@ class DistillationDPO(VSD):
         return {**out, **({"dpo_aux_loss": sum(values) / len(values)} if values else {})}
 
 
-register_objective("distillation_dpo", DistillationDPO,
-                   description="Distillation-DPO: winner/loser pairs of the student's completions from eps and 1.1 eps, "
-                               "two auxiliary score networks, VSD towards the winner and away from the loser (the "
-                               "release's sign; the paper's eq. 16-18 print the opposite: sign: paper), linear or "
-                               "bounded (beta)",
-                   paper="Distillation-DPO (Zhang et al., arXiv 2504.11447), ScoreLiDAR's successor",
-                   equation="∇ = s w(t)[(ε_T − ε_aux,w)(x_t^w) ∂x_w/∂θ − (ε_T − ε_aux,l)(x_t^l) ∂x_l/∂θ], s = +1 "
-                            "(release) or −1 (paper eq. 16-18), times 2σ(−β s Δ) with beta; winner = lower CD to the "
-                            "ground truth",
-                   shapes="student samples and their start noise: points (B, M, 3); condition: the batch's scan; "
-                          "target: its scene; teacher: predict_noise; student: generate")
+__all__ = ["RANKINGS", "DPOParams", "DistillationDPO", "VSDParams"]

@@ -3,23 +3,17 @@
 from __future__ import annotations
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
+from distilkit.cards.objectives.dskd import DSKDCard, DSKDParams
 from distilkit.data.batch import Batch
 from distilkit.objectives.common import aligned_pairs
 from distilkit.losses.dskd import dskd
-from distilkit.objectives.base import Objective, register_objective
+from distilkit.objectives.base import Objective
 from distilkit.structures import SparseVoxels
 
 
-class DSKDParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    per_sample: bool = Field(True, description="relations within each scene, averaged over the batch "
-                                               "(False: one relation matrix over all voxels of the batch)")
-
-
-class DSKD(Objective):
+class DSKD(DSKDCard, Objective):
     """Dense-to-Sparse KD (Xia et al., SCPNet, CVPR 2023, eq. 1-2), default weight beta = 3000.
 
     Alignment: the student's non-empty voxels are the reference set; teacher features are
@@ -29,10 +23,6 @@ class DSKD(Objective):
     teacher is first mean-pooled over the active child voxels of each student voxel. The loss is
     computed exactly over all voxels (no sampling).
     """
-
-    Params = DSKDParams
-    CONSUMES = {"student": "sparse_features", "teacher": "sparse_features"}
-    DEFAULT_WEIGHT = 3000.0
 
     def forward(self, student: SparseVoxels, teacher: SparseVoxels, batch: Batch) -> Tensor:
         s_feats, t_feats, _ = aligned_pairs(student, teacher)
@@ -45,8 +35,4 @@ class DSKD(Objective):
         return torch.stack(losses).mean()
 
 
-register_objective("dskd", DSKD, description="dense-to-sparse relational KD: squared gap of voxel cosine-similarity matrices",
-               paper="SCPNet (Xia et al., CVPR 2023), eq. 1-2",
-               equation="1/N² Σ_ij (cos_S(i,j) − cos_T(i,j))², exact via ‖AᵀA‖² + ‖BᵀB‖² − 2‖AᵀB‖²",
-               shapes="sparse voxel features; teacher rows at the student's voxels (across grids: a coarser "
-                      "teacher read at the parent voxel, a finer one mean-pooled into the student's voxels)")
+__all__ = ["DSKD", "DSKDParams"]

@@ -4,15 +4,16 @@ alignment (``l2cocc_pad``), numeric feature similarity (``l2cocc_fsd``) and rela
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
+from distilkit.cards.objectives.l2cocc import (_EXTRA, MAX_MAPS, FSDCard, FSDParams, NoParams, PADCard,
+                                               PADParams, RelationCard)
 from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.losses.l2cocc import l2cocc_fsd, l2cocc_pad, l2cocc_relation
-from distilkit.objectives.base import MultiTapObjective, register_objective
+from distilkit.objectives.base import MultiTapObjective
 from distilkit.objectives.common import occupied_at, release_labels
 
 _EMPTY_NAN = Choice("a sample (or map) with nothing to align", "0", "not stated",
@@ -23,12 +24,7 @@ _TEACHER_MODE = Choice("the frozen teacher's mode", "eval (`teacher: {mode: eval
                        "tools/pl_model.py, CameraSegmentor.py)", "`teacher: {mode: train}` (recipes/sweeps/l2cocc.yaml)")
 
 
-class PADParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    include_empty: bool = Field(False, description="also the empty voxels (label 0): the release's distill_kl_empty")
-
-
-class PAD(MultiTapObjective):
+class PAD(PADCard, MultiTapObjective):
     """L2COcc's prediction alignment: per sample the mean over valid non-empty voxels and classes of
     KL(p_T || p_S) (the release's ``KLDivLoss(reduction="mean")``), averaged over the batch; weight 70 as its
     configs. Reduction: the mean of per-sample values, as the release at any batch size (its code divides the sum
@@ -38,33 +34,12 @@ class PAD(MultiTapObjective):
                Choice("the batch reduction", "the mean of per-sample values", "not stated",
                       "the sum over the samples / B (and one sample per GPU, DDP averaging): the same", ""),
                _TEACHER_MODE)
-    Params = PADParams
-    CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
-    BATCH = {"target": "voxel_target"}
-    DEFAULT_WEIGHT = 70.0
-
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         labels = release_labels(taps["target"], self.ignore_index)
         return l2cocc_pad(taps["student"], taps["teacher"], labels, self.params.include_empty)
 
 
-class NoParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-MAX_MAPS = 4  # map pairs one FSD term reads: student/teacher, student_2/teacher_2, ...
-_EXTRA = [(f"student_{i}", f"teacher_{i}") for i in range(2, MAX_MAPS + 1)]
-
-
-class FSDParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    reduce: Literal["per_sample", "pooled"] = Field(
-        "per_sample", description="each sample's mean over its positions, then the mean over the samples (the "
-                                  "release: one sample per GPU, DDP averaging), or the mean over the batch's "
-                                  "positions pooled (the release's code at B > 1 on one GPU; distilkit before v2)")
-
-
-class FSD(MultiTapObjective):
+class FSD(FSDCard, MultiTapObjective):
     """L2COcc's numeric feature similarity: the mean of 1 - cos(f_S, f_T) over the feature map's positions whose
     block of the label grid holds an occupied voxel, per sample then over the batch (``reduce``); with several map
     pairs (``taps: {student, teacher, student_2, teacher_2, ...}``, up to 4) the mean over the maps before the
@@ -81,15 +56,6 @@ class FSD(MultiTapObjective):
                Choice("the batch reduction", "the mean of per-sample values", "not stated",
                       "one sample per GPU (batch_size=1), DDP averaging: the mean of per-sample values; its code "
                       "pools the masked positions of a batch", "`reduce: pooled`"))
-    Params = FSDParams
-    CONSUMES = {"student": "feature_map", "teacher": "feature_map",
-                **{role: "feature_map" for pair in _EXTRA for role in pair}}
-    TEACHER_ROLES = frozenset({"teacher", *(t for _, t in _EXTRA)})
-    OPTIONAL = frozenset(role for pair in _EXTRA for role in pair)
-    BATCH = {"target": "voxel_target"}
-    DEFAULT_WEIGHT = 4.0
-    VERSION = 2  # 2: per-sample reduction by default, several map pairs averaged (was: pooled over the batch)
-
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.errors import TapError
 
@@ -113,7 +79,7 @@ class FSD(MultiTapObjective):
         return l2cocc_fsd(students, teachers, masks, self.params.reduce)
 
 
-class Relation(MultiTapObjective):
+class Relation(RelationCard, MultiTapObjective):
     """L2COcc's relational feature similarity: the mean L1 distance between the student's and the teacher's P x P
     cosine matrices among the map's positions (computed in tiles of the upper triangle, one GEMM each: O(P^2 C)
     time, no P x P matrix); weight 5 as its configs (the release sums it over the three TPV planes' first neck maps: one term per map here, each at
@@ -124,24 +90,8 @@ class Relation(MultiTapObjective):
                       "the first neck output of each TPV plane, summed", ""),
                Choice("the batch reduction", "the mean over the B P^2 entries (= the mean of per-sample values)",
                       "not stated", "F.l1_loss over (B, P, P), one sample per GPU (DDP averaging): the same", ""))
-    Params = NoParams
-    CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
-    DEFAULT_WEIGHT = 5.0
-
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         return l2cocc_relation(taps["student"], taps["teacher"].detach())
 
 
-register_objective("l2cocc_pad", PAD, description="L2COcc's prediction alignment: per-sample KLDivLoss mean over "
-                   "valid non-empty voxels", paper="L2COcc (Wang et al., IROS 2025), CameraSegmentor.py",
-                   equation="mean_b 1/(n_b K) Σ_{v valid, non-empty} Σ_k p_T (log p_T − log p_S)",
-                   shapes="(B, K, X, Y, Z) logits, student and teacher")
-register_objective("l2cocc_fsd", FSD, description="L2COcc's numeric feature similarity: 1 − cos over occupied "
-                   "positions, per sample, averaged over the term's maps", paper="L2COcc (Wang et al., IROS 2025), "
-                   "CameraSegmentor.py", equation="mean_m mean_b mean_{p occupied in b} (1 − cos(f_S,p, f_T,p)); "
-                   "m: the term's map pairs", shapes="(B, C, X, Y[, Z]) maps, each pair of one shape; labels pooled "
-                   "to each map")
-register_objective("l2cocc_relation", Relation, description="L2COcc's relational similarity: L1 between P×P "
-                   "cosine matrices, in tiles of the upper triangle", paper="L2COcc (Wang et al., IROS 2025), CameraSegmentor.py",
-                   equation="mean_{b,i,j} |cos_S(i,j) − cos_T(i,j)|",
-                   shapes="(B, C_s / C_t, X, Y[, Z]) maps of one spatial size")
+__all__ = ["FSD", "MAX_MAPS", "PAD", "FSDParams", "NoParams", "PADParams", "Relation"]

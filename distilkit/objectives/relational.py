@@ -5,26 +5,18 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
+from distilkit.cards.objectives.relational import PKTCard, PKTParams, PVKDCard, PVKDParams
 from distilkit.data.batch import Batch
 from distilkit.losses.feature import pkt
 from distilkit.losses.pvkd import pvkd, supervoxel_ids, supervoxel_radial_bin
-from distilkit.objectives.base import MultiTapObjective, Objective, register_objective
-from distilkit.objectives.common import MaskName, aligned_pairs, voxel_mask
+from distilkit.objectives.base import MultiTapObjective, Objective
+from distilkit.objectives.common import aligned_pairs, voxel_mask
 from distilkit.structures import SparseVoxels
 
 
-class PKTParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    sample_size: int = Field(4096, ge=2, description="voxels sampled per scene from the student's active set")
-    shared_only: bool = Field(True, description="sample only voxels the teacher also has")
-    per_row: bool = Field(True, description="multiply by the sample size: the mean KL per row, so the weight "
-                                            "does not depend on sample_size (RepDistiller's value scales as 1/N)")
-
-
-class PKT(Objective):
+class PKT(PKTCard, Objective):
     """PKT (Passalis & Tefas, ECCV 2018) over voxels sampled from each scene's active set.
 
     Batches in SSC hold 1-4 scenes, so the probability distributions are built across voxels, not
@@ -32,10 +24,6 @@ class PKT(Objective):
     Alignment as DSKD: the student's voxels are the reference; across grids a coarser teacher is
     read at the parent voxel, a finer one mean-pooled into the student's voxels.
     """
-
-    Params = PKTParams
-    CONSUMES = {"student": "sparse_features", "teacher": "sparse_features"}
-    DEFAULT_WEIGHT = 500.0
 
     def forward(self, student: SparseVoxels, teacher: SparseVoxels, batch: Batch) -> Tensor:
         fs, ft, found = aligned_pairs(student, teacher)
@@ -62,19 +50,7 @@ def supervoxel_draw_weight(ids: Tensor, radial_bins: int, angular_bins: int, hei
     return (supervoxel_radial_bin(ids, radial_bins, angular_bins, height_bins) + 1).to(torch.get_default_dtype())
 
 
-class PVKDParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    temperature: float = Field(1.0, gt=0)
-    output_weight: float = Field(1.0, ge=0, description="voxel-wise output KD term")
-    affinity_weight: float = Field(100.0, ge=0, description="inter-voxel affinity term (not released by the authors)")
-    radial_bins: int = Field(8, ge=1)
-    angular_bins: int = Field(8, ge=1)
-    height_bins: int = Field(2, ge=1)
-    num_supervoxels: int | None = Field(None, ge=1, description="supervoxels sampled per step (None: all)")
-    voxels: MaskName = "valid"
-
-
-class PVKD(MultiTapObjective):
+class PVKD(PVKDCard, MultiTapObjective):
     """PVKD (Hou et al., CVPR 2022) as SCPNet Table 4 uses it: voxel-wise output KD plus inter-voxel
     affinity distillation inside supervoxels (the point-wise terms are dropped, as in SCPNet).
 
@@ -86,13 +62,6 @@ class PVKD(MultiTapObjective):
     Sparse alignment as DSKD (across grids: a coarser teacher read at the parent voxel, a finer one
     mean-pooled into the student's voxels); the logits must share one grid.
     """
-
-    Params = PVKDParams
-    CONSUMES = {"student": "sparse_features", "teacher": "sparse_features",
-                "student_logits": "voxel_logits", "teacher_logits": "voxel_logits"}
-    TEACHER_ROLES = frozenset({"teacher", "teacher_logits"})
-    BATCH = {"target": "voxel_target"}  # the labels that choose the voxels of the output term
-    DEFAULT_WEIGHT = 1.0
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         p = self.params
@@ -110,11 +79,4 @@ class PVKD(MultiTapObjective):
                     voxel_mask(taps["target"], p.voxels, self.ignore_index), p.output_weight, p.affinity_weight, chosen)
 
 
-register_objective("pkt", PKT, description="PKT: KL between cosine-kernel probability distributions over sampled voxels",
-               paper="Passalis & Tefas, ECCV 2018; SCPNet Table 4",
-               equation="mean_ij p_t,ij log((p_t,ij + ε)/(p_s,ij + ε)), p_ij = k_ij / Σ_j k_ij, k = (cos + 1)/2",
-               shapes="sparse voxel features; M ≤ sample_size rows per scene (across grids: as dskd)")
-register_objective("pvkd", PVKD, description="PVKD: voxel-wise output KD + inter-voxel affinity inside cylindrical supervoxels",
-               paper="Hou et al., CVPR 2022; SCPNet Table 4",
-               equation="w_o · KD(s, t) + w_a · mean_sv ‖Â_sv Â_svᵀ − B̂_sv B̂_svᵀ‖² / n_sv²",
-               shapes="sparse voxel features (across grids: as dskd) and (B, K, X, Y, Z) logits on one grid")
+__all__ = ["PKT", "PKTParams", "PVKD", "PVKDParams", "supervoxel_draw_weight"]

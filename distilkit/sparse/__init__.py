@@ -6,7 +6,19 @@ sums run on a backend chosen per call (:mod:`distilkit.sparse.backend`: this PyT
 spconv-Triton; ``DISTILKIT_SPARSE``). ``distilkit bench
 sparse`` times it at a real scan's occupancy."""
 
-from distilkit.sparse.conv import SparseConv3d, SparseInverseConv3d, SubMConv3d, name_modules, uses_sparse
-from distilkit.sparse.tensor import SparseConvTensor
+from typing import Any
+
+_LAZY = {"SparseConv3d": "conv", "SparseInverseConv3d": "conv", "SubMConv3d": "conv", "name_modules": "conv",
+         "uses_sparse": "conv", "SparseConvTensor": "tensor"}
+
+
+def __getattr__(name: str) -> Any:
+    """The layers, imported on first use (``distilkit.sparse.choice`` is read without torch)."""
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f"distilkit.sparse.{_LAZY[name]}"), name)
+    raise AttributeError(f"module 'distilkit.sparse' has no attribute {name!r}")
+
 
 __all__ = ["SparseConv3d", "SparseConvTensor", "SparseInverseConv3d", "SubMConv3d", "name_modules", "uses_sparse"]

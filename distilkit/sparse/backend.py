@@ -57,20 +57,14 @@ from typing import Any, Iterator
 import torch
 from torch import Tensor
 
-from distilkit.errors import DistilkitError
 from distilkit.sparse.form import form
 
-ENV = "DISTILKIT_SPARSE"
-CHOICES = ("auto", "torch", "spconv", "spconv-triton")
+from distilkit.sparse.choice import CHOICES, ENV, SparseBackendError, _override, requested
+
 LIBRARIES = {"spconv": "spconv", "spconv-triton": "spconv_triton"}  # backend -> the module it imports
 INSTALL = {"spconv": "pip install spconv-cu126 (or spconv-cu121, -cu124: spconv 2.3.8's CUDA builds, one to match "
                      "your CUDA; pip install spconv is the CPU build: forward only)",
            "spconv-triton": "pip install spconv-triton"}
-
-
-class SparseBackendError(DistilkitError):
-    """A requested sparse backend cannot run here (not installed, not for this device, no backward), or cannot take
-    a call (its dtype, autocast's dtype, gradients)."""
 
 
 @dataclass(frozen=True)
@@ -120,18 +114,7 @@ class Call:
 AUTO_DEVICES = ("cuda",)  # device types where ``auto`` offers a call to the libraries first
 AUTO_LIBRARIES = ("spconv",)  # the libraries ``auto`` offers a call to, in order (spconv-triton: only when named)
 
-_override: list[str] = []  # :func:`using`'s choices, innermost last
 _ran: list[set[str]] = []  # :func:`record`'s open collections
-
-
-def requested() -> str:
-    """The backend asked for: the innermost :func:`using`, else ``DISTILKIT_SPARSE``, else ``auto``."""
-    if _override:
-        return _override[-1]
-    value = os.environ.get(ENV, "auto").strip().lower() or "auto"
-    if value not in CHOICES:
-        raise SparseBackendError(f"{ENV}={value!r}: choose one of {', '.join(CHOICES)}")
-    return value
 
 
 @contextlib.contextmanager

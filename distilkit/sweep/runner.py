@@ -21,15 +21,18 @@ from typing import Any, Iterator
 
 import yaml
 
+from typing import TYPE_CHECKING
+
+from distilkit.engine.store.summary import read_summary
 from distilkit.engine.train.cpus import usable_cpus
-from distilkit.files import atomic_write_text
 from distilkit.engine.train.pipeline import Pipeline
-from distilkit.engine.train.stage import read_summary
-from distilkit.engine.train.trackers.base import in_sweep, sweep_env
 from distilkit.errors import DistilkitError, RecipeError
-from distilkit.sweep.results import RunRecord, write_results
+from distilkit.files import atomic_write_text
 from distilkit.sweep.spec import Sweep, load_sweep
 from distilkit.sweep.tasks import Task, variants_phrase
+
+if TYPE_CHECKING:  # running and collecting import torch and the reports; --plan needs neither
+    from distilkit.sweep.results import RunRecord
 
 
 class SweepRun:
@@ -128,6 +131,8 @@ class SweepRun:
             if not self.quiet:
                 self.console.rule(f"[{i}/{len(todo)}] {task.title}")
             try:
+                from distilkit.engine.train.trackers.base import in_sweep
+
                 with in_sweep(self.sweep.name, list(self.sweep.recipes)):  # for the runs' trackers
                     self.pipes[task.variant, task.seed].run(only=list(task.stages), report=False)
             except DistilkitError as exc:  # one run's failure (a NaN loss) must not stop the others
@@ -143,6 +148,7 @@ class SweepRun:
         if jobs > cpus:
             self.console.print(f"[yellow]--jobs {jobs} on {cpus} CPUs: jobs share cores (1 thread each)[/]")
         from distilkit.engine.train.stop import PARENT_ENV
+        from distilkit.engine.train.trackers.base import sweep_env
 
         env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
                PARENT_ENV: str(os.getpid()),  # a run stops (checkpoint written) if this process dies
@@ -182,6 +188,8 @@ class SweepRun:
 
     def records(self) -> tuple[list[RunRecord], list[str]]:
         """The finished runs (variants and their upstream stages) and the titles of the missing ones."""
+        from distilkit.sweep.results import RunRecord
+
         records: list[RunRecord] = []
         missing: list[str] = []
         seen: set[Path] = set()
@@ -228,6 +236,8 @@ class SweepRun:
             return None
         if missing:
             console.print(f"[yellow]not finished (left out of the table):[/] {', '.join(missing)}")
+        from distilkit.sweep.results import write_results
+
         return write_results(self.root, self.sweep.name, records, self.sweep.baseline, self.order(), console,
                              missing)
 
@@ -361,6 +371,8 @@ def _on_slurm(sweep: SweepRun, path: str | Path, launcher: str, cluster: dict[st
         return None
     if launcher == "slurm":
         res = _resources(sweep, cluster)
+        from distilkit.engine.train.trackers.base import in_sweep
+
         with in_sweep(sweep.sweep.name, list(sweep.sweep.recipes)):  # sbatch exports it to the jobs' trackers
             submitted = slurm.submit(sweep, res)
         total = len(sweep.variant_tasks())

@@ -13,16 +13,14 @@ the network's parameters are Cylinder3D's U-Net's at that input width.
 
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
 from torch import Tensor, nn
 
 from distilkit.sparse import SparseConvTensor, name_modules
 from distilkit.sparse.conv import Semantics
+from distilkit_adapters.dean.card import Features
 from distilkit_adapters.scpnet.cylinder import Asymm3dSpconv
 
-Features = Literal["occupancy", "height", "position"]
 AXES: dict[str, tuple[int, ...]] = {"occupancy": (), "height": (2,), "position": (0, 1, 2)}  # scaled coordinates
 WIDTHS: dict[str, int] = {name: 1 + len(axes) for name, axes in AXES.items()}  # a 1, then the coordinates
 INIT_SIZE = 32  # Cylinder3D's init_size (config/semantickitti.yaml), as the SCPNet adapter's paper network

@@ -5,66 +5,22 @@ post-processed ``completion``; it offers the capabilities ``alphas_cumprod``, ``
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
 from distilkit.adapter import Adapter
 from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
-from distilkit.registry import ADAPTERS
 from distilkit.structures import PointCloud
-from distilkit_adapters._blocks import fields_of_one_size
+from distilkit_adapters.lidiff.card import LiDiffCard, LiDiffParams
 from distilkit_adapters.lidiff.model import PointDenoiser, lidiff_alphas_cumprod
 from distilkit_adapters.lidiff.sampler import ddim, ddim_timesteps, dpm_timesteps, sde_dpmsolver_pp
 
 
-class LiDiffParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    size: Literal["tiny", "paper"] = Field(
-        "tiny", description="tiny: the CPU stand-in (a per-point MLP denoiser: every completed point an independent "
-                            "sample; the four fields below); paper: LiDiff's MinkUNetDiff and scan encoder on 5 cm "
-                            "sparse voxels (distilkit.sparse), which loads the release's diff_net.ckpt")
-    channels: int = Field(64, ge=4, description="tiny: width of the denoiser's point MLPs")
-    blocks: int = Field(3, ge=1, description="tiny: modulated residual blocks")
-    k_scan: int = Field(8, ge=1, description="tiny: scan neighbours of the scan encoder's local descriptor")
-    k_cond: int = Field(4, ge=1, description="tiny: nearest scan points that condition each noisy point")
-    diffusion_steps: int = Field(1000, ge=2, description="T (LiDiff: 1000)")
-    beta_start: float = Field(3.5e-5, gt=0)
-    beta_end: float = Field(0.007, gt=0)
-    duplicate: int = Field(10, ge=1, description="K: the scan is duplicated K times as the start of sampling "
-                                                "(LiDiff: 10 = scene points / scan points)")
-    sample_steps: int = Field(50, ge=1, description="sampler steps at evaluation = network evaluations (LiDiff: 50; "
-                                                    "ScoreLiDAR's student: 8)")
-    sampler: Literal["ddim", "dpm-solver++"] = Field(
-        "ddim", description="ddim: deterministic DDIM of the local-noise process (consistent with its training); "
-                            "dpm-solver++: what LiDiff runs, diffusers 0.18's second-order SDE DPM-Solver++ on the "
-                            "offset x - x_init (parity with released teachers)")
-    guidance: float = Field(1.0, ge=0, description="classifier-free guidance weight when sampling (LiDiff: 6.0, "
-                                                   "ScoreLiDAR: 3.5; 1 = the conditional prediction alone)")
-    postprocess: bool = Field(True, description="LiDiff's post-processing of the evaluated completion: keep points "
-                                                "within 50 m whose height lies in (mean - 2 std, max) of the scan's")
-    uncond_prob: float = Field(0.1, ge=0, le=1, description="probability that the condition is dropped (LiDiff: 0.1)")
-    uncond_per: Literal["batch", "scene"] = Field(
-        "batch", description="batch: one draw per training batch drops every scene's condition (LiDiff's "
-                             "training_step); scene: one draw per scene. A batch of one scene always keeps it (LiDiff)")
-    generate_steps: int = Field(0, ge=0, description="0: training denoises noised scenes (LiDiff); n > 0: training "
-                                                     "generates ``samples`` in n sampler steps with their gradient "
-                                                     "(a few-step student, ScoreLiDAR: 1)")
-    freeze_encoder: bool | None = Field(None, description="keep the scan encoder's weights fixed (default: frozen for "
-                                                          "a few-step student, generate_steps > 0, as ScoreLiDAR's code "
-                                                          "keeps the teacher's encoder; trained otherwise)")
-
-    @model_validator(mode="after")
-    def _one_size(self) -> "LiDiffParams":
-        fields_of_one_size(self, {"tiny": ("channels", "blocks", "k_scan", "k_cond")})
-        return self
-
-
-class LiDiffAdapter(Adapter):
+class LiDiffAdapter(LiDiffCard, Adapter):
     """LiDiff with its denoising loss (``lidiff`` task loss) and a DDIM sampler of any number of steps. Its choices
     (``CHOICES``): the sampler of few-step students, the per-point denoiser, the condition dropped per batch."""
 
@@ -81,16 +37,6 @@ class LiDiffAdapter(Adapter):
                "models.py: `if torch.rand(1) > uncond_prob or batch size == 1` (per batch)", "`uncond_per: scene`"),
     )
 
-    Params = LiDiffParams
-    INPUTS = frozenset({"scan", "scan_lengths", "scene", "scene_lengths"})  # training noises the scene
-    TAPS = {"eps_pred": "points", "eps": "points", "samples": "points", "start_noise": "points", "completion": "points"}
-    PREDICTION_TAP = "completion"
-    DEFAULT_TASK_LOSSES = [{"name": "lidiff", "taps": {"student": "eps_pred", "noise": "eps"}}]
-    VERSION = 3  # 2: n sampler steps are n network evaluations (none at t = 0); 3: the condition dropped per batch
-    NETWORKS = {"tiny": "CPU stand-in: a per-point MLP denoiser (every completed point an independent sample)",
-                "paper": "the paper's network: MinkUNetDiff and the scan encoder on 5 cm sparse voxels (loads "
-                         "diff_net.ckpt)"}
-
     def __init__(self, params: LiDiffParams, info: DataInfo) -> None:
         super().__init__(params, info)
         if params.size == "paper":
@@ -104,11 +50,6 @@ class LiDiffAdapter(Adapter):
             p.requires_grad_(not frozen)
         abar = lidiff_alphas_cumprod(params.diffusion_steps, params.beta_start, params.beta_end)
         self.register_buffer("alphas_cumprod", abar.float(), persistent=False)
-
-    @classmethod
-    def describe(cls, params: BaseModel) -> str:
-        n = int(getattr(params, "sample_steps"))
-        return f"{n} step{'s' if n != 1 else ''}" + (", paper size" if getattr(params, "size") == "paper" else "")
 
     @classmethod
     def read_weights(cls, path: str) -> dict[str, Any]:
@@ -242,7 +183,4 @@ class LiDiffAdapter(Adapter):
         return {"eps_pred": PointCloud(eps_pred, lengths), "eps": PointCloud(eps, lengths)}
 
 
-ADAPTERS.add("lidiff", LiDiffAdapter,
-             description="LiDiff: scan-conditioned point diffusion with local noise (pure-PyTorch point denoiser), "
-                         "DDIM sampling with any number of steps",
-             paper="Nunes et al., LiDiff, CVPR 2024", consumes=tuple(LiDiffAdapter.TAPS.values()))
+__all__ = ["LiDiffAdapter", "LiDiffParams"]

@@ -5,30 +5,21 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
 from distilkit.data.batch import Batch
 from distilkit.losses.task import TaskLoss
-from distilkit.registry import TASK_LOSSES
 from distilkit.structures import PointCloud
-
-
-class _Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    reg_weight: float = Field(5.0, ge=0, description="weight of the mean/std regulariser (LiDiff: 5.0)")
+from distilkit_adapters.lidiff.card import LiDiffLossCard, LiDiffLossParams
 
 
 def _valid(cloud: PointCloud) -> Tensor:
     return torch.cat([cloud.cloud(b) for b in range(len(cloud.lengths))])
 
 
-class LiDiffLoss(TaskLoss):
+class LiDiffLoss(LiDiffLossCard, TaskLoss):
     """MSE(eps_hat, eps) + w (mean(eps_hat)^2 + (std(eps_hat) - 1)^2), statistics over every point of the batch
     (LiDiff's ``reg_weight`` = 5; seed_code.md §3.1); ScoreLiDAR eq. 5 is its first term."""
-
-    Params = _Params
-    CONSUMES = {"student": "points", "noise": "points"}
 
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         pred, eps = _valid(taps["student"]), _valid(taps["noise"])
@@ -36,5 +27,4 @@ class LiDiffLoss(TaskLoss):
         return torch.nn.functional.mse_loss(pred, eps) + self.params.reg_weight * reg
 
 
-TASK_LOSSES.add("lidiff", LiDiffLoss, description="LiDiff's denoising MSE + 5 (mean^2 + (std - 1)^2) of the noise",
-                paper="Nunes et al., LiDiff, CVPR 2024; ScoreLiDAR eq. 5", consumes=("points",))
+__all__ = ["LiDiffLoss", "LiDiffLossParams"]

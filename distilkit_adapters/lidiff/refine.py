@@ -17,11 +17,10 @@ fits in memory.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor, nn
 
 from distilkit.adapter import Adapter
@@ -29,34 +28,9 @@ from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.data.info import DataInfo
 from distilkit.geometry.nearest import knn_indices
-from distilkit.registry import ADAPTERS
 from distilkit.structures import PointCloud
-from distilkit_adapters._blocks import fields_of_one_size
+from distilkit_adapters.lidiff.card import LiDiffRefineCard, RefineParams
 from distilkit_adapters.lidiff.model import _mlp
-
-
-class RefineParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    size: Literal["tiny", "paper"] = Field(
-        "tiny", description="tiny: per-point MLPs with an edge descriptor (the CPU stand-in; channels, k, chunk); "
-                            "paper: LiDiff's refinement MinkUNet on 5 cm sparse voxels, which loads refine_net.ckpt")
-    channels: int = Field(32, ge=4, description="tiny: width of the point MLPs")
-    k: int = Field(8, ge=1, description="tiny: neighbours of each point's edge descriptor")
-    offsets: int = Field(6, ge=1, description="points predicted per input point (LiDiff: 6)")
-    max_offset: float = Field(1.0, gt=0, description="offsets lie in [-max_offset, max_offset] per axis (LiDiff: "
-                                                     "tanh, 1 m)")
-    chunk: int = Field(32768, ge=1, description="points per chunk of the descriptor (bounds memory, not results)")
-    train_on: Literal["jittered-ground-truth", "completions"] = Field(
-        "jittered-ground-truth", description="training input: the ground-truth scene with clipped Gaussian jitter "
-                                             "(LiDiff's refinement training; default) or an auxiliary LiDiff model's "
-                                             "completions (the aux input coarse)")
-    jitter_sigma: float = Field(0.2, gt=0, description="jitter standard deviation, metres (LiDiff: 0.2)")
-    jitter_clip: float = Field(0.3, gt=0, description="jitter clipped to [-clip, clip] per axis, metres (LiDiff: 0.3)")
-
-    @model_validator(mode="after")
-    def _one_size(self) -> "RefineParams":
-        fields_of_one_size(self, {"tiny": ("channels", "k", "chunk")})
-        return self
 
 
 class PointRefiner(nn.Module):
@@ -98,7 +72,7 @@ class PaperRefiner(nn.Module):
         return self.model_refine(points[None])[0].view(len(points), self.p.offsets, 3) * self.p.max_offset
 
 
-class LiDiffRefineAdapter(Adapter):
+class LiDiffRefineAdapter(LiDiffRefineCard, Adapter):
     """LiDiff's refinement network: ``coarse`` points in, ``refined`` (training) / ``completion`` (evaluation) out,
     ``offsets`` x as many points; the ``refine_cloud`` capability refines a completion for ``distilkit complete``."""
 
@@ -108,30 +82,9 @@ class LiDiffRefineAdapter(Adapter):
                "(SemanticKITTITemporalAggr.py)", "`train_on: completions` (a frozen LiDiff model's output)"),
     )
 
-    Params = RefineParams
-    INPUTS = frozenset({"coarse", "scene", "scene_lengths"})
-    TAPS = {"refined": "points", "completion": "points"}
-    PREDICTION_TAP = "completion"
-    DEFAULT_TASK_LOSSES = [{"name": "chamfer", "taps": {"student": "refined"}}]
-    VERSION = 2  # 2: trained on jittered ground truth by default (LiDiff)
-    NETWORKS = {"tiny": "CPU stand-in: a per-point MLP refiner",
-                "paper": "the paper's network: LiDiff's refinement MinkUNet (loads refine_net.ckpt)"}
-
-    @classmethod
-    def inputs(cls, params: BaseModel) -> frozenset[str]:
-        """``coarse`` (an auxiliary model's completion, refined in evaluation), and the ground-truth ``scene`` when
-        training on it."""
-        jitter = getattr(params, "train_on") == "jittered-ground-truth"
-        return cls.INPUTS if jitter else frozenset({"coarse"})
-
     def __init__(self, params: RefineParams, info: DataInfo) -> None:
         super().__init__(params, info)
         self.net: nn.Module = PaperRefiner(params) if params.size == "paper" else PointRefiner(params)
-
-    @classmethod
-    def describe(cls, params: BaseModel) -> str:
-        size = ", paper size" if getattr(params, "size") == "paper" else ""
-        return f"{getattr(params, 'offsets')}x refinement{size}"
 
     @classmethod
     def read_weights(cls, path: str) -> dict[str, Any]:
@@ -178,7 +131,4 @@ class LiDiffRefineAdapter(Adapter):
         return {"refined" if self.training else "completion": refined}
 
 
-ADAPTERS.add("lidiff-refine", LiDiffRefineAdapter,
-             description="LiDiff's refinement: six offsets per point of a diffusion completion (Chamfer-trained on "
-                         "jittered ground truth, or on a frozen auxiliary LiDiff model's completions)",
-             paper="Nunes et al., LiDiff, CVPR 2024 (models_refine.py)", consumes=tuple(LiDiffRefineAdapter.TAPS.values()))
+__all__ = ["LiDiffRefineAdapter", "PaperRefiner", "PointRefiner", "RefineParams"]

@@ -103,7 +103,7 @@ def describe(res: Any) -> tuple[str, list[str]]:
     seen: dict[str, list[str]] = {}
     for name, stage in res.stages.items():
         spec = stage.student
-        what = spec.cls.network(spec.params)
+        what = spec.card.network(spec.params)
         if what:
             seen.setdefault(f"{spec.adapter}: {what}", []).append(name)
     return stages, [f"model of {', '.join(names)} — {line}" for line, names in seen.items()] + sparse_lines(res)
@@ -127,13 +127,17 @@ def _sparse_models(res: Any) -> dict[str, tuple[bool, bool]]:
 
 
 def _sparse_models_of(res: Any) -> dict[str, tuple[bool, bool]]:
-    from distilkit.sparse import uses_sparse
-
     sparse: dict[int, bool] = {}
 
     def uses(spec: Any) -> bool:
         if id(spec) not in sparse:
-            sparse[id(spec)] = uses_sparse(_built(spec, res.data_info))
+            declared = getattr(spec.card, "sparse", None)
+            answer = declared(spec.params) if declared is not None else None
+            if answer is None:  # undeclared (a plug-in's adapter): the model built on the meta device shows it
+                from distilkit.sparse import uses_sparse
+
+                answer = uses_sparse(_built(spec, res.data_info))
+            sparse[id(spec)] = bool(answer)
         return sparse[id(spec)]
 
     return {name: (uses(stage.student), any(uses(spec) for spec in ([stage.teacher] if stage.teacher is not None
@@ -168,14 +172,19 @@ def sparse_problems(res: Any) -> list[tuple[str, str]]:
     ``DISTILKIT_SPARSE`` names, asked for the calls of :func:`sparse_calls` (a missing library, spconv's CPU build
     asked for a backward, a dtype it does not compute) — the problem is the line the run stops with, the stages that
     meet it named in the field. A ``DISTILKIT_SPARSE`` that names no backend stops every run."""
-    from distilkit.sparse import backend
+    from distilkit.sparse.choice import SparseBackendError, requested
 
     try:
-        backend.requested()
-    except backend.SparseBackendError as exc:
+        requested()
+    except SparseBackendError as exc:
         return [("", str(exc))]
+    models = _sparse_models(res)
+    if not any(student or forward for student, forward in models.values()):
+        return []  # no sparse convolution: no backend to ask (and no torch to import)
+    from distilkit.sparse import backend
+
     found: dict[str, list[str]] = {}
-    for name, (student, forward) in _sparse_models(res).items():
+    for name, (student, forward) in models.items():
         for call in sparse_calls(res.stages[name], student, forward):
             try:
                 backend.choose(call.device, call)
@@ -188,11 +197,14 @@ def sparse_problems(res: Any) -> list[tuple[str, str]]:
 def sparse_lines(res: Any) -> list[str]:
     """One line per device whose stages build sparse convolutions: which backend computes them there
     (``DISTILKIT_SPARSE``; :mod:`distilkit.sparse.backend`)."""
+    models = _sparse_models(res)
+    if not any(student or forward for student, forward in models.values()):
+        return []
     from distilkit.engine.assemble.devices import pick_device
     from distilkit.sparse import backend
 
     devices: dict[str, list[str]] = {}
-    for name, (student, forward) in _sparse_models(res).items():
+    for name, (student, forward) in models.items():
         if student or forward:
             devices.setdefault(pick_device(res.stages[name].spec.train.device).type, []).append(name)
     return [f"{backend.describe(device)} — stages {', '.join(names)}" for device, names in devices.items()]

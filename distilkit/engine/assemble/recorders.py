@@ -1,5 +1,6 @@
 """Taps without adapter code: record a submodule's output, its input, or the value one of its methods returns, by
-its dotted path — MMRazor's recorder kinds, from the ``RECORDERS`` registry (plugins add their own).
+its dotted path — MMRazor's recorder kinds, from the ``RECORDERS`` registry (plugins add their own; the
+built-in ones below are declared in :mod:`distilkit.cards.recorders`).
 
 A recipe declares ``model: {..., taps: {mid: {module: net.completion.blocks.1, kind: volume_features}}}`` (``at:
 output`` by default; ``at: input``; ``at: method, method: encode``); the recorded value joins the adapter's output
@@ -43,13 +44,6 @@ def _method(sub: nn.Module, spec: Any, record: Record) -> None:
         return value
 
     setattr(sub, name, wrapped)  # an instance attribute: this model only
-
-
-RECORDERS.add("output", _output, description="the submodule's output (a forward hook)", paper="MMRazor's ModuleOutputs")
-RECORDERS.add("input", _input, description="the submodule's first input (a forward hook)",
-              paper="MMRazor's ModuleInputs")
-RECORDERS.add("method", _method, description="the return value of a method of the submodule (`method:`)",
-              paper="MMRazor's MethodOutputs")
 
 
 def attach_recorders(model: nn.Module, hooks: dict[str, Any], role: str = "model") -> None:

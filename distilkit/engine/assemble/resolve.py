@@ -23,22 +23,22 @@ def resolve_metric(wanted: str, model: ResolvedModel, info: Any, path: str,
     prediction tap whose targets the data provides; the first registered that reports KEY. Not ``chosen`` (the
     recipe left the default): where no such metric reports it, the score that the first metric of the adapter's
     predictions selects by (its ``SELECTS``: LiDiff's point clouds, ``cd``)."""
-    tap = model.cls.PREDICTION_TAP
-    kind = model.cls.TAPS.get(tap)
+    tap = model.card.PREDICTION_TAP
+    kind = model.card.TAPS.get(tap)
     if kind is None:
         problems.append((f"{path}.model.adapter", f"adapter {model.adapter!r} declares no prediction tap "
                                                   f"(PREDICTION_TAP = {tap!r} is not among its TAPS)"))
         return None
     name, _, key = wanted.rpartition(".")
     fields = info.fields if info is not None else None
-    usable = [e for e in METRICS if kind_fits(kind, e.obj.SCORES) and (fields is None or not fields or e.obj.TARGETS <= fields)]
+    usable = [e for e in METRICS if kind_fits(kind, e.card.SCORES) and (fields is None or not fields or e.card.TARGETS <= fields)]
     for entry in usable:
-        if (not name or entry.name == name) and key in entry.obj.KEYS:
-            return ResolvedMetric(entry.name, entry.obj, key)
-    own = [e for e in usable if e.obj.SELECTS]
+        if (not name or entry.name == name) and key in entry.card.KEYS:
+            return ResolvedMetric(entry.name, entry.card, key)
+    own = [e for e in usable if e.card.SELECTS]
     if not chosen and own:
-        return ResolvedMetric(own[0].name, own[0].obj, own[0].obj.SELECTS)
-    offered = ", ".join(f"{e.name}.{k}" for e in usable for k in e.obj.KEYS) or "none"
+        return ResolvedMetric(own[0].name, own[0].card, own[0].card.SELECTS)
+    offered = ", ".join(f"{e.name}.{k}" for e in usable for k in e.card.KEYS) or "none"
     problems.append((f"{path}.train.metric", f"no registered metric scores {kind} predictions (tap {tap!r}) with "
                                              f"{wanted!r} on this data (available: {offered})"))
     return None
@@ -47,22 +47,22 @@ def resolve_metric(wanted: str, model: ResolvedModel, info: Any, path: str,
 def extra_metrics(names: list[str], model: ResolvedModel, info: Any, path: str,
                   problems: list[tuple[str, str]]) -> list[ResolvedMetric]:
     """``train.metrics``: registered metrics that score the adapter's prediction kind on this data."""
-    kind = model.cls.TAPS.get(model.cls.PREDICTION_TAP)
+    kind = model.card.TAPS.get(model.card.PREDICTION_TAP)
     fields = info.fields if info is not None else None
     out = []
     for i, name in enumerate(names):
         entry = lookup(METRICS, name, f"{path}.train.metrics[{i}]", problems)
         if entry is None or kind is None:
             continue
-        if not kind_fits(kind, entry.obj.SCORES):
-            problems.append((f"{path}.train.metrics[{i}]", f"metric {entry.name!r} scores {entry.obj.SCORES} "
+        if not kind_fits(kind, entry.card.SCORES):
+            problems.append((f"{path}.train.metrics[{i}]", f"metric {entry.name!r} scores {entry.card.SCORES} "
                                                           f"predictions; adapter {model.adapter!r} predicts {kind}"))
-        elif fields and not entry.obj.TARGETS <= fields:
+        elif fields and not entry.card.TARGETS <= fields:
             problems.append((f"{path}.train.metrics[{i}]", f"metric {entry.name!r} reads "
-                                                          f"{', '.join(sorted(entry.obj.TARGETS - fields))}, which "
+                                                          f"{', '.join(sorted(entry.card.TARGETS - fields))}, which "
                                                           "the data does not provide"))
         else:
-            out.append(ResolvedMetric(entry.name, entry.obj, entry.obj.KEYS[0]))
+            out.append(ResolvedMetric(entry.name, entry.card, entry.card.KEYS[0]))
     return out
 
 
@@ -111,7 +111,7 @@ def resolve_aux(spec: Any, stages: dict[str, ResolvedStage], path: str,
         up = stages.get(aux.from_)
         if up is None:  # an unknown stage is named by stage_order
             continue
-        inputs = aux.inputs or {up.student.cls.PREDICTION_TAP: name}
+        inputs = aux.inputs or {up.student.card.PREDICTION_TAP: name}
         for tap in inputs:
             if tap not in up.student.taps:
                 problems.append((f"{path}.aux.{name}.inputs", f"stage {aux.from_!r}'s {up.student.adapter!r} has no tap "
@@ -123,13 +123,13 @@ def resolve_aux(spec: Any, stages: dict[str, ResolvedStage], path: str,
 def labels_problems(spec: Any, stages: dict[str, ResolvedStage], info: Any, path: str) -> list[tuple[str, str]]:
     """A ``labels`` edge: the upstream stage's predictions can be published, the fields exist; a stage's own
     ``publish``: its predictions can be."""
-    from distilkit.engine.store.predictions import publishable
+    from distilkit.taps import publishable
 
     out = []
     labels = spec.labels
     if labels is not None and labels.from_ in stages:
         up = stages[labels.from_].student
-        kind = up.taps.get(up.cls.PREDICTION_TAP)
+        kind = up.taps.get(up.card.PREDICTION_TAP)
         if not publishable(kind):
             out.append((f"{path}.labels.from", f"stage {labels.from_!r} predicts {kind} ({up.adapter!r}), which cannot "
                                                "be published as labels (voxel_logits and points can)"))
@@ -144,7 +144,7 @@ def labels_problems(spec: Any, stages: dict[str, ResolvedStage], info: Any, path
 def data_problems(model: ResolvedModel, info: Any, path: str) -> list[tuple[str, str]]:
     """The inputs the adapter reads that the data does not provide, and parameters it cannot serve."""
     out = []
-    missing = sorted(model.cls.inputs(model.params) - info.fields) if info.fields else []
+    missing = sorted(model.card.inputs(model.params) - info.fields) if info.fields else []
     if missing:
         from distilkit.schema_doc import aux_only_inputs
 
@@ -154,8 +154,13 @@ def data_problems(model: ResolvedModel, info: Any, path: str) -> list[tuple[str,
         out.append((f"{path}.adapter", f"adapter {model.adapter!r} reads batch input(s) {', '.join(missing)}, which "
                                        f"the data does not provide (it has: {', '.join(sorted(info.fields))}){hint}"))
     out += [(f"{path}.params.{param}" if param else f"{path}.adapter", problem)
-            for param, problem in model.cls.check_data(model.params, info)]
+            for param, problem in model.card.check_data(model.params, info)]
     return out
+
+
+def _provides(card: Any, capability: str) -> bool:
+    """Whether an adapter has the method ``capability``: declared in its card's ``CAPABILITIES`` or defined on it."""
+    return capability in getattr(card, "CAPABILITIES", ()) or callable(getattr(card, capability, None))
 
 
 def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
@@ -178,9 +183,9 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         aux = resolve_aux(spec, stages, path, problems)
         problems.extend(labels_problems(spec, stages, info, path))
         if student is not None and spec.publish:
-            from distilkit.engine.store.predictions import publishable
+            from distilkit.taps import publishable
 
-            kind = student.taps.get(student.cls.PREDICTION_TAP)
+            kind = student.taps.get(student.card.PREDICTION_TAP)
             if not publishable(kind):
                 problems.append((f"{path}.publish", f"{student.adapter!r} predicts {kind}, which cannot be published "
                                                     "(voxel_logits and points can)"))
@@ -201,12 +206,12 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
                 assert spec.teacher.model is not None
                 teacher = resolve_model(spec.teacher.model, f"{path}.teacher.model", problems)
             if teacher is not None and spec.teacher.taps:  # this stage records more of the teacher
-                teacher = ResolvedModel(teacher.adapter, teacher.cls, teacher.params,
+                teacher = ResolvedModel(teacher.adapter, teacher.card, teacher.params,
                                         {**teacher.hooks, **spec.teacher.taps})
         models = {"student": student, "teacher": teacher}
         task_specs = spec.task_losses
         if task_specs is None and student is not None:
-            task_specs = [LossSpec.model_validate(d) for d in student.cls.DEFAULT_TASK_LOSSES]
+            task_specs = [LossSpec.model_validate(d) for d in student.card.DEFAULT_TASK_LOSSES]
         task = resolve_terms(task_specs or [], TASK_LOSSES, f"{path}.task_losses", models, stage_info, problems)
         distill = resolve_terms(spec.distill, OBJECTIVES, f"{path}.distill", models, stage_info, problems)
         if spec.init is not None and spec.init.from_ is not None and student is not None and spec.init.strict:
@@ -231,10 +236,10 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         if info is not None:
             problems.extend(alignment_problems(distill, models, info, f"{path}.distill"))
         for i, term in enumerate(distill):  # teacher and student capabilities the objective calls
-            for role, model, caps in (("teacher", teacher, term.cls.REQUIRES),
-                                      ("student", student, term.cls.student_requires(term.params))):
+            for role, model, caps in (("teacher", teacher, term.card.REQUIRES),
+                                      ("student", student, term.card.student_requires(term.params))):
                 for cap in sorted(caps):
-                    if model is not None and not callable(getattr(model.cls, cap, None)):
+                    if model is not None and not _provides(model.card, cap):
                         problems.append((f"{path}.distill[{i}]", f"{term.name} calls the {role}'s {cap}(), which "
                                                                   f"adapter {model.adapter!r} does not provide"))
         lookup(OPTIMIZERS, spec.optimizer.name, f"{path}.optimizer.name", problems)

@@ -15,7 +15,7 @@ from distilkit.recipe import Recipe
 @dataclass
 class ResolvedTerm:
     name: str
-    cls: Any
+    card: Any  # what the term declares (:class:`~distilkit.cards.base.TermCard`); ``cls`` is the term itself
     params: BaseModel
     weight: float
     taps: dict[str, str]  # role -> tap name (of the student, or of the teacher for a teacher role)
@@ -27,18 +27,32 @@ class ResolvedTerm:
     def __post_init__(self) -> None:
         self.key = self.key or self.name
 
+    @property
+    def cls(self) -> Any:
+        """The component itself (imported now if it was declared lazily): what builds and runs it."""
+        from distilkit.registry import implementation
+
+        return implementation(self.card)
+
 
 @dataclass
 class ResolvedModel:
     adapter: str
-    cls: Any
+    card: Any  # what the adapter declares (:class:`~distilkit.cards.base.AdapterCard`); ``cls`` is the adapter
     params: BaseModel
     hooks: dict[str, Any] = field(default_factory=dict)  # recipe taps recorded from submodules
 
     @property
+    def cls(self) -> Any:
+        """The component itself (imported now if it was declared lazily): what builds and runs it."""
+        from distilkit.registry import implementation
+
+        return implementation(self.card)
+
+    @property
     def taps(self) -> dict[str, str]:
         """Tap name -> kind: the adapter's declared taps and the recipe's recorded ones."""
-        return {**self.cls.TAPS, **{name: h.kind for name, h in self.hooks.items() if name not in self.cls.TAPS}}
+        return {**self.card.TAPS, **{name: h.kind for name, h in self.hooks.items() if name not in self.card.TAPS}}
 
 
 @dataclass
@@ -46,12 +60,19 @@ class ResolvedMetric:
     """The registered metric that scores a stage's predictions and the score that selects ``best.pt``."""
 
     name: str
-    cls: Any
+    card: Any  # what the metric declares (:class:`~distilkit.cards.base.MetricCard`); ``cls`` is the metric
     key: str
 
     @property
     def higher_is_better(self) -> bool:
-        return self.key not in self.cls.LOWER_IS_BETTER
+        return self.key not in self.card.LOWER_IS_BETTER
+
+    @property
+    def cls(self) -> Any:
+        """The component itself (imported now if it was declared lazily): what builds and runs it."""
+        from distilkit.registry import implementation
+
+        return implementation(self.card)
 
 
 @dataclass

@@ -35,9 +35,9 @@ def resolve_model(spec: ModelSpec, path: str, problems: list[tuple[str, str]]) -
     entry = lookup(ADAPTERS, spec.adapter, f"{path}.adapter", problems)
     if entry is None:
         return None
-    params = validate_params(entry.obj.Params, spec.params, f"{path}.params", problems)
+    params = validate_params(entry.card.Params, spec.params, f"{path}.params", problems)
     for name, hook in spec.taps.items():
-        if name in entry.obj.TAPS:
+        if name in entry.card.TAPS:
             problems.append((f"{path}.taps.{name}", f"adapter {spec.adapter!r} already has a tap {name!r}"))
         if hook.kind not in TAP_KINDS:
             problems.append((f"{path}.taps.{name}.kind", f"unknown tap kind {hook.kind!r} (registered: "
@@ -45,7 +45,7 @@ def resolve_model(spec: ModelSpec, path: str, problems: list[tuple[str, str]]) -
         recorder = lookup(RECORDERS, hook.at, f"{path}.taps.{name}.at", problems)
         if recorder is not None and recorder.name == "method" and not hook.method:
             problems.append((f"{path}.taps.{name}.method", "`at: method` needs the method's name"))
-    return None if params is None else ResolvedModel(entry.name, entry.obj, params, dict(spec.taps))
+    return None if params is None else ResolvedModel(entry.name, entry.card, params, dict(spec.taps))
 
 
 def _resolve_fields(term_path: str, cls: Any, given: dict[str, str], info: Any,
@@ -104,19 +104,19 @@ def resolve_terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: 
         entry = lookup(reg, spec.name, f"{p}.name", problems)
         if entry is None:
             continue
-        params = validate_params(entry.obj.Params, spec.params, f"{p}.params", problems)
-        taps = _resolve_taps(p, entry.obj, spec.taps, models, problems)
-        fields = _resolve_fields(p, entry.obj, spec.taps, info, problems)
-        weight = spec.weight if spec.weight is not None else float(getattr(entry.obj, "DEFAULT_WEIGHT", 1.0))
-        connector = getattr(spec, "connector", None) or getattr(entry.obj, "DEFAULT_CONNECTOR", None)
+        params = validate_params(entry.card.Params, spec.params, f"{p}.params", problems)
+        taps = _resolve_taps(p, entry.card, spec.taps, models, problems)
+        fields = _resolve_fields(p, entry.card, spec.taps, info, problems)
+        weight = spec.weight if spec.weight is not None else float(getattr(entry.card, "DEFAULT_WEIGHT", 1.0))
+        connector = getattr(spec, "connector", None) or getattr(entry.card, "DEFAULT_CONNECTOR", None)
         if connector not in (None, "none"):
             found = lookup(CONNECTORS, connector, f"{p}.connector", problems)
             connector = found.name if found is not None else connector
         if params is not None:
-            if connector not in (None, "none") and not entry.obj.TEACHER_ROLES:
+            if connector not in (None, "none") and not entry.card.TEACHER_ROLES:
                 problems.append((f"{p}.connector", f"{spec.name} reads no teacher tap: there is nothing to project to"))
             seen = sum(t.name == entry.name for t in out)
-            out.append(ResolvedTerm(entry.name, entry.obj, params, weight, taps,
+            out.append(ResolvedTerm(entry.name, entry.card, params, weight, taps,
                                     None if connector == "none" else connector, fields,
                                     entry.name if not seen else f"{entry.name}_{seen + 1}", spec.warmup_steps))
     return out
@@ -138,7 +138,7 @@ def alignment_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedMode
     """Student/teacher tap pairs that cannot be aligned, known from the adapters' declarations: sparse
     features must lie on grids of one volume that differ by integer factors per axis, voxel logits must
     share the grid, image features must come from the same camera."""
-    from distilkit.geometry.voxel import grid_factors
+    from distilkit.geometry.grids import grid_factors
 
     out = []
     s_model, t_model = models.get("student"), models.get("teacher")
@@ -147,22 +147,22 @@ def alignment_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedMode
     for i, term in enumerate(terms):
         for role, tap in term.taps.items():
             # a teacher role pairs with the student role of the same suffix (teacher_logits: student_logits)
-            partner = "student" + role[len("teacher"):] if role in term.cls.TEACHER_ROLES else None
+            partner = "student" + role[len("teacher"):] if role in term.card.TEACHER_ROLES else None
             if partner not in term.taps:
                 continue
             s_tap = term.taps[partner]
             where = f"{term.name}: student tap {s_tap!r} ({s_model.adapter}) and teacher tap {tap!r} ({t_model.adapter})"
-            s_cam = s_model.cls.tap_camera(s_tap, s_model.params, info)
-            t_cam = t_model.cls.tap_camera(tap, t_model.params, info)
+            s_cam = s_model.card.tap_camera(s_tap, s_model.params, info)
+            t_cam = t_model.card.tap_camera(tap, t_model.params, info)
             if s_cam is not None and t_cam is not None and s_cam != t_cam:
                 out.append((f"{path}[{i}]", f"{where} see through cameras {_camera_text(s_cam)} and "
                                             f"{_camera_text(t_cam)}: image features of different cameras (or frames) "
                                             "cannot be compared pixel by pixel"))
-            s_grid = s_model.cls.tap_grid(s_tap, s_model.params, info)
-            t_grid = t_model.cls.tap_grid(tap, t_model.params, info)
+            s_grid = s_model.card.tap_grid(s_tap, s_model.params, info)
+            t_grid = t_model.card.tap_grid(tap, t_model.params, info)
             if s_grid is None or t_grid is None:
                 continue
-            kind = term.cls.CONSUMES[role]
+            kind = term.card.CONSUMES[role]
             how = grid_factors(s_grid, t_grid)
             if isinstance(how, str) or (kind == "voxel_logits" and how[0] != "same"):
                 why = how if isinstance(how, str) else f"{kind} must share one grid"
@@ -178,7 +178,7 @@ def param_groups(given: list[Any] | None, task: list[ResolvedTerm], distill: lis
     out = []
     for prefix, terms in (("task", task), ("distill", distill)):
         for t in terms:
-            for g in getattr(t.cls, "DEFAULT_PARAM_GROUPS", []):
+            for g in getattr(t.card, "DEFAULT_PARAM_GROUPS", []):
                 out.append(ParamGroupSpec.model_validate({**g, "match": f"{prefix}.{t.key}.{g['match']}"}).model_dump())
     return out
 

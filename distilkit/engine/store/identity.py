@@ -56,9 +56,9 @@ def stage_reads(res: Any, stage: Any) -> frozenset[str]:
     """The batch fields a stage reads: its models' inputs (student, teacher, auxiliary models), its terms' batch
     fields, its metrics' targets and its labels edge."""
     models = [stage.student, stage.teacher, *(aux.model for aux in stage.aux)]
-    out = {f for m in models if m is not None for f in m.cls.inputs(m.params)}
+    out = {f for m in models if m is not None for f in m.card.inputs(m.params)}
     out |= {f for t in (*stage.task_losses, *stage.distill) for f in t.fields.values()}
-    out |= {f for m in stage.metrics for f in m.cls.TARGETS}
+    out |= {f for m in stage.metrics for f in m.card.TARGETS}
     labels = stage.spec.labels
     if labels is not None:
         out |= {f for f in (labels.field, labels.keep) if f is not None}
@@ -82,14 +82,14 @@ def code_versions(res: Any, stage: Any) -> dict[str, Any]:
         "distilkit": __version__,
         "dataset": ds.meta.get("version", 1),
         **({"fields": used} if (used := field_groups(res, stage)[0]) else {}),
-        "adapter": getattr(stage.student.cls, "VERSION", 1),
-        "task_losses": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.task_losses},
-        "distill": {t.name: getattr(t.cls, "VERSION", 1) for t in stage.distill},
+        "adapter": getattr(stage.student.card, "VERSION", 1),
+        "task_losses": {t.name: getattr(t.card, "VERSION", 1) for t in stage.task_losses},
+        "distill": {t.name: getattr(t.card, "VERSION", 1) for t in stage.distill},
     }
     if stage.ema is not None:
         out["ema_teacher"] = 1  # the moving average's code (engine.train.ema): raise when what it computes changes
     elif stage.teacher is not None and stage.teacher_from is None:  # a checkpoint teacher: its adapter's code
-        out["teacher_adapter"] = getattr(stage.teacher.cls, "VERSION", 1)
+        out["teacher_adapter"] = getattr(stage.teacher.card, "VERSION", 1)
     return out
 
 
@@ -106,7 +106,7 @@ def data_fingerprint(res: Any, stage: Any) -> dict[str, Any]:
 def _fields(term: Any, fields: frozenset[str], full: bool) -> dict[str, str]:
     """A term's batch fields (``full=False``: those a recipe points elsewhere than the term's default)."""
     return dict(term.fields) if full else {role: name for role, name in term.fields.items()
-                                           if name != term.cls.default_field(role, fields)}
+                                           if name != term.card.default_field(role, fields)}
 
 
 def _terms(terms: list[Any], full: bool, fields: frozenset[str]) -> list[dict[str, Any]]:

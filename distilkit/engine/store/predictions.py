@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from distilkit.errors import DataError
+from distilkit.taps import publishable  # noqa: F401  (re-exported: what can be published)
 
 
 def _file(sample_id: str) -> str:
@@ -33,10 +34,6 @@ def per_sample(value: Any, kind: str, b: int) -> np.ndarray:
     if kind == "points":
         return value.cloud(b).detach().float().cpu().numpy()
     raise DataError(f"predictions of a {kind} tap cannot be published (voxel_logits and points can)")
-
-
-def publishable(kind: str | None) -> bool:
-    return kind in ("voxel_logits", "points")
 
 
 @torch.no_grad()

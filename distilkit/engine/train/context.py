@@ -21,7 +21,7 @@ class RecipeRun:
 
     def __init__(self, recipe: Recipe | str | Path, output: str | Path = "runs", console: Any = None,
                  quiet: bool = False, seed: int | None = None, overrides: dict[str, Any] | None = None) -> None:
-        from distilkit.sparse.backend import requested
+        from distilkit.sparse.choice import requested
 
         requested()  # DISTILKIT_SPARSE names a backend that exists: checked before any stage starts
         self.source = str(recipe) if not isinstance(recipe, Recipe) else "recipe"
@@ -41,9 +41,21 @@ class RecipeRun:
             console = make_console(quiet=quiet)
         self.console = console
         self._data: dict[str, Any] = {}  # split -> dataset
-        from distilkit.engine.train.distributed import SINGLE
+        self._world: Any = None  # the processes of this run: set in run() from torchrun's environment
 
-        self.world = SINGLE  # the processes of this run: set in run() from torchrun's environment
+    @property
+    def world(self) -> Any:
+        """The processes of this run (:class:`~distilkit.engine.train.distributed.World`; one until run() reads
+        torchrun's environment)."""
+        if self._world is None:
+            from distilkit.engine.train.distributed import SINGLE
+
+            self._world = SINGLE
+        return self._world
+
+    @world.setter
+    def world(self, world: Any) -> None:
+        self._world = world
 
     def share_data(self, store: dict[str, dict[str, Any]]) -> None:
         """Share datasets with the other pipelines in ``store`` that have the same data configuration (a sweep's

@@ -1,5 +1,6 @@
 """Registered optimizers and learning-rate schedules (``optimizer: {name, schedule: {name, params, warmup_steps}}``
-in a recipe); plugins add their own with ``OPTIMIZERS.add`` / ``SCHEDULES.add``.
+in a recipe); plugins add their own with ``OPTIMIZERS.add`` / ``SCHEDULES.add``. The built-in ones are declared
+(with the schedules' parameters) in :mod:`distilkit.cards.optim`; this module holds what runs.
 
 An optimizer is ``factory(param_groups, spec) -> torch.optim.Optimizer`` (``spec``: the recipe's optimizer
 section). A schedule is ``factor(step, total, params) -> float``, the multiplier of every group's learning rate at
@@ -14,9 +15,10 @@ import math
 from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel
 
-from distilkit.registry import OPTIMIZERS, SCHEDULES, NoParams
+from distilkit.cards.optim import CosineParams, StepParams
+from distilkit.registry import SCHEDULES, NoParams
 
 
 def _adam(groups: list[dict[str, Any]], spec: Any) -> torch.optim.Optimizer:
@@ -31,20 +33,8 @@ def _sgd(groups: list[dict[str, Any]], spec: Any) -> torch.optim.Optimizer:
     return torch.optim.SGD(groups, lr=spec.lr, momentum=spec.momentum, weight_decay=spec.weight_decay)
 
 
-OPTIMIZERS.add("adam", _adam, description="Adam (lr, betas, weight_decay as L2)", paper="Kingma & Ba, ICLR 2015")
-OPTIMIZERS.add("adamw", _adamw, description="AdamW (lr, betas, decoupled weight_decay)",
-               paper="Loshchilov & Hutter, ICLR 2019")
-OPTIMIZERS.add("sgd", _sgd, description="SGD with momentum (lr, momentum, weight_decay)", paper="—")
-
-
 def constant(step: int, total: int, params: BaseModel) -> float:
     return 1.0
-
-
-class StepParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    step_size: int = Field(..., ge=1, description="steps between decays")
-    gamma: float = Field(0.1, gt=0, le=1, description="factor per decay (JS3C-Net: 0.7 every 5 epochs)")
 
 
 def step_decay(step: int, total: int, params: BaseModel) -> float:
@@ -53,24 +43,11 @@ def step_decay(step: int, total: int, params: BaseModel) -> float:
     return params.gamma ** (step // params.step_size)
 
 
-class CosineParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    min_factor: float = Field(0.0, ge=0, le=1, description="the factor reached at the last step")
-
-
 def cosine(step: int, total: int, params: BaseModel) -> float:
     """``min + (1 - min) (1 + cos(pi step / total)) / 2`` (Loshchilov & Hutter, SGDR, without restarts)."""
     assert isinstance(params, CosineParams)
     progress = min(step / max(total, 1), 1.0)
     return params.min_factor + (1.0 - params.min_factor) * 0.5 * (1.0 + math.cos(math.pi * progress))
-
-
-SCHEDULES.add("constant", constant, description="the optimizer's learning rate throughout", paper="—",
-              params=NoParams)
-SCHEDULES.add("step", step_decay, description="multiply by gamma every step_size steps", paper="—",
-              params=StepParams)
-SCHEDULES.add("cosine", cosine, description="cosine decay to min_factor at the last step",
-              paper="Loshchilov & Hutter, ICLR 2017 (SGDR)", params=CosineParams)
 
 
 def lr_factor(schedule: Any, params: BaseModel, step: int, total: int) -> float:

@@ -13,11 +13,16 @@ import os
 import time
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 from distilkit.engine.assemble.resolved import ResolvedRecipe
+from distilkit.engine.store.summary import read_summary
 from distilkit.engine.train.context import RecipeRun
-from distilkit.engine.train.stage import StageResult, StageRun, read_summary
 from distilkit.errors import RecipeError
 from distilkit.recipe import needed_stages
+
+if TYPE_CHECKING:  # a stage's run imports torch; planning (sweep --plan) builds pipelines without it
+    from distilkit.engine.train.stage import StageResult
 
 
 def writable(root: Path) -> None:
@@ -119,6 +124,8 @@ class Pipeline(RecipeRun):
              wait: bool) -> list[StageResult]:
         from distilkit.engine.store.lock import lock_path, stage_lock
         from distilkit.repro import deterministic_algorithms
+
+        from distilkit.engine.train.stage import StageRun
 
         results: list[StageResult] = []
         again = self.rerun_set(rerun)

@@ -32,6 +32,7 @@ import yaml
 
 from distilkit import __version__
 from distilkit.engine.store.checkpoints import Checkpoints
+from distilkit.engine.store.summary import read_summary
 from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop, ProgressHook
 from distilkit.engine.train.randomness import seed_everything
 from distilkit.files import atomic_write_json, atomic_write_text
@@ -52,18 +53,6 @@ class StageResult:
     run_dir: Path
     summary: dict[str, Any]
     reused: bool
-
-
-def read_summary(run_dir: Path) -> dict[str, Any] | None:
-    """A finished stage's summary (None: not finished)."""
-    path = run_dir / "summary.json"
-    if not path.is_file():
-        return None
-    try:
-        summary = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return summary if summary.get("status") == "finished" else None
 
 
 class StageRun:

@@ -14,24 +14,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import Field
-
+from distilkit.cards.trackers import TensorBoardParams
+from distilkit.cards.trackers import tensorboard_missing as available
 from distilkit.engine.hooks import Loop
-from distilkit.engine.train.trackers.base import RunIdentity, Tracker, TrackerParams
-from distilkit.registry import HOOKS
-
-
-class TensorBoardParams(TrackerParams):
-    folder: str = Field("tensorboard", min_length=1, description="the event files' folder inside the run folder")
-
-
-def available() -> str | None:
-    """None when the writer can be made, else what to install."""
-    try:
-        from torch.utils.tensorboard import SummaryWriter  # noqa: F401
-    except ImportError as exc:
-        return f"the tensorboard hook needs the tensorboard package ({exc}); pip install \"distilkit[tensorboard]\""
-    return None
+from distilkit.engine.train.trackers.base import RunIdentity, Tracker
 
 
 class TensorBoardHook(Tracker):
@@ -72,7 +58,4 @@ class TensorBoardHook(Tracker):
         self.end("finished")
 
 
-HOOKS.add("tensorboard", TensorBoardHook, description="TensorBoard event files: training values and validation scores",
-          paper="TensorBoard (torch.utils.tensorboard)", params=TensorBoardParams, check=available, tracker=True)
-
-__all__ = ["TensorBoardHook", "TensorBoardParams"]
+__all__ = ["TensorBoardHook", "TensorBoardParams", "available"]

@@ -36,7 +36,6 @@ its name from the environment ``distilkit sweep`` sets for them (:data:`SWEEP_EN
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import io
 import json
 import os
@@ -46,8 +45,8 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
 
+from distilkit.cards.trackers import TrackerParams, missing
 from distilkit.engine.hooks import Hook, Loop
 from distilkit.engine.train.trackers.values import (TIMINGS, final_values, flatten, kept_values, numbers,
                                                     score_values)
@@ -78,21 +77,6 @@ def in_sweep(sweep: str, variants: list[str]) -> Iterator[None]:
                 os.environ.pop(key, None)
             else:
                 os.environ[key] = value
-
-
-class TrackerParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    every: int = Field(0, ge=0, description="log training values every N steps (0: as often as log_every)")
-
-
-def missing(module: str, extra: str, tracker: str) -> str | None:
-    """None when ``module`` can be imported (looked up, not imported), else the line that says what to install."""
-    try:
-        found = importlib.util.find_spec(module) is not None
-    except (ImportError, ValueError):
-        found = False
-    return None if found else (f"the {tracker} tracker needs the {module} package, which is not installed; "
-                               f"pip install 'distilkit[{extra}]'")
 
 
 @contextlib.contextmanager

@@ -31,29 +31,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field
-
-from distilkit.engine.train.trackers.base import (RunIdentity, Tracker, TrackerParams, flatten, missing, one_line,
-                                                  quiet, setting)
-from distilkit.registry import HOOKS
+from distilkit.cards.trackers import DATABASES, MlflowParams, store_problem, tracking_uri
+from distilkit.engine.train.trackers.base import RunIdentity, Tracker, flatten, one_line, quiet, setting
 
 BATCH = 100  # parameters per log_batch call (MLflow's limit)
 METRICS_BATCH = 900  # metrics per log_batch call (MLflow's limit: 1000 metrics, 1000 entities in all)
 LOGGED = "distilkit.logged_step"  # the run's tag: the last step whose values were logged (in the same batch)
 STATUS = {"finished": "FINISHED", "stopped": "KILLED", "failed": "FAILED"}
-DATABASES = ("sqlite", "postgresql", "mysql", "mssql")  # MLflow's SQLAlchemy stores
-
-
-class MlflowParams(TrackerParams):
-    tracking_uri: str | None = Field(None, description="where runs are recorded (MLFLOW_TRACKING_URI; default "
-                                                       "MLflow's: sqlite:///mlflow.db in the working folder, which "
-                                                       "needs SQLAlchemy; a file store such as ./mlruns needs "
-                                                       "MLFLOW_ALLOW_FILE_STORE=true)")
-    experiment: str | None = Field(None, description="experiment name (MLFLOW_EXPERIMENT_NAME; default: the "
-                                                     "recipe's name, a sweep's name for its runs)")
-    tags: dict[str, str] = Field(default_factory=dict, description="tags of every run")
-
-
 def experiment_id(client: Any, name: str) -> str:
     """The id of experiment ``name``, created if there is none (another process creating it first is fine)."""
     found = client.get_experiment_by_name(name)
@@ -85,41 +69,6 @@ def sweep_parent(client: Any, experiment: str, identity: RunIdentity) -> str:
             "distilkit.role": "sweep", "distilkit.sweep": identity.sweep, "distilkit.sweep_root": root,
             "distilkit.sweep_report": str((identity.sweep_root / "results.md").resolve())})
         return str(run.info.run_id)
-
-
-def tracking_uri(params: MlflowParams) -> tuple[str, bool]:
-    """The tracking URI a run would use here and whether it is MLflow's default (no variable, no recipe value):
-    ``./mlruns`` where that holds runs, else ``sqlite:///mlflow.db`` (MLflow's rule, read without importing it)."""
-    uri = os.environ.get("MLFLOW_TRACKING_URI") or params.tracking_uri
-    if uri:
-        return uri, False
-    try:
-        has_runs = any(p.name.isdigit() and (p / "meta.yaml").exists() for p in Path("mlruns").iterdir())
-    except OSError:  # none (or unreadable: MLflow's rule says no runs)
-        has_runs = False
-    return ("./mlruns" if has_runs else "sqlite:///mlflow.db"), True
-
-
-def store_problem(params: MlflowParams) -> str | None:
-    """What the run's tracking URI needs that this machine lacks (one line), else None: a database store
-    SQLAlchemy and Alembic (``mlflow-skinny`` has neither), a file store ``MLFLOW_ALLOW_FILE_STORE=true``."""
-    from urllib.parse import urlparse
-
-    uri, default = tracking_uri(params)
-    named = f"{uri} (MLflow's default)" if default else uri
-    scheme = urlparse(uri).scheme.split("+", 1)[0].lower()
-    scheme = "file" if len(scheme) <= 1 else scheme  # a path (C: is a drive)
-    if scheme in DATABASES:
-        lacking = [m for m in ("sqlalchemy", "alembic") if missing(m, "mlflow", "mlflow")]
-        if lacking:
-            return (f"MLflow's store {named} needs {' and '.join(lacking)}, not installed: pip install "
-                    "'distilkit[mlflow]' (or a file store: MLFLOW_TRACKING_URI=./mlruns with "
-                    "MLFLOW_ALLOW_FILE_STORE=true)")
-    elif scheme == "file" and os.environ.get("MLFLOW_ALLOW_FILE_STORE", "").strip().lower() not in ("true", "1"):
-        return (f"MLflow's file store {named} needs MLFLOW_ALLOW_FILE_STORE=true (MLflow 3 refuses a file store "
-                "without it): export MLFLOW_ALLOW_FILE_STORE=true, or use a database store (tracking_uri: "
-                "sqlite:///mlflow.db, with pip install 'distilkit[mlflow]')")
-    return None
 
 
 def absolute_uri(uri: str) -> str:
@@ -249,9 +198,4 @@ def _text(value: Any) -> str:
     return str(value)[:6000]
 
 
-HOOKS.add("mlflow", MlflowTracker, description="MLflow runs: parameters, training values, validation scores, final "
-                                               "scores, report artifacts; a sweep's runs nested under one parent",
-          paper="MLflow (mlflow.MlflowClient)", params=MlflowParams,
-          check=lambda: missing("mlflow", "mlflow", "mlflow"), ready=store_problem, tracker=True)
-
-__all__ = ["MlflowParams", "MlflowTracker", "absolute_uri", "store_problem", "tracking_uri"]
+__all__ = ["DATABASES", "MlflowParams", "MlflowTracker", "absolute_uri", "store_problem", "tracking_uri"]

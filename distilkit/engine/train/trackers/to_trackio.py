@@ -25,18 +25,10 @@ import os
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field
-
-from distilkit.engine.train.trackers.base import RunIdentity, Tracker, TrackerParams, missing, quiet
-from distilkit.registry import HOOKS
+from distilkit.cards.trackers import TrackioParams
+from distilkit.engine.train.trackers.base import RunIdentity, Tracker, quiet
 
 REMOTE = ("TRACKIO_SPACE_ID", "TRACKIO_SERVER_URL")
-
-
-class TrackioParams(TrackerParams):
-    project: str | None = Field(None, description="Trackio project (default: the recipe's name, a sweep's name for "
-                                                  "its runs)")
-    group: str | None = Field(None, description="run group (default: the sweep, else the recipe)")
 
 
 class TrackioTracker(Tracker):
@@ -115,9 +107,5 @@ class TrackioTracker(Tracker):
         if trackio.context_vars.current_run.get() is run:  # finished: not again when the process exits (a print)
             trackio.context_vars.current_run.set(None)
 
-
-HOOKS.add("trackio", TrackioTracker, description="Trackio runs (local): config, training values, validation scores, "
-                                                 "final scores, report artifacts", paper="Trackio (trackio)",
-          params=TrackioParams, check=lambda: missing("trackio", "trackio", "trackio"), tracker=True)
 
 __all__ = ["TrackioParams", "TrackioTracker"]

@@ -24,78 +24,15 @@ lack, and no step they have. Together the folders hold each step once, with the 
 
 from __future__ import annotations
 
-import configparser
-import netrc
-import os
 import secrets
 import struct
 from pathlib import Path
-from typing import Any, Iterator, Literal
-from urllib.parse import urlsplit
+from typing import Any, Iterator
 
-from pydantic import Field
+from distilkit.cards.trackers import HOST, WandbParams, login_problem, mode, settings_files
+from distilkit.engine.train.trackers.base import RunIdentity, Tracker, setting
 
-from distilkit.engine.train.trackers.base import RunIdentity, Tracker, TrackerParams, missing, setting
-from distilkit.registry import HOOKS
-
-HOST = "https://api.wandb.ai"
 BLOCK = 32768  # the offline file's block (LevelDB's log format, with W&B's 7-byte header)
-
-
-class WandbParams(TrackerParams):
-    project: str | None = Field(None, description="W&B project (WANDB_PROJECT; default: the recipe's name, a "
-                                                  "sweep's name for its runs)")
-    entity: str | None = Field(None, description="W&B entity, a user or team (WANDB_ENTITY; default: W&B's)")
-    mode: Literal["online", "offline", "disabled"] | None = Field(None, description="WANDB_MODE; default W&B's "
-                                                                                    "(online: needs `wandb login`); "
-                                                                                    "disabled logs nothing")
-    dir: str | None = Field(None, description="where W&B writes its files (WANDB_DIR; default: the stage's run "
-                                              "folder)")
-    group: str | None = Field(None, description="run group (WANDB_RUN_GROUP; default: the sweep, else the recipe)")
-    tags: list[str] = Field(default_factory=list, description="tags of every run")
-
-
-def settings_files() -> dict[str, str]:
-    """wandb's settings (``[default]`` of ``$WANDB_CONFIG_DIR/settings``, default ``~/.config/wandb/settings``,
-    then ``./wandb/settings``, which wins), read as files: ``mode``, ``base_url``, ``api_key``."""
-    out: dict[str, str] = {}
-    home = Path(os.environ.get("WANDB_CONFIG_DIR") or Path("~/.config/wandb").expanduser())
-    for path in (home / "settings", Path("wandb") / "settings"):
-        parser = configparser.ConfigParser()
-        try:
-            parser.read(path, encoding="utf-8")
-            out.update(parser["default"] if parser.has_section("default") else {})
-        except (OSError, configparser.Error, UnicodeDecodeError):
-            continue
-    return out
-
-
-def mode(params: WandbParams) -> str:
-    """The mode a run would have here: ``WANDB_MODE``, else the recipe's, else wandb's settings, else online
-    (``dryrun`` is offline, ``run`` online)."""
-    value = os.environ.get("WANDB_MODE") or params.mode or settings_files().get("mode") or "online"
-    return {"dryrun": "offline", "run": "online"}.get(value.strip().lower(), value.strip().lower())
-
-
-def login_problem(params: WandbParams) -> str | None:
-    """For an online run, one line where no W&B login is found (``WANDB_API_KEY``, ``WANDB_IDENTITY_TOKEN_FILE``,
-    a netrc entry for the host, an ``api_key`` in wandb's settings), read without the network; else None."""
-    if mode(params) != "online" or os.environ.get("WANDB_API_KEY") or os.environ.get("WANDB_IDENTITY_TOKEN_FILE"):
-        return None
-    settings = settings_files()
-    host = urlsplit(os.environ.get("WANDB_BASE_URL") or settings.get("base_url") or HOST).netloc
-    path = Path(os.environ.get("NETRC") or "~/.netrc").expanduser()
-    if not os.environ.get("NETRC") and not path.exists() and Path("~/_netrc").expanduser().exists():
-        path = Path("~/_netrc").expanduser()
-    try:
-        entry = netrc.netrc(str(path)).authenticators(host)
-    except (OSError, netrc.NetrcParseError):
-        entry = None
-    if (entry and entry[2]) or settings.get("api_key"):
-        return None
-    return (f"the wandb tracker logs online but finds no W&B login for {host} (WANDB_API_KEY, {path}, wandb's "
-            "settings): run `wandb login`, or log offline with {wandb: {mode: offline}} and upload with `wandb "
-            "sync` later")
 
 
 def records(path: Path) -> Iterator[Any]:
@@ -200,8 +137,4 @@ class WandbTracker(Tracker):
         run.finish(exit_code=0 if status == "finished" else 1)
 
 
-HOOKS.add("wandb", WandbTracker, description="Weights & Biases runs: config, training values, validation scores, "
-                                             "summary, report files", paper="Weights & Biases (wandb)",
-          params=WandbParams, check=lambda: missing("wandb", "wandb", "wandb"), ready=login_problem, tracker=True)
-
-__all__ = ["WandbParams", "WandbTracker", "logged_step", "login_problem", "mode", "records"]
+__all__ = ["HOST", "WandbParams", "WandbTracker", "logged_step", "login_problem", "mode", "records", "settings_files"]

@@ -1,0 +1,168 @@
+"""The contracts' declarations, torch-free: what an adapter, a term (task loss or distillation objective) and a
+metric declare about themselves. :class:`distilkit.adapter.Adapter`, :class:`distilkit.term.Term` and
+:class:`distilkit.metrics.base.Metric` add the computing part; a built-in component's card subclasses one of these
+and its implementation subclasses the card (see :mod:`distilkit.cards`)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, ClassVar
+
+from pydantic import BaseModel
+
+from distilkit.registry import NoParams
+
+if TYPE_CHECKING:
+    from distilkit.data.info import Camera, DataInfo
+    from distilkit.structures import VoxelGrid
+
+
+class AdapterCard:
+    """What an adapter declares (the contract is :mod:`distilkit.adapter`'s docstring): ``Params``, ``INPUTS``,
+    ``TAPS``, ``PREDICTION_TAP``, ``DEFAULT_TASK_LOSSES``, ``VERSION``, ``NETWORKS``, the teacher or student
+    ``CAPABILITIES`` a term may call (``denoise``: methods of the implementation, declared here so that ``validate``
+    checks them without building it), and the class methods ``validate`` calls."""
+
+    Params: ClassVar[type[BaseModel]] = NoParams
+    INPUTS: ClassVar[frozenset[str]] = frozenset()
+    TAPS: ClassVar[dict[str, str]] = {}
+    PREDICTION_TAP: ClassVar[str] = "logits"
+    DEFAULT_TASK_LOSSES: ClassVar[list[dict[str, Any]]] = [{"name": "ce", "weight": 1.0}]
+    VERSION: ClassVar[int] = 1
+    NETWORKS: ClassVar[dict[str, str]] = {}  # by ``params.size`` ("" without one): the paper's network or a stand-in
+    CAPABILITIES: ClassVar[frozenset[str]] = frozenset()  # methods a term may call through its context
+
+    @classmethod
+    def inputs(cls, params: BaseModel) -> frozenset[str]:
+        """The batch fields ``forward`` reads with these parameters (default: ``INPUTS``); ``validate`` checks the
+        data provides them, and a stage's identity follows the versions of the fields it reads."""
+        return cls.INPUTS
+
+    @classmethod
+    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> VoxelGrid | None:
+        """The voxel grid (geometry: origin, voxel size, shape) a voxel tap lives on, known before training
+        (default: the data's SSC grid); None for taps that are not on a voxel grid. ``validate`` checks
+        alignments with it."""
+        if info.grid is not None and cls.TAPS.get(tap) in ("sparse_features", "voxel_logits"):
+            return info.grid
+        return None
+
+    @classmethod
+    def tap_camera(cls, tap: str, params: BaseModel, info: DataInfo) -> Camera | None:
+        """The camera an ``image_features`` tap sees through (default: the data's camera when it has one);
+        ``validate`` refuses to pair image features of different cameras."""
+        if cls.TAPS.get(tap) == "image_features" and len(info.cameras) == 1:
+            return info.cameras[0]
+        return None
+
+    @classmethod
+    def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:
+        """(parameter, problem) pairs for parameters this data cannot serve (default: none)."""
+        return []
+
+    @classmethod
+    def network(cls, params: BaseModel) -> str:
+        """What these parameters build — the paper's network or a CPU stand-in — for ``validate`` and ``list
+        adapters`` (default: ``NETWORKS`` at ``params.size``, or at "" for an adapter without sizes)."""
+        return cls.NETWORKS.get(str(getattr(params, "size", "")), "")
+
+    @classmethod
+    def describe(cls, params: BaseModel) -> str:
+        """A short description of the model's input for the results table (default: empty)."""
+        return ""
+
+    @classmethod
+    def sparse(cls, params: BaseModel) -> bool | None:
+        """Whether the network these parameters build holds sparse convolutions (``validate`` then checks that the
+        sparse backend can run them); None: not declared, so ``validate`` builds the model on the meta device to
+        see (which imports torch). A built-in adapter declares it, tested against the built model."""
+        return None
+
+    @classmethod
+    def taps_of_kind(cls, kind: str) -> list[str]:
+        from distilkit.taps import kind_fits
+
+        return [name for name, k in cls.TAPS.items() if kind_fits(k, kind)]
+
+
+class TermCard:
+    """What a term declares (the contract is :mod:`distilkit.term`'s docstring): its parameters, roles and where
+    each comes from, the capabilities it calls, its default weight, connector and parameter groups, its version."""
+
+    Params: ClassVar[type[BaseModel]]
+    CONSUMES: ClassVar[dict[str, str]] = {}  # role -> tap kind (student's, or the teacher's for TEACHER_ROLES)
+    TEACHER_ROLES: ClassVar[frozenset[str]] = frozenset()
+    OPTIONAL: ClassVar[frozenset[str]] = frozenset()  # tap roles used only when the recipe names a tap
+    # role -> the batch field read for it, or candidates in order of preference (the first the data provides)
+    BATCH: ClassVar[dict[str, str | tuple[str, ...]]] = {}
+    BATCH_HINTS: ClassVar[dict[str, str]] = {}  # role -> what to do when the data lacks its field (validate says it)
+    REQUIRES: ClassVar[frozenset[str]] = frozenset()  # teacher capabilities called through the context
+    STUDENT_REQUIRES: ClassVar[frozenset[str]] = frozenset()  # student capabilities called through the context
+    DEFAULT_WEIGHT: ClassVar[float] = 1.0
+    DEFAULT_CONNECTOR: ClassVar[str | None] = None  # e.g. "linear": the student tap is projected first
+    DEFAULT_PARAM_GROUPS: ClassVar[list[dict[str, Any]]] = []  # optimizer groups asked for by default
+    VERSION: ClassVar[int] = 1  # bump when the term's numbers change: stages using it retrain
+
+    @classmethod
+    def roles(cls) -> dict[str, str]:
+        """Every role and its source: ``student``, ``teacher`` or ``batch``."""
+        out = {role: "teacher" if role in cls.TEACHER_ROLES else "student" for role in cls.CONSUMES}
+        return {**out, **{role: "batch" for role in cls.BATCH}}
+
+    @classmethod
+    def default_field(cls, role: str, fields: frozenset[str] | set[str]) -> str:
+        """The batch field a batch role reads unless a recipe names another: the first of its candidates that
+        ``fields`` holds (the first one when none does, or when ``fields`` is unknown)."""
+        default = cls.BATCH[role]
+        candidates = (default,) if isinstance(default, str) else tuple(default)
+        return next((c for c in candidates if c in fields), candidates[0])
+
+    @classmethod
+    def student_requires(cls, params: BaseModel) -> frozenset[str]:
+        """The student capabilities this term calls with these parameters (default: ``STUDENT_REQUIRES``)."""
+        return cls.STUDENT_REQUIRES
+
+
+class ObjectiveCard(TermCard):
+    """A distillation objective's declarations: its ``teacher`` role reads the teacher (see
+    :class:`distilkit.objectives.base.Objective`)."""
+
+    TEACHER_ROLES: ClassVar[frozenset[str]] = frozenset({"teacher"})
+
+
+class MetricCard:
+    """What a metric declares (the contract is :mod:`distilkit.metrics.base`'s docstring): the prediction kind it
+    scores, the targets it reads, its keys and how reports show them."""
+
+    SCORES: ClassVar[str]
+    TARGETS: ClassVar[frozenset[str]] = frozenset()
+    KEYS: ClassVar[tuple[str, ...]] = ()
+    LOWER_IS_BETTER: ClassVar[frozenset[str]] = frozenset()
+    SELECTS: ClassVar[str] = ""  # the score that picks best.pt when a recipe names none ("": never by default)
+    # how reports show the scores: a title, (key, header, scale) columns (default: every key as it is),
+    # and a per-class list with the train id of its first entry
+    TITLE: ClassVar[str] = ""
+    COLUMNS: ClassVar[tuple[tuple[str, str, float], ...]] = ()
+    PER_CLASS: ClassVar[tuple[str, str, float] | None] = None  # (key of a per-class list, header, scale)
+    PER_CLASS_FROM: ClassVar[int] = 0
+
+    @classmethod
+    def columns(cls) -> tuple[tuple[str, str, float], ...]:
+        return cls.COLUMNS or tuple((k, k, 1.0) for k in cls.KEYS)
+
+
+
+
+def declare_objective(name: str, impl: str, card: type[TermCard], *, description: str, paper: str, equation: str,
+                      shapes: str, function: str | None = None) -> None:
+    """Declare the objective ``name`` (implementation ``impl``, "module:attr", imported when it runs) with its card;
+    the same metadata as :func:`distilkit.objectives.base.register_objective` (tap kinds and default weight read from
+    the card; ``function``: the plain function of ``distilkit.losses`` that computes its maths, default ``name``)."""
+    from distilkit.registry import OBJECTIVES
+
+    kinds = tuple(dict.fromkeys(card.CONSUMES.values()))
+    OBJECTIVES.declare(name, impl, card=card, description=description, paper=paper, consumes=kinds,
+                       default_weight=card.DEFAULT_WEIGHT, equation=equation, shapes=shapes,
+                       function=f"distilkit.losses.{function or name}")
+
+
+__all__ = ["AdapterCard", "MetricCard", "NoParams", "ObjectiveCard", "TermCard", "declare_objective"]
