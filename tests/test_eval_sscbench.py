@@ -136,6 +136,17 @@ def test_predict_writes_what_eval_reads_for_a_run_trained_on_the_folder(folder, 
     scores = yaml.safe_load((tmp_path / "p" / "scores.txt").read_text())
     summary = json.loads((run / "summary.json").read_text())
     assert 0.0 <= scores["iou_mean"] <= 1.0 and summary["classes"]["names"][1] == "car"
+    capsys.readouterr()  # test-time voting: a group named as in a recipe; the run's own, which it trained without
+    assert main(["predict", str(run), "--dataset-root", str(root), "--split", "test", "--out", str(tmp_path / "v"),
+                 "--vote", "{flip: [x, y], rotate90: z}"]) == 0
+    voted = np.load(tmp_path / "v" / TEST / "000010_1_1.npy")
+    assert voted.dtype == np.uint8 and voted.shape == SHAPE and voted.max() < 19
+    assert main(["predict", str(run), "--dataset-root", str(root), "--split", "test", "--out", str(tmp_path / "w"),
+                 "--vote", "train"]) == 2
+    assert "--vote train: the run trained without augmentation" in _said(capsys)
+    assert main(["predict", str(run), "--dataset-root", str(root), "--split", "test", "--out", str(tmp_path / "w"),
+                 "--vote", "{flip: [z]}"]) == 2
+    assert "--vote:" in _said(capsys)
     capsys.readouterr()
     assert main(["predict", str(run), "--dataset-root", str(tmp_path / "missing"), "--split", "test", "--out",
                  str(tmp_path / "q")]) == 2

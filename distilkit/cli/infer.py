@@ -53,6 +53,10 @@ def add(sub: Any) -> None:
                   "11-21; SSCBench-KITTI-360: drive 09")
     pr.add_argument("--out", required=True, help="the folder to write the predictions into")
     pr.add_argument("--device", default="cpu", help="cpu or cuda")
+    pr.add_argument("--vote", default=None, metavar="GROUP",
+                    help="test-time voting (JS3C-Net's): class probabilities averaged over each frame seen under "
+                         "every flip and quarter turn of GROUP, each mapped back — 'train' (the run's "
+                         "train.augment) or as in a recipe: '{flip: [x, y], rotate90: z}'")
     pr.set_defaults(fn=predict)
     xp = command(sub, "export", "write a trained student's weights alone (a plain state dict for "
                                 "torch.load(weights_only=True) or `init: {checkpoint: ...}`) and a "
@@ -150,7 +154,8 @@ def predict(args: argparse.Namespace) -> int:
     from distilkit.engine.infer.predict import prepare_prediction, run_prediction
 
     console = make_console()
-    job = prepare_prediction(args.run, args.dataset_root, args.sequences or args.split, args.out, args.device)
+    job = prepare_prediction(args.run, args.dataset_root, args.sequences or args.split, args.out, args.device,
+                             vote=args.vote)
     for note in getattr(job.dataset, "notes", []):
         console.print(f"[yellow]predict:[/] {note}", highlight=False, soft_wrap=True)
     with progress_bar(console, "predict") as advance:

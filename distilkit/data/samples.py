@@ -34,8 +34,8 @@ class Split(torch.utils.data.Dataset):
 
 
 class IdCollate:
-    """A dataset's collate that also lists the samples' ids in ``meta["sample_id"]`` (picklable for loader
-    workers)."""
+    """A dataset's collate that also lists the samples' ids in ``meta["sample_id"]`` and, for augmented samples,
+    their draws in ``meta["augment_draw"]`` (picklable for loader workers)."""
 
     def __init__(self, collate: Callable[[list[Any]], Batch]) -> None:
         self.collate = collate
@@ -43,6 +43,8 @@ class IdCollate:
     def __call__(self, samples: list[dict[str, Any]]) -> Batch:
         batch = self.collate(samples)
         batch.meta.setdefault("sample_id", [str(s.get("sample_id", "")) for s in samples])
+        if any("augment_draw" in s for s in samples):  # the transform each sample is seen under (train.augment)
+            batch.meta["augment_draw"] = [int(s.get("augment_draw", 0)) for s in samples]
         return batch
 
 

@@ -9,6 +9,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from distilkit.recipe.augment import AugmentSpec
+from distilkit.recipe.store import StoreSpec
 
 SCHEMA_VERSION = 1
 MAX_NAME = 128  # recipe and stage names name folders (<stage>-<hash>: within the 255 bytes a file name may have)
@@ -78,6 +80,15 @@ class TeacherSpec(_Strict):
                             "With `ema`, the same as `ema.mode`")
     taps: dict[str, HookTapSpec] = Field(default_factory=dict,
                                          description="extra teacher taps recorded from submodules by forward hooks")
+    store: StoreSpec | None = Field(None, description="run the frozen teacher once over the training split (under "
+                                                      "every transform of train.augment) and read its outputs from "
+                                                      "disk: `store: true` or its settings; students that share the "
+                                                      "teacher, data, taps and augmentation share one store")
+
+    @field_validator("store", mode="before")
+    @classmethod
+    def _store_shorthand(cls, value: Any) -> Any:
+        return {} if value is True else None if value is False else value
 
     @field_validator("ema", mode="before")
     @classmethod
@@ -235,6 +246,11 @@ class TrainSpec(_Strict):
     hooks: list[HookSpec] = Field(default_factory=list, description="registered lifecycle hooks run after the "
                                                                     "stage's own (log, progress, evaluation, "
                                                                     "checkpoint), e.g. {name: tensorboard}")
+    augment: AugmentSpec | None = Field(None, description="training samples under a random transform, every field "
+                                                          "alike, drawn per sample and step from the seed: flips and "
+                                                          "quarter turns (JS3C-Net: {flip: [x, y], rotate90: z}) or, "
+                                                          "for point clouds, LiDiff's turn, tilt and scale; none by "
+                                                          "default")
 
     @field_validator("workers")
     @classmethod

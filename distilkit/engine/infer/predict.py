@@ -56,6 +56,8 @@ class Prediction:
     sequences: list[str]  # the sequences (SSCBench-KITTI-360: the drives) predicted
     device: torch.device
     run: str
+    vote: list[Any] | None = None  # test-time voting: the transforms (distilkit.data.augment) each frame is seen under
+    grid: Any = None  # the data's grid (the transforms' centre)
 
 
 def _validation_line(exc: Exception) -> str:
@@ -65,9 +67,10 @@ def _validation_line(exc: Exception) -> str:
 
 
 def prepare_prediction(run: str | Path, dataset_root: str | Path, sequences: Sequence[str] | str, out: str | Path,
-                       device: str = "cpu") -> Prediction:
+                       device: str = "cpu", vote: str | None = None) -> Prediction:
     """Every check ``predict`` makes before a frame is predicted (the run, its data, the folder's frames) and the
-    model loaded; ``sequences``: a list, or the name of an official split of the run's dataset (train, valid, test)."""
+    model loaded; ``sequences``: a list, or the name of an official split of the run's dataset (train, valid, test);
+    ``vote``: test-time voting over a group of flips and quarter turns (:func:`vote_group`)."""
     from pydantic import ValidationError
 
     from distilkit.engine.assemble.runs import checkpoint_path, load_run, run_config
@@ -107,9 +110,44 @@ def prepare_prediction(run: str | Path, dataset_root: str | Path, sequences: Seq
         to_raw = raw_ids(dataset.table)
         write, where = (lambda sample, labels: _write_raw_ids(root, sample, to_raw[labels])), \
             f"{out}/sequences/*/predictions/"
+    group = vote_group(vote, run_config(path)) if vote else None
+    grid = entry.meta["info"](params).grid
+    if group and any(e.turns % 2 for e in group) and grid is not None and grid.shape[0] != grid.shape[1]:
+        raise DistilkitError(f"--vote: a quarter turn needs a grid square in x and y; this data's is {grid.shape}")
     model = load_run(path, device=torch.device(device))
     return Prediction(model, dataset, entry.meta["collate"], params.scale, write, where, params.sequences("test"),
-                      torch.device(device), str(run))
+                      torch.device(device), str(run), group, grid)
+
+
+def vote_group(vote: str, config: dict[str, Any]) -> list[Any]:
+    """The transforms ``--vote`` names: ``train`` (the group the run trained under, its ``train.augment``) or an
+    augmentation written as in a recipe (``{flip: [x, y], rotate90: z}``)."""
+    import yaml
+    from pydantic import ValidationError
+
+    from distilkit.data.augment import group_of
+    from distilkit.recipe.schema import AugmentSpec
+
+    if vote.strip() == "train":
+        raw = (config.get("train") or {}).get("augment")
+        if not raw:
+            raise DistilkitError("--vote train: the run trained without augmentation (its train.augment is not set); "
+                                 "name the transforms, e.g. --vote '{flip: [x, y], rotate90: z}'")
+    else:
+        try:
+            raw = yaml.safe_load(vote)
+        except yaml.YAMLError as exc:
+            raise DistilkitError(f"--vote: not YAML ({exc})") from None
+    try:
+        spec = AugmentSpec.model_validate(raw)
+    except ValidationError as exc:
+        raise DistilkitError(f"--vote: {_validation_line(exc)} (e.g. --vote '{{flip: [x, y], rotate90: z}}', or "
+                             "--vote train)") from None
+    if spec.continuous:
+        raise DistilkitError(f"--vote{' train' if vote.strip() == 'train' else ''}: rotate, tilt and scale are "
+                             "continuous; voting averages over a finite group of flips and quarter turns (e.g. --vote "
+                             "'{flip: [x, y], rotate90: z}')")
+    return group_of(spec)
 
 
 def _write_raw_ids(root: Path, sample: str, raw: np.ndarray) -> Path:
@@ -135,15 +173,35 @@ def run_prediction(job: Prediction, progress: Callable[[int, int], None] | None 
     model, dataset = job.model, job.dataset
     with torch.no_grad():
         for i in range(len(dataset)):
-            batch = job.collate([dataset[i]]).to(job.device)
-            logits: Any = model(batch)[model.PREDICTION_TAP]
-            if not isinstance(logits, torch.Tensor) or logits.dim() != 5:
-                raise DistilkitError(f"{job.run}: its prediction tap {model.PREDICTION_TAP!r} is not a voxel grid of "
-                                     "logits")
-            job.write(dataset.sample_id(i), upsample(logits[0].argmax(dim=0).cpu().numpy(), job.scale))
+            scores = _voted(job, dataset[i]) if job.vote else _logits(job, dataset[i])[0]
+            job.write(dataset.sample_id(i), upsample(scores.argmax(dim=0).cpu().numpy(), job.scale))
             if progress:
                 progress(i + 1, len(dataset))
     return len(dataset)
+
+
+def _logits(job: Prediction, sample: dict[str, Any]) -> torch.Tensor:
+    """(1, K, X, Y, Z) logits of the model's prediction tap for one sample."""
+    logits: Any = job.model(job.collate([sample]).to(job.device))[job.model.PREDICTION_TAP]
+    if not isinstance(logits, torch.Tensor) or logits.dim() != 5:
+        raise DistilkitError(f"{job.run}: its prediction tap {job.model.PREDICTION_TAP!r} is not a voxel grid of "
+                             "logits")
+    return logits
+
+
+def _voted(job: Prediction, sample: dict[str, Any]) -> torch.Tensor:
+    """(K, X, Y, Z) class probabilities averaged over the frame seen under each transform of the vote, each copy's
+    mapped back by the inverse transform (JS3C-Net's voting, its paper's "Joint Learning Protocol")."""
+    from distilkit.data.augment import inverse, transform_grid, transform_sample
+
+    total: torch.Tensor | None = None
+    for e in job.vote or []:
+        probs = _logits(job, transform_sample(sample, e, job.grid))[0].float().softmax(dim=0)
+        back = transform_grid(probs.permute(1, 2, 3, 0).cpu().numpy(), inverse(e))  # (X, Y, Z, K), grid axes first
+        back_t = torch.from_numpy(back).permute(3, 0, 1, 2)
+        total = back_t if total is None else total + back_t
+    assert total is not None
+    return total / len(job.vote or [1])
 
 
 def predict_folder(run: str | Path, dataset_root: str | Path, sequences: Sequence[str] | str, out: str | Path,

@@ -4,7 +4,9 @@ The order (:class:`BatchPlan`) is a pure function of the seed and the step: epoc
 training split drawn from a generator seeded with ``seed * 100_003 + e``; step ``s`` of the epoch takes the
 ``batch_size`` samples after ``s * batch_size`` (the last batch of an epoch may be smaller), and process ``r`` of
 ``N`` takes every ``N``-th of them from the ``r``-th. A run resumed at step ``k`` continues with batch ``k``, and the
-order is the same with any number of loader workers: samples are read and collated in the workers
+order is the same with any number of loader workers. A stage that augments (``train.augment``) draws each sample's
+transform from its own generator seeded with the seed and the step (:meth:`BatchPlan.elements`), so the draws too
+repeat bit for bit and resume with the run: samples are read and collated in the workers
 (``train.workers``), in order, and moved to the device in the stage's process.
 
 Evaluation shards a split into contiguous blocks, one per process (:func:`eval_indices`), so each scene is scored
@@ -17,6 +19,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
+import numpy as np
 import torch
 
 from distilkit.data.batch import Batch
@@ -45,22 +48,43 @@ class BatchPlan:
     batch_size: int  # the global batch
     seed: int
     world: World = SINGLE
+    group: int = 1  # the values an augmentation draw takes (1: none): a finite group's order, or 2**32 seeds
 
     @property
     def steps_per_epoch(self) -> int:
         return math.ceil(self.size / self.batch_size)
 
-    def indices(self, step: int) -> list[int]:
-        """This process's sample indices of global batch ``step`` (0-based)."""
+    def _global(self, step: int) -> list[int]:
         epoch, i = divmod(step, self.steps_per_epoch)
         g = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
         perm = torch.randperm(self.size, generator=g)
         bs = self.batch_size
-        return self.world.shard([int(j) for j in perm[i * bs:(i + 1) * bs]])
+        return [int(j) for j in perm[i * bs:(i + 1) * bs]]
+
+    def indices(self, step: int) -> list[int]:
+        """This process's sample indices of global batch ``step`` (0-based)."""
+        return self.world.shard(self._global(step))
+
+    def elements(self, step: int) -> list[int]:
+        """The augmentation draw each sample of global batch ``step`` is seen under, in this process (a finite
+        group's element, or a continuous transform's seed; all 0 without augmentation): a pure function of the seed
+        and the step, so a resumed run draws the same."""
+        n = len(self._global(step))
+        if self.group == 1:
+            return self.world.shard([0] * n)
+        rng = np.random.default_rng([self.seed % 2 ** 64, step, 0x617567])  # its own stream; any seed, negative too
+        return self.world.shard([int(e) for e in rng.integers(self.group, size=n, dtype=np.int64)])
+
+    def items(self, step: int) -> list[Any]:
+        """What the loader asks the split for at ``step``: sample indices, or ``(index, element)`` pairs when the
+        stage augments (:class:`~distilkit.data.augment.Augmented`)."""
+        if self.group == 1:
+            return self.indices(step)
+        return list(zip(self.indices(step), self.elements(step)))
 
     def batch(self, dataset: Any, collate: Collate, step: int) -> Batch:
         """Batch ``step`` read in this process (the terms' setup pass reads batch 0 this way)."""
-        return collate([dataset[j] for j in self.indices(step)])
+        return collate([dataset[j] for j in self.items(step)])
 
 
 class _Steps(torch.utils.data.Sampler):
@@ -69,8 +93,8 @@ class _Steps(torch.utils.data.Sampler):
     def __init__(self, plan: BatchPlan, start: int, stop: int) -> None:
         self.plan, self.start, self.stop = plan, start, stop
 
-    def __iter__(self) -> Iterator[list[int]]:
-        return (self.plan.indices(s) for s in range(self.start, self.stop))
+    def __iter__(self) -> Iterator[list[Any]]:
+        return (self.plan.items(s) for s in range(self.start, self.stop))
 
     def __len__(self) -> int:
         return max(0, self.stop - self.start)

@@ -197,18 +197,35 @@ class StageRun:
 
         seed_everything(self.seed)
         self.load_aux()
-        teacher = None
-        if self.stage.teacher is not None and self.stage.distill and self.stage.ema is None:  # an EMA: the trainer's
+        teacher, store = None, None
+        stored = self.stage.spec.teacher is not None and self.stage.spec.teacher.store is not None
+        if self.stage.teacher is not None and self.stage.distill and self.stage.ema is None and not stored:
             teacher = load_run(self.upstream("teacher"), model=self.stage.teacher, info=self.info,
-                               device=self.device, role="teacher")
+                               device=self.device, role="teacher")  # an EMA: the trainer's
         init = None
         if self.stage.spec.init is not None:
             path = self.upstream("init")
             init = (self.stage.student.cls.read_weights(str(path)), self.stage.spec.init.strict, f"init {path}")
-        train_set = self.split("train")
-        plan = BatchPlan(len(train_set), self.spec.batch_size, self.seed, self.world)
+        train_set, group, augmentation = self.split("train"), 1, None
+        if self.spec.augment is not None:  # each training sample under a drawn transform, every field alike
+            from distilkit.data.augment import Augmentation
+
+            augmentation = Augmentation(self.spec.augment, self.info.grid)
+            group = augmentation.draws
+        if stored and self.stage.distill:  # the teacher's outputs from its store, built here if not yet
+            from distilkit.engine.train.teacher_store import ensure_store
+
+            devices = [self.device] if self.device.type == "cuda" else []
+            with torch.random.fork_rng(devices=devices):  # building draws nothing from the stage's stream
+                store = ensure_store(self, train_set, augmentation)
+        if augmentation is not None:
+            from distilkit.data.augment import Augmented
+
+            train_set = Augmented(train_set, augmentation)
+        plan = BatchPlan(len(train_set), self.spec.batch_size, self.seed, self.world, group)
         self.trainer = Trainer(self.stage, self.info, train_set, plan, self.device, collate=self.pipeline.collate,
-                               teacher=teacher, init_weights=init, world=self.world, prepare=self.prepare_training)
+                               teacher=teacher, init_weights=init, world=self.world, prepare=self.prepare_training,
+                               store=store)
         self.trainer.kept = self.checkpoints.kept
         return self.trainer
 

@@ -54,7 +54,7 @@ class Trainer:
     def __init__(self, stage: ResolvedStage, info: DataInfo, train_set: Any, plan: BatchPlan, device: torch.device,
                  *, collate: Collate, teacher: Adapter | None = None,
                  init_weights: tuple[dict[str, Any], bool, str] | None = None, world: World = SINGLE,
-                 prepare: Callable[[Batch], Batch] | None = None) -> None:
+                 prepare: Callable[[Batch], Batch] | None = None, store: Any = None) -> None:
         self.stage, self.info, self.train_set, self.plan = stage, info, train_set, plan
         # a batch on the device with what the stage adds (its auxiliary models' inputs)
         self.prepare: Callable[[Batch], Batch] = prepare or (lambda batch: batch.to(self.device))
@@ -76,6 +76,7 @@ class Trainer:
         self.task = nn.ModuleList(t.cls(t.params) for t in stage.task_losses).to(self.device)
         self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
         self.teacher = teacher
+        self.store = store  # the teacher's stored outputs (teacher.store), read instead of running it
         self.ema: EmaTeacher | None = None  # the stage is its own teacher (``teacher: {ema: ...}``)
         if stage.ema is not None and stage.distill:
             assert stage.teacher is not None
@@ -266,6 +267,9 @@ class Trainer:
     def _teacher_outputs(self, batch: Batch) -> dict[str, Any]:
         if not self._teacher_outputs_needed:
             return {}
+        if self.store is not None:  # each sample's rows under the draw it is seen under (teacher_store)
+            draws = batch.meta.get("augment_draw") or [0] * batch.size
+            return self.store.batch(list(batch.meta["sample_id"]), list(draws), self.device)
         assert self.teacher is not None
         with torch.no_grad(), self._autocast():
             t_out = self.teacher(batch)

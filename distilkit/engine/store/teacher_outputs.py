@@ -1,0 +1,221 @@
+"""A frozen teacher's outputs on disk: what a store holds and how it is read back (issue 58).
+
+A store is a folder ``<output>/<recipe>/teacher-store-<key>/``: shards ``shard-NNNNN.safetensors`` (safetensors: no
+pickle, each tensor read by memory map without loading the shard) holding, for each training sample ``i`` and each
+augmentation draw ``d`` it is seen under, the teacher's value of every tap the stage's terms read, computed on that
+sample alone — ``i:d:TAP:value`` for a dense tap (its batch row), ``:coords`` and ``:feats`` for sparse features
+(the rows of the sample, without the batch column), ``:points`` for a point cloud (its ``lengths`` points); and
+``manifest.json``: the key and what it was computed from, the taps and their kinds, the sparse taps' grids, the
+sample ids in split order, the number of draws, and each shard's samples, bytes and SHA-256. A shard is written to a
+temporary name and renamed, with a ``.json`` beside it (its bytes and checksum), so an interrupted build keeps every
+finished shard and a truncated or altered one is found by its checksum and named.
+
+The values a batch reads are the stored rows stacked (dense taps) or concatenated with their batch column (sparse
+features, in batch order, as the live teacher's batched output is) — the same bits as the live teacher's batched
+forward wherever that forward computes each sample independently of the others (checked for every built-in teacher
+by the exactness test).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from distilkit.errors import DataError
+from distilkit.structures import PointCloud, SparseVoxels, VoxelGrid
+
+FORMAT = 1
+MANIFEST = "manifest.json"
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def shard_name(index: int) -> str:
+    return f"shard-{index:05d}.safetensors"
+
+
+def sample_tensors(outputs: dict[str, Any], taps: dict[str, str], prefix: str) -> dict[str, Tensor]:
+    """The tensors to store of one sample's teacher outputs (a batch of one), named ``prefix:TAP:part``."""
+    def own(t: Tensor) -> Tensor:  # contiguous, in memory of its own (two taps may view one tensor)
+        return t.cpu().clone(memory_format=torch.contiguous_format)
+
+    out: dict[str, Tensor] = {}
+    for tap in taps:
+        value = outputs[tap]
+        if isinstance(value, SparseVoxels):
+            out[f"{prefix}:{tap}:coords"] = own(value.coords[:, 1:])
+            out[f"{prefix}:{tap}:feats"] = own(value.feats.detach().float())
+        elif isinstance(value, PointCloud):
+            out[f"{prefix}:{tap}:points"] = own(value.points[0, : int(value.lengths[0])].detach().float())
+        elif isinstance(value, Tensor) and value.dim() >= 1 and value.shape[0] == 1:
+            v = value[0].detach()
+            out[f"{prefix}:{tap}:value"] = own(v.float() if v.is_floating_point() else v)
+        else:
+            raise DataError(f"teacher tap {tap!r} ({type(value).__name__}) has no per-sample rows to store")
+    return out
+
+
+def batch_difference(batched: dict[str, Any], singles: list[dict[str, Any]], taps: dict[str, str]) -> tuple[float, str]:
+    """The largest difference between a teacher's output on a batch and its outputs on each sample alone (what a
+    store holds), and the tap where it is: 0 where the forward computes each sample independently of the others
+    (inf where the rows themselves differ)."""
+    worst, where = 0.0, ""
+    for tap in taps:
+        together = batched[tap]
+        for b, alone in enumerate(singles):
+            a = alone[tap]
+            if isinstance(together, SparseVoxels):
+                rows = together.coords[:, 0] == b
+                same = torch.equal(together.coords[rows, 1:], a.coords[:, 1:])
+                diff = (together.feats[rows].float() - a.feats.float()).abs().max().item() if same and len(a.feats) \
+                    else (0.0 if same else float("inf"))
+            elif isinstance(together, PointCloud):
+                n = int(together.lengths[b])
+                diff = (together.points[b, :n].float() - a.points[0, :n].float()).abs().max().item() \
+                    if n == int(a.lengths[0]) else float("inf")
+            else:
+                diff = (together[b].float() - a[0].float()).abs().max().item()
+            if diff > worst:
+                worst, where = diff, tap
+    return worst, where
+
+
+def tap_layout(outputs: dict[str, Any], taps: dict[str, str]) -> dict[str, Any]:
+    """What the manifest keeps of each tap beside its kind: a sparse tap's grid."""
+    out: dict[str, Any] = {}
+    for tap, kind in taps.items():
+        value = outputs[tap]
+        entry: dict[str, Any] = {"kind": kind}
+        if isinstance(value, SparseVoxels):
+            entry["spatial_shape"] = list(value.spatial_shape)
+            if value.grid is not None:
+                entry["grid"] = {"origin": list(value.grid.origin), "shape": list(value.grid.shape),
+                                 "voxel_size": value.grid.voxel_size}
+        out[tap] = entry
+    return out
+
+
+def write_shard(folder: Path, index: int, tensors: dict[str, Tensor], extra: dict[str, Any]) -> dict[str, Any]:
+    """Shard ``index`` written whole under a temporary name, then renamed, with its ``.json`` (bytes, SHA-256 and
+    ``extra``: its sample count and the taps' layout, so a resumed build needs nothing it did not write)."""
+    import os
+    import tempfile
+
+    from safetensors.torch import save_file
+
+    from distilkit.files import atomic_write_text
+
+    target = folder / shard_name(index)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{target.name}.")  # a name of its own: two builders never share
+    os.close(fd)
+    try:
+        save_file(tensors, tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    entry = {"file": target.name, "bytes": target.stat().st_size, "sha256": file_sha256(target), **extra}
+    atomic_write_text(target.with_suffix(".json"), json.dumps(entry))
+    return entry
+
+
+def finished_shard(folder: Path, index: int) -> dict[str, Any] | None:
+    """Shard ``index``'s record where the file is whole (its bytes and checksum those its ``.json`` recorded)."""
+    target = folder / shard_name(index)
+    record = target.with_suffix(".json")
+    if not target.is_file() or not record.is_file():
+        return None
+    try:
+        entry = json.loads(record.read_text(encoding="utf-8"))
+    except ValueError:
+        return None
+    if target.stat().st_size != entry.get("bytes") or file_sha256(target) != entry.get("sha256"):
+        return None
+    return dict(entry)
+
+
+def whole(folder: Path) -> bool:
+    """Whether a store's manifest is there and every shard it lists is there at its size (checksums: on reading)."""
+    try:
+        manifest = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
+        return all((folder / e["file"]).is_file() and (folder / e["file"]).stat().st_size == e["bytes"]
+                   for e in manifest["shards"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
+class TeacherOutputs:
+    """A finished store, read by the samples' ids and draws of a batch (:meth:`batch`)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+        path = self.folder / MANIFEST
+        try:
+            self.manifest = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise DataError(f"{path}: not a teacher store's manifest ({exc})") from None
+        if self.manifest.get("format") != FORMAT:
+            raise DataError(f"{path}: store format {self.manifest.get('format')!r}, this distilkit reads {FORMAT}")
+        self.taps: dict[str, Any] = self.manifest["taps"]
+        self.index = {sid: i for i, sid in enumerate(self.manifest["samples"])}
+        self.per_shard = int(self.manifest["shard"])
+        self._open: dict[int, Any] = {}
+
+    def _shard(self, i: int) -> Any:
+        from safetensors import safe_open
+
+        s = i // self.per_shard
+        if s not in self._open:
+            entry = self.manifest["shards"][s]
+            path = self.folder / entry["file"]
+            if not path.is_file() or path.stat().st_size != entry["bytes"] or file_sha256(path) != entry["sha256"]:
+                raise DataError(f"{path}: the teacher store's shard is missing, truncated or altered (its checksum "
+                                f"is not the manifest's); delete it and run the stage again: the build redoes that "
+                                f"shard alone")
+            self._open[s] = safe_open(str(path), framework="pt")
+        return self._open[s]
+
+    def batch(self, sample_ids: list[str], draws: list[int], device: torch.device) -> dict[str, Any]:
+        """Every stored tap of a batch: the samples' rows under their draws, assembled as the teacher returns them."""
+        rows = []
+        for sid, d in zip(sample_ids, draws):
+            if sid not in self.index:
+                raise DataError(f"{self.folder}: sample {sid!r} is not in the teacher store (built for another split "
+                                "or data)")
+            rows.append((self._shard(self.index[sid]), f"{self.index[sid]}:{int(d)}"))
+        out: dict[str, Any] = {}
+        for tap, meta in self.taps.items():
+            if meta.get("spatial_shape") is not None:
+                coords, feats = [], []
+                for b, (shard, prefix) in enumerate(rows):
+                    c = shard.get_tensor(f"{prefix}:{tap}:coords")
+                    coords.append(torch.cat([torch.full((len(c), 1), b, dtype=c.dtype), c], dim=1))
+                    feats.append(shard.get_tensor(f"{prefix}:{tap}:feats"))
+                grid = meta.get("grid")
+                out[tap] = SparseVoxels(torch.cat(coords).to(device), torch.cat(feats).to(device),
+                                        tuple(meta["spatial_shape"]),
+                                        VoxelGrid(tuple(grid["origin"]), tuple(grid["shape"]), grid["voxel_size"])
+                                        if grid else None)
+            elif meta["kind"] == "points":
+                out[tap] = PointCloud.from_list([shard.get_tensor(f"{prefix}:{tap}:points").to(device)
+                                                 for shard, prefix in rows])
+            else:
+                out[tap] = torch.stack([shard.get_tensor(f"{prefix}:{tap}:value") for shard, prefix in rows]).to(device)
+        return out
+
+
+__all__ = ["FORMAT", "MANIFEST", "TeacherOutputs", "batch_difference", "file_sha256", "finished_shard",
+           "sample_tensors", "shard_name", "tap_layout", "whole", "write_shard"]
