@@ -134,6 +134,9 @@ def to_float32(value: Any) -> Any:
     return value
 
 
+DENSE_GRID_KINDS = frozenset({"voxel_logits", "volume_features", "occupancy_logits"})  # (B, C, X, Y, Z) on a grid
+
+
 def publishable(kind: str | None) -> bool:
     """Whether a prediction of this kind can be published as labels (``publish``, a ``labels`` edge): class ids per
     voxel or point clouds."""
@@ -151,5 +154,5 @@ def check_tap(value: Any, kind: str, where: str) -> None:
         raise TapError(f"{where}: {problem} for a {kind} tap")
 
 
-__all__ = ["PointCloud", "SparseVoxels", "TAP_KINDS", "TapKind", "check_tap", "kind_fits", "publishable",
+__all__ = ["DENSE_GRID_KINDS", "PointCloud", "SparseVoxels", "TAP_KINDS", "TapKind", "check_tap", "kind_fits", "publishable",
            "register_tap_kind", "to_float32"]

@@ -163,6 +163,24 @@ def test_shipped_sweeps_resolve(name: str, seeds: int, tmp_path: Path) -> None:
     assert load_sweep(ROOT / "recipes" / "sweeps" / f"{name}.yaml").recipes["none"].stages["none"].teacher is None
 
 
+def test_the_store_sweeps_keep_each_variants_store_and_the_stored_methods_sweep_is_the_readme_ones(tmp_path) -> None:
+    """The sweep's teacher edge keeps what the sweep file and its variants say of the teacher (here the store and
+    its layout): the stored quickstart methods are the README's methods, each reading a store; the layouts sweep
+    compares each layout with the live teacher."""
+    stored = load_sweep(ROOT / "recipes" / "sweeps" / "quickstart_methods_stored.yaml")
+    live = load_sweep(ROOT / "recipes" / "sweeps" / "quickstart_methods.yaml")
+    assert list(stored.recipes) == list(live.recipes)
+    for name, recipe in stored.recipes.items():
+        stage, twin = recipe.stages[name], live.recipes[name].stages[name]
+        assert stage.distill == twin.distill
+        assert (stage.teacher is None) if name == "none" else (stage.teacher.store is not None and
+                                                                stage.teacher.from_ == twin.teacher.from_ == "teacher")
+    layouts = load_sweep(ROOT / "recipes" / "sweeps" / "store_layouts.yaml").recipes
+    got = {n: r.stages[n].teacher.store for n, r in layouts.items()}
+    assert got["live"] is None and got["float32"].exact and got["bfloat16"].precision == "bfloat16"
+    assert got["valid"].voxels == "valid" and got["topk4"].topk == 4
+
+
 def test_the_scribble2scene_table_varies_the_camera_student_of_its_recipe(tmp_path: Path) -> None:
     """Table 5/6 compare methods on the camera student trained on the Dean-Labeler's labels, distilled from the
     frozen Teacher-Labeler; the Stage-I models are shared by every variant and seed."""

@@ -112,16 +112,17 @@ def test_students_sharing_a_teacher_read_one_store_built_once_and_a_changed_tap_
         tmp_path, monkeypatch) -> None:
     import distilkit.engine.train.teacher_store as ts
 
-    built = []
-    real = ts._build
-    monkeypatch.setattr(ts, "_build", lambda run, folder, *a: built.append(run.name) or real(run, folder, *a))
+    built = []  # (stage, shard) computed: the teacher runs over each store's samples once
+    real = ts._Build._shard
+    monkeypatch.setattr(ts._Build, "_shard", lambda self, s: built.append((self.run.name, s)) or real(self, s))
     recipe = _two_students()
     recipe["stages"]["student"]["teacher"] = {"from": "teacher", "store": True}
     recipe["stages"]["student_stored"]["distill"] = [{"name": "dskd", "weight": 3.0}]  # another student, same taps
     recipe["stages"]["student_logits"] = copy.deepcopy(recipe["stages"]["student"])
     recipe["stages"]["student_logits"]["distill"] = [{"name": "kd"}]  # reads the teacher's logits instead
     Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()
-    assert len(built) == 2  # one store for the two DSKD students, one for the logits
+    assert len(built) == 2 and len({b[0] for b in built}) == 2  # one store for the two DSKD students, one for
+    # the logits, each one shard of the two samples
     assert len(list((tmp_path / "runs" / "tiny").glob("teacher-store-*"))) == 2
 
 

@@ -3,6 +3,7 @@
 the order ``distilkit bench`` runs them when given no name."""
 
 from distilkit.bench import objectives, sampler, complete, training, kitti, sparse, networks  # noqa: F401  (register)
+from distilkit.bench import teacher_store  # noqa: F401  (register)
 from distilkit.bench import step  # noqa: F401  (register; after networks: distilkit bench runs it last)
 from distilkit.bench.base import BENCHES, Case
 from distilkit.bench.runner import run_bench

@@ -61,7 +61,8 @@ def time_left() -> float:
     return DEADLINE[-1] - time.monotonic() if DEADLINE else float("inf")
 
 
-def _peak_reset(device: torch.device) -> None:
+def peak_reset(device: torch.device) -> None:
+    """Start a peak measurement: the allocator's peak on CUDA, the process's high-water mark on the CPU."""
     gc.collect()
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -72,7 +73,8 @@ def _peak_reset(device: torch.device) -> None:
         pass
 
 
-def _peak_bytes(device: torch.device, base: int) -> int | None:
+def peak_bytes(device: torch.device, base: int) -> int | None:
+    """The peak since :func:`peak_reset`, less ``base`` (None where the system does not say)."""
     if device.type == "cuda":
         return torch.cuda.max_memory_allocated(device) - base
     try:
@@ -84,7 +86,8 @@ def _peak_bytes(device: torch.device, base: int) -> int | None:
     return None
 
 
-def _rss(device: torch.device) -> int:
+def resident_bytes(device: torch.device) -> int:
+    """What is held now: torch's allocations on CUDA, the process's resident size on the CPU."""
     if device.type == "cuda":
         return torch.cuda.memory_allocated(device)
     try:
@@ -108,8 +111,8 @@ def time_fb(fn: Callable[[], Tensor], inputs: list[Tensor], device: torch.device
 
     value = once()  # warm-up
     times = []
-    _peak_reset(device)
-    base = _rss(device)
+    peak_reset(device)
+    base = resident_bytes(device)
     for _ in range(repeat):
         if device.type == "cuda":
             torch.cuda.synchronize(device)
@@ -118,7 +121,7 @@ def time_fb(fn: Callable[[], Tensor], inputs: list[Tensor], device: torch.device
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         times.append((time.perf_counter() - t0) * 1000)
-    peak = _peak_bytes(device, base)
+    peak = peak_bytes(device, base)
     times.sort()
     return times[len(times) // 2], peak, value
 

@@ -33,7 +33,6 @@ row runs and released before the next is built, so each row's peak is its own.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import gc
@@ -47,9 +46,9 @@ from torch import Tensor
 from distilkit.bench.base import Case, Skipped, register, scratch_dir
 from distilkit.bench.fixtures import NetworkCase, build, data_sizes, network_cases, tap_loss
 from distilkit.bench.measure import held_bytes, measure_step
+from distilkit.engine.train.precision import AUTOCAST, autocast
 
 PRECISIONS = ("fp32", "bf16", "fp16")
-AUTOCAST = {"bf16": torch.bfloat16, "fp16": torch.float16}
 LIBRARIES = ("spconv", "spconv-triton")
 RECIPES = Path(__file__).resolve().parents[2] / "recipes" / "paper"  # the checkout's paper recipes
 # family -> (paper recipe, the stage that trains the network: its batch as a student; the stage it teaches, if any)
@@ -92,13 +91,6 @@ def release() -> None:
     gc.collect()
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         torch.cuda.empty_cache()
-
-
-def autocast(device: torch.device, precision: str) -> Any:
-    """The forward's context for ``precision``: nothing for fp32, else autocast to bf16 or fp16."""
-    if precision == "fp32":
-        return contextlib.nullcontext()
-    return torch.autocast(device.type, dtype=AUTOCAST[precision])
 
 
 def precision_problem(device: torch.device, precision: str) -> str | None:

@@ -121,6 +121,23 @@ class TermCard:
         """The student capabilities this term calls with these parameters (default: ``STUDENT_REQUIRES``)."""
         return cls.STUDENT_REQUIRES
 
+    @classmethod
+    def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
+        """For each teacher role on a voxel grid, the voxels whose teacher values can change this term's value or
+        gradient with these parameters: ``all``, ``valid`` (label != ignore) or ``occupied`` (valid and not empty),
+        chosen by the term's ``target`` labels (default: ``all`` for every teacher role). A teacher store with
+        ``voxels: valid`` or ``occupied`` keeps only those voxels, and ``validate`` refuses it for a term that reads
+        more."""
+        return {role: "all" for role in cls.TEACHER_ROLES}
+
+    @classmethod
+    def teacher_softmax(cls, params: BaseModel) -> frozenset[str]:
+        """The teacher roles whose class scores this term reads only through a softmax over the classes (at any
+        temperature), so that a store of the top-k scores with the remaining probability mass is an
+        approximation it can read (default: none: the term needs every class's score, and ``validate`` refuses a
+        top-k store for it)."""
+        return frozenset()
+
 
 class ObjectiveCard(TermCard):
     """A distillation objective's declarations: its ``teacher`` role reads the teacher (see

@@ -34,6 +34,8 @@ BENCH_NAMES: dict[str, str] = {
     "sparse": "a Cylinder3D-sized submanifold 3x3x3 layer (GFLOP/s vs sgemm) against dense conv3d; table vs loop",
     "sparse-sizes": "the sparse table form against spconv (or the loop) at 20k-400k voxels, 32-128 channels",
     "networks": "each family's network at size tiny and paper: parameters, a training step's time and memory",
+    "teacher-store": "a paper teacher's forward against reading its taps from a teacher store, per layout: "
+                     "bytes, read time, error",
     "step": "a paper network's or recipe's step in fp32/bf16/fp16: time, memory, syncs, top ops",
 }
 

@@ -36,7 +36,7 @@ camera poses; a voxel grid cannot follow them and is refused.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -138,27 +138,35 @@ def affine(e: Element, grid: Any) -> np.ndarray:
     return out
 
 
-def transform_sample(sample: dict[str, Any], e: Element, grid: Any) -> dict[str, Any]:
-    """Every field of a sample transformed by ``e`` (see the module docstring); the identity returns it as it is."""
-    if e == Element():
-        return sample
+def _move_fields(sample: dict[str, Any], pose: Callable[[], np.ndarray], points: Callable[[np.ndarray], np.ndarray],
+                 grid: Callable[[str, np.ndarray], np.ndarray], what: str) -> dict[str, Any]:
+    """Every field of a sample moved alike: point clouds by ``points``, voxel grids by ``grid``, camera poses by the
+    inverse of the (4, 4) ``pose()``; fields known to be unchanged kept; any other array refused, as it could not be
+    kept aligned (``what``: the transforms, for the message)."""
     out: dict[str, Any] = {}
     for key, value in sample.items():
         if key in POINT_FIELDS:
-            out[key] = transform_points(value, e, grid)
+            out[key] = points(value)
         elif key in GRID_FIELDS:
-            out[key] = transform_grid(value, e)
+            out[key] = grid(key, value)
         elif key in CAMERA_POSE_FIELDS:
-            inverse = np.linalg.inv(affine(e, grid))
-            out[key] = (np.asarray(value, dtype=np.float64) @ inverse).astype(np.asarray(value).dtype)
+            out[key] = (np.asarray(value, dtype=np.float64) @ np.linalg.inv(pose())).astype(np.asarray(value).dtype)
         elif key in UNCHANGED_FIELDS or not isinstance(value, np.ndarray):
             out[key] = value
         else:
             raise ValueError(f"train.augment: the sample's field {key!r} is not a point cloud, a voxel grid, a camera "
-                             "pose or a field known to be unchanged by a flip or rotation, so it could not be kept "
-                             "aligned (known: " + ", ".join(sorted(POINT_FIELDS | GRID_FIELDS | CAMERA_POSE_FIELDS
-                                                                    | UNCHANGED_FIELDS)) + ")")
+                             f"pose or a field known to be unchanged by {what}, so it could not be kept aligned "
+                             "(known: " + ", ".join(sorted(POINT_FIELDS | GRID_FIELDS | CAMERA_POSE_FIELDS
+                                                          | UNCHANGED_FIELDS)) + ")")
     return out
+
+
+def transform_sample(sample: dict[str, Any], e: Element, grid: Any) -> dict[str, Any]:
+    """Every field of a sample transformed by ``e`` (see the module docstring); the identity returns it as it is."""
+    if e == Element():
+        return sample
+    return _move_fields(sample, lambda: affine(e, grid), lambda v: transform_points(v, e, grid),
+                        lambda key, v: transform_grid(v, e), "a flip or rotation")
 
 
 def _turn(axis: int, angle: float) -> np.ndarray:
@@ -195,23 +203,15 @@ def continuous_affine(spec: Any, draw: int) -> np.ndarray:
 def transform_continuous(sample: dict[str, Any], a: np.ndarray) -> dict[str, Any]:
     """Every field of a sample moved by the (4, 4) affine ``a``: point clouds and camera poses; a voxel grid is
     refused (it cannot follow a continuous transform)."""
-    out: dict[str, Any] = {}
-    for key, value in sample.items():
-        if key in POINT_FIELDS:
-            moved = np.array(value, copy=True)
-            moved[:, :3] = (value[:, :3].astype(np.float64) @ a[:3, :3].T + a[:3, 3]).astype(moved.dtype)
-            out[key] = moved
-        elif key in CAMERA_POSE_FIELDS:
-            out[key] = (np.asarray(value, dtype=np.float64) @ np.linalg.inv(a)).astype(np.asarray(value).dtype)
-        elif key in GRID_FIELDS:
-            raise ValueError(f"train.augment: rotate, tilt and scale are continuous: the sample's voxel grid {key!r} "
-                             "cannot follow them (only flips and quarter turns move voxels onto voxels)")
-        elif key in UNCHANGED_FIELDS or not isinstance(value, np.ndarray):
-            out[key] = value
-        else:
-            raise ValueError(f"train.augment: the sample's field {key!r} is not a point cloud, a camera pose or a "
-                             "field known to be unchanged by a rotation or scale, so it could not be kept aligned")
-    return out
+    def points(value: np.ndarray) -> np.ndarray:
+        moved = np.array(value, copy=True)
+        moved[:, :3] = (value[:, :3].astype(np.float64) @ a[:3, :3].T + a[:3, 3]).astype(moved.dtype)
+        return moved
+
+    def grid(key: str, value: np.ndarray) -> np.ndarray:
+        raise ValueError(f"train.augment: rotate, tilt and scale are continuous: the sample's voxel grid {key!r} "
+                         "cannot follow them (only flips and quarter turns move voxels onto voxels)")
+    return _move_fields(sample, lambda: a, points, grid, "a rotation or scale")
 
 
 class Augmentation:

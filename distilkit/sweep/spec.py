@@ -152,7 +152,9 @@ def variant_data(sweep: Sweep, variant: str) -> dict[str, Any]:
                             for t in chosen.distill]
     own = isinstance(stage.get("teacher"), dict) and stage["teacher"].get("ema") not in (None, False)
     if spec.teacher is not None and stage.get("distill") and not own:  # a variant that is its own teacher keeps it
-        stage["teacher"] = {"from": spec.teacher}
+        given = stage["teacher"] if isinstance(stage.get("teacher"), dict) else {}
+        stage["teacher"] = {**given, "from": spec.teacher}  # the sweep's teacher, with the recipe's other settings
+        # of it (store, mode, checkpoint) and the variant's
     if not stage.get("distill"):  # no distillation: no teacher, so the run does not depend on one
         stage.pop("teacher", None)
     elif not stage.get("teacher"):

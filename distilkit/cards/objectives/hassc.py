@@ -32,6 +32,14 @@ class HASSCKDCard(ObjectiveCard):
     DEFAULT_WEIGHT = 48.0
     VERSION = 2  # 2: the dynamic weight per sample over classes 1..K-1 (was: the batch pooled, all K classes)
 
+    @classmethod
+    def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
+        return {"teacher": "valid"}  # the KL and the teacher's mIoU both count the valid voxels only
+
+    @classmethod
+    def teacher_softmax(cls, params: BaseModel) -> frozenset[str]:
+        return frozenset({"teacher"})  # KL of softmax(t/T) and the argmax of the mIoU (argmax t = argmax softmax t)
+
 
 class HardVoxelParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -62,6 +70,17 @@ class HASSCHardVoxelsCard(ObjectiveCard):
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 1.0
     VERSION = 2  # 2: per-sample ratios by default (was: the batch's sums pooled)
+
+    @classmethod
+    def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
+        # the teacher's hard positions are drawn anywhere in the volume (delta 0: the teacher is never read)
+        return {"teacher": "occupied" if getattr(params, "delta") == 0 else "all"}
+
+    @classmethod
+    def teacher_softmax(cls, params: BaseModel) -> frozenset[str]:
+        # hardness from softmax(interpolated t) or from interpolated t_(1) - t_(2) = log p_(1) - log p_(2): a
+        # per-voxel shift of the scores cancels in both
+        return frozenset({"teacher"})
 
 
 declare_objective("hassc_kd", "distilkit.objectives.hassc:HASSCKD", HASSCKDCard,

@@ -24,6 +24,15 @@ class PADCard(ObjectiveCard):
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 70.0
 
+    @classmethod
+    def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
+        # the per-sample KL mean keeps the valid non-empty voxels (include_empty: the valid ones)
+        return {"teacher": "valid" if getattr(params, "include_empty") else "occupied"}
+
+    @classmethod
+    def teacher_softmax(cls, params: BaseModel) -> frozenset[str]:
+        return frozenset({"teacher"})  # KL(softmax(t) || softmax(s)) only
+
 
 MAX_MAPS = 4  # map pairs one FSD term reads: student/teacher, student_2/teacher_2, ...
 _EXTRA = [(f"student_{i}", f"teacher_{i}") for i in range(2, MAX_MAPS + 1)]
@@ -49,6 +58,11 @@ class FSDCard(ObjectiveCard):
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 4.0
     VERSION = 2  # 2: per-sample reduction by default, several map pairs averaged (was: pooled over the batch)
+
+    @classmethod
+    def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
+        # 1 - cos only where the label block is occupied: on the labels' grid, the occupied voxels
+        return {role: "occupied" for role in sorted(cls.TEACHER_ROLES)}
 
 
 class RelationCard(ObjectiveCard):

@@ -22,6 +22,14 @@ class KDCard(ObjectiveCard):
     BATCH = {"target": "voxel_target"}  # the labels that choose the voxels
     DEFAULT_WEIGHT = 1.0
 
+    @classmethod
+    def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
+        return {"teacher": getattr(params, "voxels")}  # the KL of the other voxels is dropped before the mean
+
+    @classmethod
+    def teacher_softmax(cls, params: BaseModel) -> frozenset[str]:
+        return frozenset({"teacher"})  # KL(softmax(t/T) || softmax(s/T)): the teacher only through its softmax
+
 
 class DISTParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -38,6 +46,14 @@ class DISTCard(ObjectiveCard):
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}  # the labels that choose the voxels
     DEFAULT_WEIGHT = 1.0
+
+    @classmethod
+    def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
+        return {"teacher": getattr(params, "voxels")}  # the rows (voxels) outside the mask are dropped first
+
+    @classmethod
+    def teacher_softmax(cls, params: BaseModel) -> frozenset[str]:
+        return frozenset({"teacher"})  # Pearson correlations of softmax(t/T) only
 
 
 declare_objective("kd", "distilkit.objectives.logit:KD", KDCard,

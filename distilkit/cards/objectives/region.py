@@ -40,6 +40,11 @@ class RGO2DCard(ObjectiveCard):
                              "voxel_target}`"}
     DEFAULT_WEIGHT = 1.0
 
+    @classmethod
+    def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
+        # the logits' rows are gathered at the target's occupied voxels; the feature MSE reads the whole map
+        return {"teacher": "occupied", "teacher_features": "all"}
+
 
 class CleanerSParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -58,6 +63,11 @@ class CleanerSCard(ObjectiveCard):
     OPTIONAL = FEATURE_ROLES
     BATCH = {"target": "voxel_target"}  # the labels of the class centres
     DEFAULT_WEIGHT = 0.25
+
+    @classmethod
+    def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
+        # centres and affinities over the non-ignored voxels (empty ones too); the feature MSE reads the whole map
+        return {"teacher": "valid", "teacher_features": "all"}
 
 
 declare_objective("rgo2d", "distilkit.objectives.region:RGO2D", RGO2DCard,

@@ -47,6 +47,15 @@ class PVKDCard(ObjectiveCard):
     BATCH = {"target": "voxel_target"}  # the labels that choose the voxels of the output term
     DEFAULT_WEIGHT = 1.0
 
+    @classmethod
+    def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
+        # the output KD's masked mean reads the logits at the mask; the features are sparse (not on a dense grid)
+        return {"teacher": "all", "teacher_logits": getattr(params, "voxels")}
+
+    @classmethod
+    def teacher_softmax(cls, params: BaseModel) -> frozenset[str]:
+        return frozenset({"teacher_logits"})  # the output term is KD (softmax(t/T)); the features are not scores
+
 
 declare_objective("pkt", "distilkit.objectives.relational:PKT", PKTCard,
                   description="PKT: KL between cosine-kernel probability distributions over sampled voxels",

@@ -9,6 +9,7 @@ from typing import Any
 
 from distilkit.engine.assemble.resolved import (ResolvedAux, ResolvedHook, ResolvedMetric, ResolvedModel, ResolvedRecipe,
                                              ResolvedStage)
+from distilkit.engine.assemble.store_checks import store_problems
 from distilkit.engine.assemble.terms import (alignment_problems, lookup, param_groups, resolve_model, resolve_terms,
                                           validate_params)
 from distilkit.errors import RecipeError
@@ -173,35 +174,6 @@ def augment_problems(augment: Any, info: Any, path: str) -> list[tuple[str, str]
     return []
 
 
-def store_problems(spec: Any, distill: list[Any], path: str) -> list[tuple[str, str]]:
-    """``teacher.store`` where a store could not hold what the stage reads: a teacher that changes (its own moving
-    average, one in train mode), a continuous augmentation (no finite set of transforms to store), a term that
-    calls the teacher itself, nothing read."""
-    teacher = spec.teacher
-    if teacher is None or teacher.store is None or not distill:  # no term: the teacher does not run (a sweep's
-        return []                                                  # undistilled variant keeps the sweep's setting)
-    where = f"{path}.teacher.store"
-    if teacher.ema is not None:
-        return [(where, "the stage's own moving average changes at every step: its outputs cannot be stored")]
-    out = []
-    if teacher.mode == "train":
-        out.append((where, "a teacher in mode: train (batch statistics, dropout) gives other outputs at every "
-                           "forward: they cannot be stored; use mode: eval or a live teacher"))
-    augment = spec.train.augment
-    if augment is not None and augment.continuous:
-        out.append((where, "train.augment draws continuous transforms (rotate, tilt, scale): no finite set of "
-                           "transforms to store the teacher under; the stage runs its teacher live without "
-                           "`store`"))
-    for i, term in enumerate(distill):
-        if term.card.REQUIRES:
-            out.append((where, f"distill[{i}] ({term.name}) calls the teacher's {', '.join(sorted(term.card.REQUIRES))}"
-                               "(): it needs the teacher itself, not its stored outputs"))
-    read = [tap for t in distill for role, tap in t.taps.items() if role in t.card.TEACHER_ROLES]
-    if not read and not out:
-        out.append((where, "no distillation term of the stage reads a teacher tap: there is nothing to store"))
-    return out
-
-
 def _provides(card: Any, capability: str) -> bool:
     """Whether an adapter has the method ``capability``: declared in its card's ``CAPABILITIES`` or defined on it."""
     return capability in getattr(card, "CAPABILITIES", ()) or callable(getattr(card, capability, None))
@@ -280,7 +252,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         if info is not None:
             problems.extend(alignment_problems(distill, models, info, f"{path}.distill"))
             problems.extend(augment_problems(spec.train.augment, info, f"{path}.train.augment"))
-        problems.extend(store_problems(spec, distill, path))
+        problems.extend(store_problems(spec, distill, teacher, info, path))
         for i, term in enumerate(distill):  # teacher and student capabilities the objective calls
             for role, model, caps in (("teacher", teacher, term.card.REQUIRES),
                                       ("student", student, term.card.student_requires(term.params))):

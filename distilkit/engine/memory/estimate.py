@@ -38,6 +38,7 @@ class MemoryEstimate:
     how: str  # "measured" / "extrapolated from ..."
     device: str
     available: int | None  # bytes free on that device now (None: unknown)
+    store: tuple[float, float] | None = None  # a stored stage's teacher store on disk, bounded as the step is
 
     @property
     def figure(self) -> str:
@@ -47,8 +48,15 @@ class MemoryEstimate:
 
     def line(self) -> str:
         free = f" of {self.available / GIB:.1f} GiB free" if self.available is not None else ""
-        return (f"stage {self.stage}: {self.figure} per training step on the {self.device} "
+        line = (f"stage {self.stage}: {self.figure} per training step on the {self.device} "
                 f"(batch {self.batch_size}, {self.size}; {self.how}){free}")
+        if self.store is not None:
+            low, high = self.store
+            unit, scale = ("GiB", GIB) if high >= GIB else ("MiB", 2 ** 20)
+            disk = f"about {high / scale:.1f} {unit}" if high <= 1.1 * low else \
+                f"{low / scale:.1f}-{high / scale:.1f} {unit}"
+            line += f"; without its teacher, whose outputs it reads from a store of {disk} on disk"
+        return line
 
     def warning(self) -> str | None:
         """What to say when the step may not fit in what is free (None: it fits with room to spare)."""
@@ -198,6 +206,7 @@ class StepMemory:
     model: float
     optimizer: float
     temporaries: float
+    stored: float = 0.0  # a stored stage's teacher outputs of the sample, in its store layout (bytes on disk)
 
     @property
     def total(self) -> float:
@@ -209,7 +218,7 @@ def measure_step(res: Any, stage_name: str, params: Any) -> StepMemory:
     measured by phase: the model's phase is the larger of the two (a first step may do one-off work, e.g. fill a
     cache), the optimizer's is the second's (its state exists from then on). A step that fails as the run's would
     (a term on the shapes its taps have, a model) raises :class:`~distilkit.engine.memory.probe.StepFailure`."""
-    from distilkit.engine.memory.probe import first_step, name_terms, probe_trainer
+    from distilkit.engine.memory.probe import StoredOutputs, first_step, name_terms, probe_trainer
 
     with tempfile.TemporaryDirectory() as tmp:
         with first_step(stage_name):  # the recipe's errors, each one line (the term's, with what it read)
@@ -234,7 +243,12 @@ def measure_step(res: Any, stage_name: str, params: Any) -> StepMemory:
             peaks = step_peaks(lambda: _step(trainer, batch, i, stage_name), trainer.device)
             model = max(model, before + peaks.model)
         held_at, top = max(peaks.optimizer, key=lambda w: w[1], default=(0, 0))
-    return StepMemory(kept, model, before + held_at, float(top - held_at))
+        stored = 0.0
+        if isinstance(trainer.store, StoredOutputs):
+            from distilkit.engine.train.teacher_store import stored_bytes
+
+            stored = float(stored_bytes(trainer.stage, trainer.store.outputs, batch, trainer.info))
+    return StepMemory(kept, model, before + held_at, float(top - held_at), stored)
 
 
 def _step(trainer: Any, batch: Any, step: int, stage_name: str) -> None:
@@ -305,7 +319,23 @@ def estimate_stage(res: Any, stage_name: str) -> MemoryEstimate | None:
     else:
         how = f"extrapolated from {s1:,.0f} and {s2:,.0f} {plan.unit}"
     device = str(pick_device(train.device))
-    return MemoryEstimate(stage_name, low, high, b, plan.describe, how, device, available_memory(device))
+    disk = None
+    if measured[-1][1].stored:  # a stored stage: its store on disk, per sample scaled as the step's memory is
+        samples = _store_samples(res, stage_name)
+        disk = tuple(samples * v for v in bound(lambda m: m.stored, peak=False))
+    return MemoryEstimate(stage_name, low, high, b, plan.describe, how, device, available_memory(device), disk)
+
+
+def _store_samples(res: Any, stage_name: str) -> int:
+    """Training samples x augmentation draws: the rows a stage's teacher store holds."""
+    from distilkit.data.augment import Augmentation
+    from distilkit.registry import DATASETS
+
+    spec = res.stages[stage_name].spec
+    entry = DATASETS.entry(res.recipe.data.dataset)
+    n = len(entry.obj(res.data_params, "train", None))
+    info = entry.meta["info"](res.data_params)
+    return n * (Augmentation(spec.train.augment, info.grid).draws if spec.train.augment is not None else 1)
 
 
 __all__ = ["MemoryEstimate", "StepMemory", "StepPeaks", "available_memory", "estimate_stage", "measure_step",

@@ -58,8 +58,38 @@ def probe_trainer(res: Any, stage_name: str, params: Any, run_dir: Path, batch_s
         teacher = freeze(build_model(stage.teacher, info, "teacher").to(device))
     aux = [(a, freeze(build_model(a.model, info, f"aux model {a.name!r}").to(device))) for a in stage.aux]
     plan = BatchPlan(len(train_set), batch_size, 0, SINGLE)
-    return Trainer(stage, info, train_set, plan, device, collate=entry.meta["collate"], teacher=teacher, world=SINGLE,
-                   prepare=lambda batch: with_aux_inputs(batch.to(device), aux, training=True))
+    trainer = Trainer(stage, info, train_set, plan, device, collate=entry.meta["collate"], teacher=teacher,
+                      world=SINGLE, prepare=lambda batch: with_aux_inputs(batch.to(device), aux, training=True))
+    if teacher is not None and stage.spec.teacher is not None and stage.spec.teacher.store is not None:
+        trainer.store, trainer.teacher = StoredOutputs(trainer), None  # the student never holds the teacher
+    return trainer
+
+
+class StoredOutputs:
+    """What a stored stage's trainer reads instead of its teacher, for the memory estimate: the teacher's outputs
+    on the probe's first batch, computed once before the steps are measured and copied at each read (as a read
+    from the store allocates them), so the teacher's weights and forward are not in the student's figure."""
+
+    def __init__(self, trainer: Any) -> None:
+        import torch
+
+        from distilkit.engine.train.precision import autocast
+
+        with torch.no_grad(), autocast(trainer.device, trainer.stage.spec.train.precision):
+            self.outputs = trainer.teacher(trainer.first_batch())
+
+    def batch(self, sample_ids: list[str], draws: list[int], device: Any) -> dict[str, Any]:
+        import torch
+
+        from distilkit.structures import PointCloud, SparseVoxels
+
+        def copy(v: Any) -> Any:
+            if isinstance(v, SparseVoxels):
+                return v.with_feats(v.feats.clone())
+            if isinstance(v, PointCloud):
+                return PointCloud(v.points.clone(), v.lengths)
+            return v.clone() if isinstance(v, torch.Tensor) else v
+        return {k: copy(v) for k, v in self.outputs.items()}
 
 
 def describe_value(value: Any) -> str:
@@ -176,5 +206,5 @@ def check_terms(res: Any, stage_name: str) -> None:
         _terms_once(res, stage_name, probe)
 
 
-__all__ = ["SMALL_SCALE", "StepFailure", "check_terms", "describe_value", "dry_params", "first_step", "name_terms",
+__all__ = ["SMALL_SCALE", "StoredOutputs", "StepFailure", "check_terms", "describe_value", "dry_params", "first_step", "name_terms",
            "probe_trainer"]

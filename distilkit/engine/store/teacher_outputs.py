@@ -14,12 +14,20 @@ The values a batch reads are the stored rows stacked (dense taps) or concatenate
 features, in batch order, as the live teacher's batched output is) — the same bits as the live teacher's batched
 forward wherever that forward computes each sample independently of the others (checked for every built-in teacher
 by the exactness test).
+
+Lossy layouts (:class:`~distilkit.recipe.store.StoreSpec`), opt-in: a narrower ``precision`` (every floating value
+stored as float16 or bfloat16 and read back in the teacher's type); ``voxels`` (a dense tap on the labels' grid
+keeps the voxels of the mask, ``i:d:@voxels:index`` their flat indices, ``:value`` their (C, n) values; the others
+read back as 0); ``topk`` (a ``voxel_logits`` tap keeps ``:top`` the k largest scores of each voxel, ``:class``
+their classes and ``:lse`` the logsumexp of all C: on reading, the other C - k classes share the remaining
+probability mass evenly, so the softmax at temperature 1 is exact on the k classes and on the rest's total).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +36,7 @@ from torch import Tensor
 
 from distilkit.errors import DataError
 from distilkit.structures import PointCloud, SparseVoxels, VoxelGrid
+from distilkit.taps import DENSE_GRID_KINDS as GRID_KINDS
 
 FORMAT = 1
 MANIFEST = "manifest.json"
@@ -45,25 +54,75 @@ def shard_name(index: int) -> str:
     return f"shard-{index:05d}.safetensors"
 
 
-def sample_tensors(outputs: dict[str, Any], taps: dict[str, str], prefix: str) -> dict[str, Tensor]:
-    """The tensors to store of one sample's teacher outputs (a batch of one), named ``prefix:TAP:part``."""
-    def own(t: Tensor) -> Tensor:  # contiguous, in memory of its own (two taps may view one tensor)
-        return t.cpu().clone(memory_format=torch.contiguous_format)
 
+
+def _narrow(t: Tensor, precision: torch.dtype) -> Tensor:
+    return t.to(precision) if t.is_floating_point() else t
+
+
+def _own(t: Tensor) -> Tensor:  # contiguous, in memory of its own (two taps may view one tensor)
+    return t.detach().cpu().clone(memory_format=torch.contiguous_format)
+
+
+def _masked(value: Any, kind: str, mask: Tensor | None) -> bool:
+    """Whether a tap's value (a batch of one) is kept at the mask's voxels: a dense tap on the mask's grid."""
+    return mask is not None and kind in GRID_KINDS and isinstance(value, Tensor) and value.dim() == 5 and \
+        tuple(value.shape[2:]) == tuple(mask.shape)
+
+
+def _dense(value: Tensor, kind: str, prefix: str, mask: Tensor | None, topk: int | None,
+           precision: torch.dtype) -> dict[str, Tensor]:
+    """One sample's row of a dense tap in the layout: whole, or its masked voxels, or its top-k classes."""
+    v = value.float() if value.is_floating_point() else value
+    if _masked(value[None], kind, mask):
+        v = v.flatten(1)[:, mask.flatten()]  # (C, n)
+    if topk is not None and kind == "voxel_logits" and topk < v.shape[0]:
+        top, cls = v.topk(topk, dim=0)
+        return {f"{prefix}:top": _own(_narrow(top, precision)), f"{prefix}:class": _own(cls.to(torch.int16)),
+                f"{prefix}:lse": _own(_narrow(torch.logsumexp(v, dim=0, keepdim=True), precision))}
+    return {f"{prefix}:value": _own(_narrow(v, precision))}
+
+
+def sample_tensors(outputs: dict[str, Any], taps: dict[str, str], prefix: str, *, mask: Tensor | None = None,
+                   topk: int | None = None, precision: torch.dtype = torch.float32) -> dict[str, Tensor]:
+    """The tensors to store of one sample's teacher outputs (a batch of one), named ``prefix:TAP:part``, in the
+    layout: ``mask`` the (X, Y, Z) voxels kept of dense taps on that grid (None: all), ``topk`` the classes kept of
+    ``voxel_logits`` taps, ``precision`` the floating values' type."""
     out: dict[str, Tensor] = {}
-    for tap in taps:
+    for tap, kind in taps.items():
         value = outputs[tap]
         if isinstance(value, SparseVoxels):
-            out[f"{prefix}:{tap}:coords"] = own(value.coords[:, 1:])
-            out[f"{prefix}:{tap}:feats"] = own(value.feats.detach().float())
+            out[f"{prefix}:{tap}:coords"] = _own(value.coords[:, 1:])
+            out[f"{prefix}:{tap}:feats"] = _own(_narrow(value.feats.float(), precision))
         elif isinstance(value, PointCloud):
-            out[f"{prefix}:{tap}:points"] = own(value.points[0, : int(value.lengths[0])].detach().float())
+            out[f"{prefix}:{tap}:points"] = _own(_narrow(value.points[0, : int(value.lengths[0])].float(), precision))
         elif isinstance(value, Tensor) and value.dim() >= 1 and value.shape[0] == 1:
-            v = value[0].detach()
-            out[f"{prefix}:{tap}:value"] = own(v.float() if v.is_floating_point() else v)
+            out.update(_dense(value[0], kind, f"{prefix}:{tap}", mask, topk, precision))
         else:
             raise DataError(f"teacher tap {tap!r} ({type(value).__name__}) has no per-sample rows to store")
+    if any(_masked(outputs[tap], kind, mask) for tap, kind in taps.items()):  # the kept voxels, once a sample
+        out[f"{prefix}:@voxels:index"] = _own(mask.flatten().nonzero()[:, 0].to(torch.int32))
     return out
+
+
+def _read_dense(shard: Any, prefix: str, tap: str, meta: dict[str, Any]) -> Tensor:
+    """One sample's row of a dense tap, back in its shape and type from any layout (see the module)."""
+    dtype = getattr(torch, meta.get("dtype", "float32"))
+    if meta.get("topk"):
+        top = shard.get_tensor(f"{prefix}:{tap}:top").float()
+        cls = shard.get_tensor(f"{prefix}:{tap}:class").long()
+        lse = shard.get_tensor(f"{prefix}:{tap}:lse").float()
+        classes, k = int(meta["shape"][0]), top.shape[0]
+        kept = torch.exp(top - lse).sum(0, keepdim=True).clamp(max=1.0)
+        rest = lse + torch.log1p(-kept).clamp(min=-80.0) - math.log(classes - k)  # the rest's mass, shared evenly
+        v = rest.expand(classes, *top.shape[1:]).clone().scatter_(0, cls, top)
+    else:
+        v = shard.get_tensor(f"{prefix}:{tap}:value")
+    if meta.get("masked"):
+        full = torch.zeros(v.shape[0], math.prod(meta["shape"][1:]), dtype=v.dtype)
+        full[:, shard.get_tensor(f"{prefix}:@voxels:index").long()] = v
+        v = full.view(meta["shape"])
+    return v.to(dtype) if v.is_floating_point() else v
 
 
 def batch_difference(batched: dict[str, Any], singles: list[dict[str, Any]], taps: dict[str, str]) -> tuple[float, str]:
@@ -91,12 +150,20 @@ def batch_difference(batched: dict[str, Any], singles: list[dict[str, Any]], tap
     return worst, where
 
 
-def tap_layout(outputs: dict[str, Any], taps: dict[str, str]) -> dict[str, Any]:
-    """What the manifest keeps of each tap beside its kind: a sparse tap's grid."""
+def tap_layout(outputs: dict[str, Any], taps: dict[str, str], mask_shape: tuple[int, ...] | None = None,
+               topk: int | None = None) -> dict[str, Any]:
+    """What the manifest keeps of each tap beside its kind: a sparse tap's grid; a dense tap's per-sample shape,
+    type, and whether it is stored masked (on the grid ``mask_shape``) or by its top-k classes."""
     out: dict[str, Any] = {}
     for tap, kind in taps.items():
         value = outputs[tap]
         entry: dict[str, Any] = {"kind": kind}
+        if isinstance(value, Tensor) and not isinstance(value, (SparseVoxels, PointCloud)):
+            row = value[0]
+            entry.update(shape=list(row.shape), dtype=str(row.dtype).removeprefix("torch."),
+                         masked=bool(mask_shape is not None and kind in GRID_KINDS and row.dim() == 4
+                                     and tuple(row.shape[1:]) == tuple(mask_shape)),
+                         topk=topk if topk is not None and kind == "voxel_logits" and topk < row.shape[0] else None)
         if isinstance(value, SparseVoxels):
             entry["spatial_shape"] = list(value.spatial_shape)
             if value.grid is not None:
@@ -174,6 +241,9 @@ class TeacherOutputs:
         self.per_shard = int(self.manifest["shard"])
         self._open: dict[int, Any] = {}
 
+    def __getstate__(self) -> dict[str, Any]:  # to a loader worker: the open shards stay here
+        return {**self.__dict__, "_open": {}}
+
     def _shard(self, i: int) -> Any:
         from safetensors import safe_open
 
@@ -213,9 +283,31 @@ class TeacherOutputs:
                 out[tap] = PointCloud.from_list([shard.get_tensor(f"{prefix}:{tap}:points").to(device)
                                                  for shard, prefix in rows])
             else:
-                out[tap] = torch.stack([shard.get_tensor(f"{prefix}:{tap}:value") for shard, prefix in rows]).to(device)
+                out[tap] = torch.stack([_read_dense(shard, prefix, tap, meta) for shard, prefix in rows]).to(device)
         return out
 
 
-__all__ = ["FORMAT", "MANIFEST", "TeacherOutputs", "batch_difference", "file_sha256", "finished_shard",
+class WithTeacherOutputs:
+    """A training collate that also reads each batch's stored teacher rows (into ``batch.meta["teacher_outputs"]``,
+    on the CPU), so that a loader's workers read the store while the student computes (``train.workers``)."""
+
+    def __init__(self, collate: Any, store: TeacherOutputs) -> None:
+        self.collate, self.store = collate, store
+
+    def __call__(self, samples: list[Any]) -> Any:
+        batch = self.collate(samples)
+        draws = batch.meta.get("augment_draw") or [0] * batch.size
+        batch.meta["teacher_outputs"] = self.store.batch(list(batch.meta.get("sample_id", ())), list(draws),
+                                                         torch.device("cpu"))
+        return batch
+
+
+def to_device(value: Any, device: torch.device) -> Any:
+    """A tap's value (tensor, sparse voxels, point cloud) on ``device``."""
+    if isinstance(value, PointCloud):
+        return PointCloud(value.points.to(device), value.lengths.to(device))
+    return value.to(device) if isinstance(value, (Tensor, SparseVoxels)) else value
+
+
+__all__ = ["FORMAT", "WithTeacherOutputs", "to_device", "MANIFEST", "TeacherOutputs", "batch_difference", "file_sha256", "finished_shard",
            "sample_tensors", "shard_name", "tap_layout", "whole", "write_shard"]

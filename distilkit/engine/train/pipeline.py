@@ -88,6 +88,7 @@ class Pipeline(RecipeRun):
 
             self.console = make_console(quiet=True)
         names = needed_stages(self.recipe, set(only)) if only else set(self.resolved.order)
+        self.wait = wait  # also for the teacher store's build (teacher_store)
         results = self._run(stop_after, rerun, names, wait)
         if report and not only and len(results) == len(self.resolved.order) and self.world.main:
             from distilkit.report.recipe import write_report

@@ -11,7 +11,6 @@ evaluation, checkpoints) is :mod:`distilkit.engine.train.stage`; this class is w
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -77,6 +76,10 @@ class Trainer:
         self.objectives = nn.ModuleList(o.cls(o.params) for o in stage.distill).to(self.device)
         self.teacher = teacher
         self.store = store  # the teacher's stored outputs (teacher.store), read instead of running it
+        if store is not None:  # read with each batch, by the loader's workers where it has them
+            from distilkit.engine.store.teacher_outputs import WithTeacherOutputs
+
+            self.collate = WithTeacherOutputs(collate, store)
         self.ema: EmaTeacher | None = None  # the stage is its own teacher (``teacher: {ema: ...}``)
         if stage.ema is not None and stage.distill:
             assert stage.teacher is not None
@@ -166,10 +169,9 @@ class Trainer:
 
     def _autocast(self) -> Any:
         """The models' forward precision (``train.precision``); a no-op context for fp32."""
-        precision = self.stage.spec.train.precision
-        if precision == "fp32":
-            return contextlib.nullcontext()
-        return torch.autocast(self.device.type, dtype=torch.bfloat16 if precision == "bf16" else torch.float16)
+        from distilkit.engine.train.precision import autocast
+
+        return autocast(self.device, self.stage.spec.train.precision)
 
     def _named_parameters(self) -> list[tuple[str, nn.Parameter]]:
         """Every parameter of the student, the terms and the connectors by qualified name: ``student.*``,
@@ -268,8 +270,13 @@ class Trainer:
         if not self._teacher_outputs_needed:
             return {}
         if self.store is not None:  # each sample's rows under the draw it is seen under (teacher_store)
-            draws = batch.meta.get("augment_draw") or [0] * batch.size
-            return self.store.batch(list(batch.meta["sample_id"]), list(draws), self.device)
+            from distilkit.engine.store.teacher_outputs import to_device
+
+            read = batch.meta.get("teacher_outputs")  # by the loader (WithTeacherOutputs), else here
+            if read is None:
+                draws = batch.meta.get("augment_draw") or [0] * batch.size
+                read = self.store.batch(list(batch.meta.get("sample_id", ())), list(draws), self.device)
+            return {k: to_device(v, self.device) for k, v in read.items()}
         assert self.teacher is not None
         with torch.no_grad(), self._autocast():
             t_out = self.teacher(batch)
