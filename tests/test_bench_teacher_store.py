@@ -12,6 +12,7 @@ from typing import Iterator
 import pytest
 import torch
 
+from distilkit.bench import store_compare
 from distilkit.bench import teacher_store as bench_store
 
 FAMILIES = ("SCPNet", "JS3C-Net", "VoxFormer")
@@ -64,14 +65,24 @@ def test_the_layouts_figures(ran) -> None:
         exact = rows[f"teacher-store: {family} float32"]
         assert exact["value"] == 0.0 and exact["columns"]["vs float32"] == "1.00×"
         assert all(part.endswith(" 0") for part in exact["columns"]["max |Δ|"].split("; "))
+        # every distillation term of the stage, computed with the read-back outputs: the same value for float32
+        terms = exact["columns"]["terms |Δ| (rel.)"].split("; ")
+        assert terms and all(part.endswith(" 0") for part in terms), terms
+        assert {part.split()[0] for part in terms} == ({"rgo2d"} if family == "VoxFormer" else {"dskd"})
         half = rows[f"teacher-store: {family} float16"]
         assert 0 < half["value"] < 0.1 and _mib(half) < _mib(exact)
+        rel = [float(part.split("(")[1].rstrip(")")) for part in half["columns"]["terms |Δ| (rel.)"].split("; ")
+               if "(" in part]
+        assert all(r < 1e-2 for r in rel), half["columns"]["terms |Δ| (rel.)"]
         if family == "VoxFormer":  # its logits (voxel_logits) take the top-k and the masked layouts
             for k in ("topk 2", "topk 4", "voxels valid", "voxels occupied"):
                 assert _mib(rows[f"teacher-store: {family} {k}"]) < _mib(exact), k
             assert _mib(rows[f"teacher-store: {family} voxels occupied"]) < \
                 _mib(rows[f"teacher-store: {family} voxels valid"])
             assert rows[f"teacher-store: {family} topk 2"]["columns"]["validate"] == "refuses"  # rgo2d reads scores
+            # RGO²D reads the occupied voxels' scores: the occupied store gives its value exactly, top-k does not
+            assert rows[f"teacher-store: {family} voxels occupied"]["columns"]["terms |Δ| (rel.)"] == "rgo2d 0"
+            assert rows[f"teacher-store: {family} topk 2"]["columns"]["terms |Δ| (rel.)"] != "rgo2d 0"
             assert "VoxFormer voxels valid: max |Δ| of logits inside the mask only" in out
             assert "max |Δ| of logits: of the softmax probabilities" in out
         else:  # the sparse completion: stored whole by every layout but the precisions
@@ -86,9 +97,9 @@ def test_a_masked_layouts_difference_is_inside_its_mask() -> None:
     mask = torch.zeros(2, 2, 1, dtype=torch.bool)
     mask[0, 0, 0] = True
     read[0, :, 1, 1, 0] = 0  # outside the mask: as a masked store reads it back
-    assert bench_store.difference(live, read, {"masked": True}, mask) == 0.0
-    assert bench_store.difference(live, read, {}, None) > 0
-    assert bench_store.difference(live, live + 5.0, {"topk": 2}, None) == pytest.approx(0.0, abs=1e-6)
+    assert store_compare.difference(live, read, {"masked": True}, mask) == 0.0
+    assert store_compare.difference(live, read, {}, None) > 0
+    assert store_compare.difference(live, live + 5.0, {"topk": 2}, None) == pytest.approx(0.0, abs=1e-6)
 
 
 def _mib(row: dict) -> float:

@@ -105,7 +105,9 @@ def test_cli_runs_each_seed_and_writes_the_table(tmp_path: Path, capsys) -> None
     assert main(["run", str(recipe), "-o", str(out), "-q", "--seed", "0", "1"]) == 0
     text = (out / "tiny" / "seeds.md").read_text()
     assert "seeds 0, 1" in text and "paired difference" in text and "'plain'" in text
-    table = [line for line in text.splitlines() if line.startswith("| ") and "---" not in line][1:]
+    main_table, ranked = text.split("## All methods at once, by rank")  # two methods and the baseline: ranks too
+    table = [line for line in main_table.splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert "| row | average rank |" in ranked and (out / "tiny" / "seeds_cd.png").is_file()
     assert sorted(line.split(" | ")[0].strip("| ") for line in table) == ["plain", "student", "teacher"]
     assert all(" ± " in line for line in table)
     assert len(list((out / "tiny").glob("student-*"))) == 2  # one run per seed

@@ -49,7 +49,7 @@ def job_state(job: str) -> tuple[str, int]:
 def table(path: Path) -> list[dict[str, str]]:
     """The results' rows without what may differ between launchers (the wall-clock time, the folder)."""
     with open(path, newline="") as f:
-        return [{k: v for k, v in row.items() if k not in ("train_seconds", "run_dir")} for row in csv.DictReader(f)]
+        return [{k: v for k, v in row.items() if k not in ("train_seconds", "input_wait_seconds", "run_dir")} for row in csv.DictReader(f)]
 
 
 def test_a_sweep_on_slurm_requeues_a_preempted_run_and_equals_the_local_launcher_bit_for_bit(tmp_path) -> None:

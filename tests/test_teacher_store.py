@@ -48,6 +48,8 @@ def test_a_student_from_the_store_equals_the_student_with_the_live_teacher_bit_f
     live, stored = _weights(results["student"]), _weights(results["student_stored"])
     assert set(live) == set(stored) and all(torch.equal(live[k], stored[k]) for k in live)
     assert _losses(results["student"]) == _losses(results["student_stored"])
+    for r in results.values():  # the loop's time waiting for the loader's batches (the store read with them)
+        assert 0 < r.summary["input_wait_seconds"] < r.summary["train_seconds"]
     (store,) = (tmp_path / "runs" / "tiny").glob("teacher-store-*")
     manifest = json.loads((store / "manifest.json").read_text())
     assert manifest["draws"] == (8 if augment else 1) and manifest["taps"] and manifest["bytes"] > 0
@@ -225,3 +227,33 @@ def test_the_quickstart_students_from_a_store_equal_the_live_ones(tmp_path) -> N
         assert scores[0] == scores[1], name  # every score the same (the forward's timing aside)
     # DIST reads the teacher's logits, DSKD its sparse features: one store for each set of taps
     assert len(list((tmp_path / "runs" / "quickstart").glob("teacher-store-*"))) == 2
+
+
+@pytest.mark.slow
+def test_a_paper_size_js3cnet_student_from_the_store_equals_the_live_one(tmp_path) -> None:
+    """recipes/paper/js3cnet.yaml at the paper's sizes (JS3C-Net at ``size: paper`` on the full 256 x 256 x 32 grid of
+    the synthetic streets, a 5-scan teacher, a 1-scan DSKD student on the sparse completion features, the paper's
+    flips and quarter turns): two steps of the student from the teacher's store (each sample under the 8 draws of
+    the group) equal two steps with the live teacher bit for bit, weights, losses and test scores."""
+    from distilkit.bench.fixtures import paper_recipe
+
+    recipe = paper_recipe("js3cnet", quick=False, test=False, num_train=1)
+    del recipe["stages"]["student"]
+    for name, steps in (("teacher", 1), ("student_dskd", 2)):
+        train = recipe["stages"][name]["train"]
+        train.pop("epochs")
+        train.update(steps=steps, batch_size=1)
+    stored = copy.deepcopy(recipe["stages"]["student_dskd"])
+    stored["teacher"] = {"from": "teacher", "store": True}
+    stored.pop("label", None)
+    recipe["stages"]["student_dskd_stored"] = stored
+    results = {r.name: r for r in Pipeline(recipe_from_dict(recipe), tmp_path / "runs", quiet=True).run()}
+    live, from_store = _weights(results["student_dskd"]), _weights(results["student_dskd_stored"])
+    assert set(live) == set(from_store) and all(torch.equal(live[k], from_store[k]) for k in live)
+    assert _losses(results["student_dskd"]) == _losses(results["student_dskd_stored"])
+    scores = [{which: {k: v for k, v in results[n].summary["test"][which].items() if k != "seconds_per_sample"}
+               for which in ("best", "last")} for n in ("student_dskd", "student_dskd_stored")]
+    assert scores[0] == scores[1]
+    (store,) = (tmp_path / "runs" / "js3cnet_paper").glob("teacher-store-*")
+    manifest = json.loads((store / "manifest.json").read_text())
+    assert manifest["draws"] == 8 and len(manifest["samples"]) == 1

@@ -5,6 +5,7 @@ LiDiff models, and each family's network on one sample at the papers' sizes (:fu
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -70,6 +71,37 @@ def data_sizes(quick: bool, test: bool = False) -> dict[str, dict[str, Any]]:
     scenes = {"scan_points": scan, "scene_points": 10 * scan, "num_train": 1, "num_val": 1, "num_test": 1,
               "azimuth_steps": 1024 if quick else 2048}
     return {"lidar": lidar, "camera": camera, "scenes": scenes}
+
+
+PAPER_RECIPES = Path(__file__).resolve().parents[2] / "recipes" / "paper"  # the checkout's paper recipes
+
+
+def paper_recipe(name: str, quick: bool, test: bool, device: str = "cpu", num_train: int | None = None,
+                 tiny: bool = False) -> dict[str, Any]:
+    """Paper recipe ``name`` (``recipes/paper/NAME.yaml``) as a dict with its ``data`` at the bench's sizes
+    (:func:`data_sizes`): its synthetic scenes resized, or its SemanticKITTI folder replaced by the synthetic streets
+    at the same sizes with the recipe's scans (``input_frames``) and camera frames; every stage on ``device``;
+    ``num_train``: that many training samples; ``tiny``: every network at ``size: tiny``."""
+    import yaml
+
+    recipe = yaml.safe_load((PAPER_RECIPES / f"{name}.yaml").read_text())
+    sizes, params = data_sizes(quick, test), dict(recipe["data"].get("params") or {})
+    if recipe["data"]["dataset"] == "synthetic-scenes":
+        data = {"dataset": "synthetic-scenes", "params": {**params, **sizes["scenes"]}}
+    else:
+        lidar = {**sizes["lidar"], "input_frames": int(params.get("input_frames", 1))}
+        if params.get("camera") is not None:
+            lidar["camera"] = {**sizes["camera"]["camera"], "previous": list(params["camera"].get("previous", []))}
+        data = {"dataset": "synthetic-lidar", "params": lidar}
+    if num_train is not None:
+        data["params"]["num_train"] = num_train
+    recipe["data"] = data
+    for spec in recipe["stages"].values():
+        spec.setdefault("train", {})["device"] = device
+        model_params = (spec.get("model") or {}).get("params") or {}
+        if tiny and "size" in model_params:
+            model_params["size"] = "tiny"
+    return recipe
 
 
 def network_cases(quick: bool, test: bool = False, sizes: tuple[str, ...] = ("tiny", "paper")) -> list[NetworkCase]:

@@ -117,8 +117,12 @@ def _run_bench(names: list[str], device: str, quick: bool, repeat: int | None, o
     if late:
         notes.append(f"skipped — the time limit of {time_limit:.0f} s was reached before they started: "
                      + "; ".join(late))
-    table = Table(title=f"distilkit bench — forward+backward, {dev.type}, torch {torch.__version__}, "
-                        f"{torch.get_num_threads()} threads")
+    table = Table(title=f"distilkit bench — {dev.type}, torch {torch.__version__}, {torch.get_num_threads()} threads "
+                        "(ms: forward + backward unless the benchmark's rows time something else, as their notes say)")
+    if dev.type == "cpu" and any(c["fast peak"] not in ("n/a", "—") for c in cells):
+        notes.append("peak (CPU): the process's resident high-water mark above what it held before the row "
+                     "(/proc/self/status VmHWM after clear_refs): a lower bound — memory the allocator already held "
+                     "and reuses does not count; on CUDA it is the allocator's exact peak")
     columns = ["objective", "size", "fast ms", "fast peak"]
     if not cells or any(c[col] != "—" for c in cells for col in COMPARED):  # some row compares two forms
         columns += COMPARED

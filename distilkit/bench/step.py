@@ -37,20 +37,19 @@ import dataclasses
 import functools
 import gc
 import traceback
-from pathlib import Path
 from typing import Any, Callable
 
 import torch
 from torch import Tensor
 
 from distilkit.bench.base import Case, Skipped, register, scratch_dir
-from distilkit.bench.fixtures import NetworkCase, build, data_sizes, network_cases, tap_loss
+from distilkit.bench.fixtures import (PAPER_RECIPES, NetworkCase, build, data_sizes, network_cases, paper_recipe,
+                                      tap_loss)
 from distilkit.bench.measure import held_bytes, measure_step
 from distilkit.engine.train.precision import AUTOCAST, autocast
 
 PRECISIONS = ("fp32", "bf16", "fp16")
 LIBRARIES = ("spconv", "spconv-triton")
-RECIPES = Path(__file__).resolve().parents[2] / "recipes" / "paper"  # the checkout's paper recipes
 # family -> (paper recipe, the stage that trains the network: its batch as a student; the stage it teaches, if any)
 STAGES = {"SCPNet": ("scpnet", "student", "student_dskd"), "JS3C-Net": ("js3cnet", "student", "student_dskd"),
           "LiDiff": ("scorelidar", "teacher", "student"), "LiDiff refine": ("scorelidar", "refiner", None),
@@ -154,24 +153,11 @@ def network_subject(case: NetworkCase, role: str, batch_size: int, device: torch
     return Subject(learn, held, uses_sparse(model), scaler if scaler.is_enabled() else None)
 
 
-def recipe_data(recipe: dict[str, Any], quick: bool, test: bool) -> dict[str, Any]:
-    """The recipe's ``data`` at the bench's sizes: its synthetic scenes resized, or a SemanticKITTI folder replaced
-    by the synthetic streets at the same sizes with the recipe's scans (``input_frames``) and camera frames."""
-    sizes = data_sizes(quick, test)
-    params = dict(recipe["data"].get("params") or {})
-    if recipe["data"]["dataset"] == "synthetic-scenes":
-        return {"dataset": "synthetic-scenes", "params": {**params, **sizes["scenes"]}}
-    lidar = {**sizes["lidar"], "input_frames": int(params.get("input_frames", 1))}
-    if params.get("camera") is not None:
-        lidar["camera"] = {**sizes["camera"]["camera"], "previous": list(params["camera"].get("previous", []))}
-    return {"dataset": "synthetic-lidar", "params": lidar}
-
-
 def load(name: str) -> dict[str, Any]:
     """Paper recipe ``name`` as its YAML reads."""
     import yaml
 
-    return yaml.safe_load((RECIPES / f"{name}.yaml").read_text())
+    return yaml.safe_load((PAPER_RECIPES / f"{name}.yaml").read_text())
 
 
 @functools.cache
@@ -185,12 +171,10 @@ def resolved(name: str, stage: str, device: torch.device, quick: bool, test: boo
     from distilkit.engine.assemble.resolve import resolve
     from distilkit.recipe import recipe_from_dict
 
-    recipe = load(name)
-    recipe["data"] = recipe_data(recipe, quick, test)
-    for spec in recipe["stages"].values():
-        spec.setdefault("train", {})["device"] = device.type
+    recipe = paper_recipe(name, quick, test, device.type)
     recipe["stages"][stage]["train"]["precision"] = precision
-    return resolve(recipe_from_dict(recipe, str(RECIPES / f"{name}.yaml")), str(RECIPES / f"{name}.yaml"))
+    path = str(PAPER_RECIPES / f"{name}.yaml")
+    return resolve(recipe_from_dict(recipe, path), path)
 
 
 def recipe_subject(name: str, stage: str, device: torch.device, quick: bool, test: bool, precision: str) -> Subject:
@@ -320,13 +304,13 @@ def step_cases(device: torch.device, quick: bool, test: bool = False) -> list[Ca
     backends, lines, refused = backends_here(device, precisions)
     combos = [(p, b) for p in precisions for b in backends]
     cases += lines
-    if not RECIPES.is_dir():
+    if not PAPER_RECIPES.is_dir():
         cases.append(Case("step: paper recipes", "every one", lambda: torch.zeros(()), None, [],
-                          skipped=f"{RECIPES} is not here (the recipes are a checkout's, not the package's); the "
+                          skipped=f"{PAPER_RECIPES} is not here (the recipes are a checkout's, not the package's); the "
                                   f"networks run at batch 1"))
     cases += network_rows(device, quick, test, [c for c in combos if (c[1], c[0], True) not in refused],
                           [c for c in combos if (c[1], c[0], False) not in refused])
-    if RECIPES.is_dir():
+    if PAPER_RECIPES.is_dir():
         cases += recipe_rows(device, quick, test, [c for c in combos if (c[1], c[0], True) not in refused])
     return cases
 
@@ -340,7 +324,7 @@ def network_rows(device: torch.device, quick: bool, test: bool, learning: list[t
         recipe, trains, teaches = STAGES[case.family]
         for role, combos in (("student", learning), ("teacher", looking)):
             stage = teaches if role == "teacher" and teaches is not None else trains
-            batch = recipe_batch(recipe, stage) if RECIPES.is_dir() else 1
+            batch = recipe_batch(recipe, stage) if PAPER_RECIPES.is_dir() else 1
             subject_case = case if role == "student" else dataclasses.replace(
                 case, params={**case.params, **TEACHER_PARAMS.get(case.family, {})})
             what = case.what + ("; one sampler step" if role == "teacher" and case.family in TEACHER_PARAMS else "")
@@ -355,9 +339,9 @@ def recipe_rows(device: torch.device, quick: bool, test: bool, combos: list[tupl
     ``combos``, at its batch size."""
     cases = []
     sizes = data_sizes(quick, test)
-    for path in sorted(RECIPES.glob("*.yaml")):
-        recipe = load(path.stem)
-        data = recipe_data(recipe, quick, test)["params"]
+    for path in sorted(PAPER_RECIPES.glob("*.yaml")):
+        recipe = paper_recipe(path.stem, quick, test)
+        data = recipe["data"]["params"]
         if "scan_points" in data:
             what = f"{data['scan_points']:,} -> {data['scene_points']:,} points"
         else:

@@ -10,8 +10,10 @@ Then one row per layout of :data:`LAYOUTS`: the stage's taps of :data:`SAMPLES` 
 them (``sample_tensors``, ``write_shard``, a manifest) and read back through ``TeacherOutputs.batch`` one sample a
 batch — the median read a sample over :data:`READS` reads after the first (``fast ms``; the first, which opens the
 shard and checks its SHA-256: ``1st read ms``), bytes a sample on disk, each tap's largest absolute difference from
-the live teacher (masked layouts: inside the mask; top-k: of the softmax probabilities), forward time over read
-time, and whether ``validate`` accepts the layout for the stage.
+the live teacher (masked layouts: inside the mask; top-k: of the softmax probabilities), each distillation term's
+value with the read-back outputs against its value with the live ones (the same outputs of the stage's student, with
+random weights; absolute and relative: :mod:`~distilkit.bench.store_compare`), forward time over read time, and
+whether ``validate`` accepts the layout for the stage.
 """
 
 from __future__ import annotations
@@ -32,9 +34,9 @@ from torch import Tensor
 
 from distilkit.bench.base import (Case, Skipped, peak_bytes, peak_reset, register, resident_bytes, scratch_dir,
                                   time_left)
-from distilkit.bench.fixtures import data_sizes
+from distilkit.bench.fixtures import PAPER_RECIPES, paper_recipe
+from distilkit.bench.store_compare import difference, mask_of, term_differences, values
 
-RECIPES = Path(__file__).resolve().parents[2] / "recipes" / "paper"  # the checkout's paper recipes
 FAMILIES = {"scpnet": "SCPNet", "js3cnet": "JS3C-Net", "voxformer": "VoxFormer", "lidiff": "LiDiff"}
 SAMPLES = 2  # samples stored per layout
 REPEAT = 3  # timed forwards at most (after the warm-up)
@@ -66,6 +68,10 @@ class Subject:
     timed: int  # forwards timed
     draws: int  # draws of train.augment a store holds each sample under
     bytes: dict[str, float] = dataclasses.field(default_factory=dict)  # layout -> bytes a sample (rows run)
+    trainer: Any = None  # the stage's (its teacher dropped once the outputs are taken)
+    batches: list[Any] = dataclasses.field(default_factory=list)  # the samples, prepared
+    student: list[dict[str, Any]] = dataclasses.field(default_factory=list)  # the student's outputs (random weights)
+    terms: list[dict[str, float]] = dataclasses.field(default_factory=list)  # each term's value, live teacher
 
 
 _RESIDENT: dict[str, Subject] = {}  # the one family built, released before another is built
@@ -81,56 +87,31 @@ def release() -> None:
 
 
 def resolved(name: str, device: torch.device, quick: bool, test: bool) -> Any:
-    """Paper recipe ``name`` resolved on the synthetic streets at the bench's sizes (its SemanticKITTI folder
-    replaced, with its scans and camera frames; :data:`SAMPLES` training samples), its stages on ``device``;
-    ``test``: every network at ``size: tiny``."""
-    import yaml
-
+    """Paper recipe ``name`` resolved on the synthetic streets at the bench's sizes (:func:`paper_recipe`;
+    :data:`SAMPLES` training samples), its stages on ``device``; ``test``: every network at ``size: tiny``."""
     from distilkit.engine.assemble.resolve import resolve
     from distilkit.recipe import recipe_from_dict
 
-    path = RECIPES / f"{name}.yaml"
-    recipe = yaml.safe_load(path.read_text())
-    sizes, params = data_sizes(quick, test), dict(recipe["data"].get("params") or {})
-    if recipe["data"]["dataset"] == "synthetic-scenes":
-        recipe["data"] = {"dataset": "synthetic-scenes", "params": {**params, **sizes["scenes"],
-                                                                     "num_train": SAMPLES}}
-    else:
-        lidar = {**sizes["lidar"], "input_frames": int(params.get("input_frames", 1)), "num_train": SAMPLES}
-        if params.get("camera") is not None:
-            lidar["camera"] = {**sizes["camera"]["camera"], "previous": list(params["camera"].get("previous", []))}
-        recipe["data"] = {"dataset": "synthetic-lidar", "params": lidar}
-    for spec in recipe["stages"].values():
-        spec.setdefault("train", {})["device"] = device.type
-        model_params = (spec.get("model") or {}).get("params") or {}
-        if test and "size" in model_params:
-            model_params["size"] = "tiny"
-    return resolve(recipe_from_dict(recipe, str(path)), str(path))
+    path = str(PAPER_RECIPES / f"{name}.yaml")
+    recipe = paper_recipe(name, quick, test, device.type, num_train=SAMPLES, tiny=test)
+    return resolve(recipe_from_dict(recipe, path), path)
 
 
 def build(name: str, stage_name: str, device: torch.device, quick: bool, test: bool) -> Subject:
-    """The stage's teacher (and the auxiliary models that make its inputs) on :data:`SAMPLES` samples: a warm-up
-    forward (sample 0's output), then up to :data:`REPEAT` timed ones on sample 1 (its output: the last)."""
+    """The stage as its trainer builds it (teacher, student with random weights, terms sized on sample 0) on
+    :data:`SAMPLES` samples: a warm-up forward of the teacher (sample 0's output), up to :data:`REPEAT` timed ones on
+    the last sample (its output: the last); the student's outputs and each term's value with the live teacher's."""
     from distilkit.data.augment import Augmentation
-    from distilkit.engine.assemble.runs import build_model, freeze
-    from distilkit.engine.train.auxiliary import with_aux_inputs
+    from distilkit.engine.memory.probe import probe_trainer
     from distilkit.engine.train.precision import autocast
     from distilkit.engine.train.teacher_store import store_labels, store_taps
-    from distilkit.registry import DATASETS
 
     if time_left() <= 0:
         raise Skipped("the time limit ran out before its teacher ran")
     res = resolved(name, device, quick, test)
-    stage = res.stages[stage_name]
-    entry = DATASETS.entry(res.recipe.data.dataset)
-    info = entry.meta["info"](res.data_params)
-    train_set = entry.obj(res.data_params, "train", None)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(0)
-        teacher = freeze(build_model(stage.teacher, info, "teacher").to(device))
-        aux = [(a, freeze(build_model(a.model, info, f"aux model {a.name!r}").to(device))) for a in stage.aux]
-    batches = [with_aux_inputs(entry.meta["collate"]([train_set[i]]).to(device), aux, training=True)
-               for i in range(SAMPLES)]
+    trainer = probe_trainer(res, stage_name, res.data_params, scratch_dir("run-"))
+    stage, info, train_set, teacher = trainer.stage, trainer.info, trainer.train_set, trainer.teacher
+    batches = [trainer.prepare(trainer.collate([train_set[i]])) for i in range(SAMPLES)]
     taps, precision = store_taps(stage), stage.spec.train.precision
 
     def forward(i: int) -> dict[str, Any]:
@@ -155,10 +136,15 @@ def build(name: str, stage_name: str, device: torch.device, quick: bool, test: b
         times.append((time.perf_counter() - t0) * 1000)
     peak = peak_bytes(device, base)
     outputs += [forward(i) for i in range(1, SAMPLES - 1)] + [last]
+    trainer.teacher = None  # the terms below read the outputs given them
+    with torch.no_grad(), autocast(device, precision):
+        student = [trainer.student(b) for b in batches]
+    live = [values(trainer, s_out, t_out, b) for s_out, t_out, b in zip(student, outputs, batches)]
     labels = [b.field(store_labels(stage))[0].cpu() for b in batches]
     draws = Augmentation(stage.spec.train.augment, info.grid).draws if stage.spec.train.augment is not None else 1
     ids = [str(train_set.sample_id(i)) if hasattr(train_set, "sample_id") else str(i) for i in range(SAMPLES)]
-    return Subject(stage, info, taps, ids, outputs, labels, statistics.median(times), peak, timed, draws)
+    return Subject(stage, info, taps, ids, outputs, labels, statistics.median(times), peak, timed, draws,
+                   trainer=trainer, batches=batches, student=student, terms=live)
 
 
 def subject(key: str, make: Callable[[], Subject]) -> Subject:
@@ -186,12 +172,6 @@ def subject(key: str, make: Callable[[], Subject]) -> Subject:
     return _RESIDENT[key]
 
 
-def mask_of(labels: Tensor, voxels: str, ignore: int) -> Tensor | None:
-    """The voxels a masked layout keeps, as a store's build chooses them (None: every voxel)."""
-    keep = labels != ignore
-    return None if voxels == "all" else keep & (labels != 0) if voxels == "occupied" else keep
-
-
 def write_store(sub: Subject, spec: Any, folder: Path) -> list[Tensor | None]:
     """The subject's samples stored in ``spec``'s layout as one shard and a manifest; the masks used."""
     from distilkit.engine.store.teacher_outputs import FORMAT, MANIFEST, sample_tensors, tap_layout, write_shard
@@ -208,30 +188,6 @@ def write_store(sub: Subject, spec: Any, folder: Path) -> list[Tensor | None]:
                 "shards": [shard], "bytes": entry["bytes"]}
     (folder / MANIFEST).write_text(json.dumps(manifest))
     return masks
-
-
-def difference(live: Any, read: Any, meta: dict[str, Any], mask: Tensor | None) -> float:
-    """The largest absolute difference between a tap as read back and the live teacher's: sparse features' and
-    points' values (inf where their coordinates or counts differ); a dense tap's, inside ``mask`` where the layout
-    stored it masked, of its softmax over the classes where it stored the top-k."""
-    from distilkit.structures import PointCloud, SparseVoxels
-
-    if isinstance(live, SparseVoxels):
-        if not torch.equal(live.coords.cpu(), read.coords.cpu()):
-            return float("inf")
-        a, b = live.feats.cpu().float(), read.feats.cpu().float()
-    elif isinstance(live, PointCloud):
-        if not torch.equal(live.lengths.cpu(), read.lengths.cpu()):
-            return float("inf")
-        n = int(live.lengths[0])
-        a, b = live.points[0, :n].cpu().float(), read.points[0, :n].cpu().float()
-    else:
-        a, b = live[0].cpu().float(), read[0].cpu().float()
-        if meta.get("topk"):
-            a, b = a.softmax(0), b.softmax(0)
-        if meta.get("masked") and mask is not None:
-            a, b = a[:, mask], b[:, mask]
-    return float((a - b).abs().max()) if a.numel() else 0.0
 
 
 def read_row(sub: Subject, layout: str, device: torch.device, case: Case) -> tuple[float, int | None, float]:
@@ -270,6 +226,7 @@ def read_row(sub: Subject, layout: str, device: torch.device, case: Case) -> tup
         shutil.rmtree(folder, ignore_errors=True)
     worst = {tap: max(difference(live[tap], got[tap], store.taps[tap], mask)
                       for live, got, mask in zip(sub.outputs, read, masks)) for tap in sub.taps}
+    terms = term_differences(sub, read)
     ms, sub.bytes[layout] = statistics.median(times), size
     reference = sub.bytes.get("float32")
     refused = layout_problems(spec, sub.stage.distill, sub.stage.teacher.taps, sub.info, "teacher.store")
@@ -278,9 +235,11 @@ def read_row(sub: Subject, layout: str, device: torch.device, case: Case) -> tup
         "vs float32": f"{size / reference:.2f}×" if reference else "—",
         "1st read ms": f"{first:,.1f}", "max |Δ|": "; ".join(f"{tap} {d:.1e}" if d else f"{tap} 0"
                                                                for tap, d in worst.items()),
+        "terms |Δ| (rel.)": "; ".join(f"{key[3:]} {d:.1e} ({r:.0e})" if d else f"{key[3:]} 0"
+                                      for key, (d, r) in terms.items()),
         "fwd/read": f"{sub.forward_ms / ms:,.0f}×" if sub.forward_ms / ms >= 10 else f"{sub.forward_ms / ms:.1f}×",
         "validate": "refuses" if refused else "accepts"})
-    case.figures.update(bytes=size, first_ms=first, read_ms=ms, difference=worst,  # type: ignore[attr-defined]
+    case.figures.update(bytes=size, first_ms=first, read_ms=ms, difference=worst, terms=terms,  # type: ignore[attr-defined]
                         forward_ms=sub.forward_ms, refused=[why for _, why in refused], meta=store.taps)
     return ms, peak, max(worst.values(), default=0.0)
 
@@ -342,12 +301,12 @@ def teacher_store_cases(device: torch.device, quick: bool, test: bool = False) -
     import yaml
 
     _FAILED.clear()
-    if not RECIPES.is_dir():
+    if not PAPER_RECIPES.is_dir():
         return [Case("teacher-store: paper recipes", "every one", lambda: torch.zeros(()), None, [],
-                     skipped=f"{RECIPES} is not here (the recipes are a checkout's, not the package's)")]
+                     skipped=f"{PAPER_RECIPES} is not here (the recipes are a checkout's, not the package's)")]
     size = "tiny" if test else "paper"
     cases = []
-    for path in sorted(RECIPES.glob("*.yaml")):
+    for path in sorted(PAPER_RECIPES.glob("*.yaml")):
         recipe = yaml.safe_load(path.read_text())
         for stage, spec in recipe["stages"].items():
             if not spec.get("distill") or "from" not in (spec.get("teacher") or {}):
@@ -395,5 +354,5 @@ def forward_figures(sub: Subject, case: Case) -> tuple[float, int | None, float]
     return sub.forward_ms, sub.forward_peak, 0.0
 
 
-__all__ = ["LAYOUTS", "READS", "REPEAT", "SAMPLES", "Subject", "build", "difference", "mask_of", "release",
+__all__ = ["LAYOUTS", "READS", "REPEAT", "SAMPLES", "Subject", "build", "release",
            "resolved", "row_case", "teacher_store_cases", "write_store"]

@@ -39,6 +39,7 @@ class Loop:
     per_class: dict[str, list[str]] = field(default_factory=dict)  # a per-class score's key -> its entries' classes
     t0: float = field(default_factory=time.perf_counter)
     seconds: float = 0.0  # the loop's time, once it has ended
+    waited: float = 0.0  # of it, the time spent waiting for the loader's next batch (this process's steps)
     # what the stage's run provides
     _log: Callable[[dict[str, Any]], None] = lambda record: None
     _evaluate: Callable[[], dict[str, Any]] = lambda: {}

@@ -50,7 +50,8 @@ def ssc_scores(confusion: Tensor | np.ndarray) -> dict[str, Any]:
 
     Returns ``iou``, ``precision``, ``recall`` (class-agnostic completion: occupied = class >= 1),
     ``class_iou`` (list for classes 1..K-1; a class with no prediction and no ground truth scores 0)
-    and ``miou`` (their mean).
+    and ``miou`` (their mean), and ``class_voxels`` (the ground truth's voxels of classes 1..K-1: how often each is
+    seen, which orders the classes of a per-class comparison).
     """
     conf = np.asarray(confusion, dtype=np.float64)
     if conf.ndim != 2 or conf.shape[0] != conf.shape[1]:
@@ -71,6 +72,7 @@ def ssc_scores(confusion: Tensor | np.ndarray) -> dict[str, Any]:
         "recall": float(recall),
         "class_iou": [float(v) for v in class_iou[1:]],
         "miou": float(class_iou[1:].mean()),
+        "class_voxels": [int(v) for v in conf.sum(axis=0)[1:]],
     }
 
 

@@ -21,6 +21,12 @@ from distilkit.errors import DistilkitError
 from distilkit.report import plots
 
 
+def waited(summary: dict[str, Any]) -> str:
+    """``" (W s of it waiting for the loader's batches)"`` where the summary records it (older runs do not)."""
+    wait = summary.get("input_wait_seconds")
+    return "" if wait is None else f" ({wait:g} s of it waiting for the loader's batches)"
+
+
 def read_run(run_dir: str | Path) -> tuple[Path, dict[str, Any]]:
     """A finished run's folder and summary; a clear error for anything else."""
     path = Path(run_dir)
@@ -78,7 +84,8 @@ def write_run_report(run_dir: str | Path) -> Path:
              f"Stage `{summary['stage']}` of recipe `{resolved.get('recipe', '?')}`, run `{path.name}`: "
              f"{summary.get('adapter', '?')} ({summary.get('input', '')}), teacher {summary.get('teacher') or '—'}, "
              f"distillation {', '.join(summary.get('objectives', [])) or '—'}; seed {summary.get('seed', '?')}, "
-             f"{summary.get('steps', '?')} steps in {summary.get('train_seconds', '?')} s.", "",
+             f"{summary.get('steps', '?')} steps in {summary.get('train_seconds', '?')} s"
+             f"{waited(summary)}.", "",
              f"## Scores ({row['split']} split, {view.title})", "",
              f"'best' = the checkpoint with the best validation {view.main[1]}"
              f"{' (lowest)' if view.lower_is_better else ''}; 'last' = the final step.", "",

@@ -127,6 +127,9 @@ def stage_row(summary: dict[str, Any]) -> dict[str, Any]:
             "val": val.get(view.select, nan),
             "best_step": _step(test.get("best_step", summary.get("best", {}).get("step"))),
             "steps": summary.get("steps"), "class_scores": best.get(view.per_class[0], []) if view.per_class else [],
+            "class_names": list((summary.get("classes") or {}).get("names", []))[view.first_class:]
+            if view.per_class else [],
+            "class_voxels": best.get("class_voxels", []),  # the split's ground-truth voxels of each class
             "split": summary.get("report_split", "val") or UNSCORED}
 
 

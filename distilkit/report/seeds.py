@@ -16,6 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from distilkit.files import atomic_write_text
+from distilkit.report import classes, family
+from distilkit.report.multiple import t_interval, t_quantile as _t_quantile
 from distilkit.report.scores import ScoreView, stage_row
 
 
@@ -74,8 +76,11 @@ def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None,
         row["delta"] = paired
         row["delta_mean"], row["delta_std"] = _mean_std(paired) if paired else (math.nan, math.nan)
         row["delta_ci"] = t_interval(paired)
+        row["class_iou"] = {s: by_seed[s]["class_scores"] for s in got if by_seed[s]["class_scores"]}
+        row["class_names"], row["class_voxels"] = first["class_names"], first["class_voxels"]
         rows.append(row)
     choose_on_validation(rows)
+    family.annotate(rows)  # Holm and simultaneous intervals over the methods at their chosen weights
     return rows
 
 
@@ -113,22 +118,6 @@ def detectable_effect(std: float, n: int, power: float = 0.8, level: float = 0.9
     return (_t_quantile(0.5 + level / 2, n - 1) + _t_quantile(power, n - 1)) * std / math.sqrt(n)
 
 
-def _t_quantile(p: float, df: int) -> float:
-    """Student's t quantile (``scipy.special.stdtrit``: the value of ``scipy.stats.t.ppf``, without importing
-    scipy.stats — half a second in every process that writes a table)."""
-    from scipy.special import stdtrit
-
-    return float(stdtrit(df, p))
-
-
-def t_interval(xs: list[float], level: float = 0.95) -> tuple[float, float]:
-    """The two-sided ``level`` Student-t interval of the mean of ``xs`` (nan for fewer than two values)."""
-    if len(xs) < 2 or any(math.isnan(x) for x in xs):
-        return math.nan, math.nan
-    mean, half = statistics.fmean(xs), _t_quantile(0.5 + level / 2, len(xs) - 1) * statistics.stdev(xs) / math.sqrt(len(xs))
-    return mean - half, mean + half
-
-
 def _pm(mean: float, std: float, scale: float = 100.0, sign: str = "") -> str:
     value = f"{scale * mean:{sign}.2f}" if scale != 1.0 else f"{mean:{sign}.4g}"
     if math.isnan(std):
@@ -136,15 +125,20 @@ def _pm(mean: float, std: float, scale: float = 100.0, sign: str = "") -> str:
     return f"{value} ± {scale * std:.2f}" if scale != 1.0 else f"{value} ± {std:.2g}"
 
 
-def _deltas(row: dict[str, Any]) -> tuple[str, str, str]:
+def _deltas(row: dict[str, Any], corrected: bool = False) -> tuple[str, ...]:
+    """Per seed, mean ± std, the interval (and, in a table with a family, Holm's p and the simultaneous interval)."""
     if not row["delta"]:
-        return "—", "—", "—"
+        return ("—",) * (5 if corrected else 3)
     scale = row["view"].main[2]
     one = (lambda d: f"{scale * d:+.2f}") if scale != 1.0 else (lambda d: f"{d:+.4g}")
     per_seed = " / ".join(one(d) for d in row["delta"])
-    low, high = row["delta_ci"]
-    ci = "—" if math.isnan(low) else f"[{one(low)}, {one(high)}]"
-    return per_seed, _pm(row["delta_mean"], row["delta_std"], scale, "+"), ci
+
+    def interval(low: float, high: float) -> str:
+        return "—" if math.isnan(low) else f"[{one(low)}, {one(high)}]"
+    out = (per_seed, _pm(row["delta_mean"], row["delta_std"], scale, "+"), interval(*row["delta_ci"]))
+    if corrected:
+        out += (family.p_cell(row), interval(*row["sim_ci"]) if "sim_ci" in row else "—")
+    return out
 
 
 def _view(rows: list[dict[str, Any]]) -> ScoreView | None:
@@ -156,20 +150,21 @@ def _per_row(rows: list[dict[str, Any]], baseline: str | None) -> bool:
     return any(r.get("reference") not in (None, baseline) for r in rows)
 
 
-def _headers(view: ScoreView | None, split: str = "test", per_row: bool = False) -> list[str]:
+def _headers(view: ScoreView | None, split: str = "test", per_row: bool = False, corrected: bool = False) -> list[str]:
     main = view.main[1] if view else "score"
     second = view.second[1] if view and view.second else "—"
     return [f"val {main} (selects)", f"{split} {main} best", f"{split} {second} best", f"{split} {main} last",
-            *(["Δ to"] if per_row else []), f"Δ {split} {main} per seed", f"Δ {split} {main}", "Δ 95 % interval"]
+            *(["Δ to"] if per_row else []), f"Δ {split} {main} per seed", f"Δ {split} {main}", "Δ 95 % interval",
+            *(["p Holm", "simultaneous 95 %"] if corrected else [])]
 
 
-def _cells(row: dict[str, Any], per_row: bool = False) -> list[str]:
+def _cells(row: dict[str, Any], per_row: bool = False, corrected: bool = False) -> list[str]:
     view: ScoreView = row["view"]
     second = view.second[2] if view.second else 1.0
     ref = [row.get("reference") or "—"] if per_row else []
     return [_pm(row["val_mean"], row["val_std"], view.main[2]), _pm(row["main_mean"], row["main_std"], view.main[2]),
             _pm(row["second_mean"], row["second_std"], second),
-            _pm(row["last_main_mean"], row["last_main_std"], view.main[2]), *ref, *_deltas(row)]
+            _pm(row["last_main_mean"], row["last_main_std"], view.main[2]), *ref, *_deltas(row, corrected)]
 
 
 def _mark(row: dict[str, Any]) -> str:
@@ -200,16 +195,18 @@ def seeds_table(rows: list[dict[str, Any]], baseline: str | None, what: str = "d
     from rich.table import Table
 
     seeds = sorted({s for r in rows for s in r["seeds"]})
-    per_row = _per_row(rows, baseline)
+    per_row, info = _per_row(rows, baseline), family.of(rows)
     to = "the stage in 'Δ to'" if per_row else f"'{baseline or '—'}'"
+    corrected = (f"; over the family of {info['k']} methods at their chosen weights: Holm-adjusted p and "
+                 f"simultaneous 95 % intervals ({info['method']})" if info else "")
     table = Table(title=f"{what} {', '.join(map(str, seeds))} — {_split(rows)} split, mean ± std over seeds, "
-                        f"{_rule(rows)}; Δ = paired difference to {to} with its 95 % t-interval")
-    headers = _headers(_view(rows), _split(rows), per_row)
+                        f"{_rule(rows)}; Δ = paired difference to {to} with its 95 % t-interval{corrected}")
+    headers = _headers(_view(rows), _split(rows), per_row, info is not None)
     keep = [i for i, h in enumerate(headers) if "per seed" not in h]  # per seed: in the Markdown and the CSV
     for col in (first, "distillation", *[headers[i] for i in keep]):
         table.add_column(col, justify="left" if col in (first, "distillation") else "right")
     for row in rows:
-        cells = _cells(row, per_row)
+        cells = _cells(row, per_row, info is not None)
         table.add_row(_mark(row), row["objectives"], *[cells[i] for i in keep])
     if _weighs(rows):
         table.caption = "◆ = of a method's weights, the one with the best mean validation score (the test split chose nothing)"
@@ -234,43 +231,47 @@ def power_note(rows: list[dict[str, Any]]) -> str:
             "repetitions; smaller effects can go unseen, and an interval that contains 0 is not evidence of no effect.")
 
 
-def _md_rows(rows: list[dict[str, Any]], per_row: bool = False) -> list[str]:
+def _md_rows(rows: list[dict[str, Any]], per_row: bool = False, corrected: bool = False) -> list[str]:
     return [f"| {_mark(row)} | {row['objectives']} | {','.join(map(str, row['seeds']))} | "
-            + " | ".join(_cells(row, per_row)) + " |" for row in rows]
+            + " | ".join(_cells(row, per_row, corrected)) + " |" for row in rows]
 
 
 def seeds_markdown(rows: list[dict[str, Any]], baseline: str | None, title: str, first: str = "stage",
-                   image: str | None = None, notes: list[str] | None = None, forest: str | None = None) -> str:
+                   image: str | None = None, notes: list[str] | None = None, forest: str | None = None,
+                   ranked: tuple[dict[str, Any] | None, str | None] = (None, None)) -> str:
     """The table as Markdown, with a paragraph that says what every number is. Where a method was tried at
     several weights, a first table shows each method at the weight the validation split chose."""
     seeds = sorted({s for r in rows for s in r["seeds"]})
     view = _view(rows)
     main = view.main[1] if view else "score"
     split = _split(rows)
-    per_row = _per_row(rows, baseline)
+    per_row, corrected = _per_row(rows, baseline), family.of(rows) is not None
     to = "the stage in 'Δ to' (the recipe's report.compare)" if per_row else f"'{baseline or '—'}'"
-    cols = [first, "distillation", "seeds", *_headers(view, split, per_row)]
+    cols = [first, "distillation", "seeds", *_headers(view, split, per_row, corrected)]
     head = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    power = power_note(rows)
+    power, described = power_note(rows), family.describe(rows)
     lines = [f"# {title}", "",
              f"{split.capitalize()} split, {view.title if view else 'scores'}, mean ± sample std over seeds "
              f"{', '.join(map(str, seeds))}; {_rule(rows)}, 'last' = the final step; 'val' = the validation score of "
              f"that checkpoint, the only score used to choose anything. Δ = the paired difference in {split} {main} to "
              f"{to}, seed by seed, with its 95 % Student-t interval over the seeds (an interval that "
-             "contains 0: no measurable effect).", *(["", power] if power else []),
+             "contains 0: no measurable effect).", *(["", described] if described else []),
+             *(["", power] if power else []),
              *(["", *notes] if notes else []), ""]
     if _weighs(rows):
         chosen = [r for r in rows if r.get("chosen")]
         lines += ["## Each method at the weight chosen on validation", "",
                   f"Of a method's weights, the one with the best mean validation {main} over the seeds (◆ below); "
-                  f"its {split} scores are reported as they are.", "", *head, *_md_rows(chosen, per_row), "",
-                  "## Every variant", "", *head, *_md_rows(rows, per_row)]
+                  f"its {split} scores are reported as they are.", "", *head, *_md_rows(chosen, per_row, corrected),
+                  "", "## Every variant", "", *head, *_md_rows(rows, per_row, corrected)]
     else:
-        lines += [*head, *_md_rows(rows, per_row)]
+        lines += [*head, *_md_rows(rows, per_row, corrected)]
     if forest:
         lines += ["", f"![paired differences to {to} with 95 % intervals]({forest})"]
     if image:
         lines += ["", f"![{split} {main} per seed]({image})"]
+    if ranked[0] is not None:
+        lines += ["", *family.ranks_markdown(*ranked)]
     return "\n".join(lines + [""])
 
 
@@ -278,21 +279,29 @@ def write_seeds_report(root: Path, rows: list[dict[str, Any]], baseline: str | N
                        stem: str = "seeds", title: str | None = None, first: str = "stage",
                        notes: list[str] | None = None) -> Path:
     """Print the table and write ``<stem>.md``, ``<stem>.png`` (each seed as a dot, the mean as a bar with its std
-    as an error bar) and ``<stem>_forest.png`` (each row's paired difference to the baseline with its 95 %
-    interval, a line at 0)."""
+    as an error bar), ``<stem>_forest.png`` (each row's paired difference to the baseline with its 95 %
+    interval, a line at 0), where the methods are a family ``<stem>_cd.png`` (their ranks:
+    :mod:`~distilkit.report.family`), and where the runs have per-class scores ``<stem>_classes.md`` and ``.png``
+    (:mod:`~distilkit.report.classes`)."""
     seeds = sorted({s for r in rows for s in r["seeds"]})
     console.print(seeds_table(rows, baseline, "distilkit seeds" if stem == "seeds" else f"{root.name}: seeds", first))
     power = power_note(rows)
     if power:
         console.print(power)
     forest = f"{stem}_forest.png" if any(r["delta"] for r in rows) else None
+    ranked = family.ranks(rows, baseline)
+    title = title or f"{root.name}: seeds {', '.join(map(str, seeds))}"
+    per_class = classes.write_classes(root, stem, rows, baseline, title, console)
+    if per_class is not None:
+        notes = [*(notes or []), f"Where each method helps, class by class: [{per_class.name}]({per_class.name})."]
     path = root / f"{stem}.md"
-    atomic_write_text(path, seeds_markdown(rows, baseline, title or f"{root.name}: seeds {', '.join(map(str, seeds))}",
-                                           first, f"{stem}.png", notes, forest))
+    atomic_write_text(path, seeds_markdown(rows, baseline, title, first, f"{stem}.png", notes, forest,
+                                           (ranked, f"{stem}_cd.png")))
     try:
         _plot(root / f"{stem}.png", rows)
         if forest:
             _forest(root / forest, rows, baseline)
+        family.plot(root / f"{stem}_cd.png", ranked)
     except Exception as exc:  # a plotting problem must not lose the table
         console.print(f"[yellow]{stem} plots not written: {exc}[/]")
     console.print(f"{'seeds' if stem == 'seeds' else stem} report: {path}")

@@ -104,7 +104,7 @@ def results_csv(records: list[RunRecord]) -> str:
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(["variant", "label", "role", "seed", "metric", "split", "selected_by", "best_step", "steps",
-                     "train_seconds", "threads", *[f"best_{k}" for k in keys], *[f"last_{k}" for k in keys], "val_best",
+                     "train_seconds", "input_wait_seconds", "threads", *[f"best_{k}" for k in keys], *[f"last_{k}" for k in keys], "val_best",
                      "run_dir"])
     for r, row in rows:
         view = row["view"]
@@ -115,7 +115,8 @@ def results_csv(records: list[RunRecord]) -> str:
 
         writer.writerow([r.name, row["label"], "upstream" if r.upstream else "variant", r.seed, view.metric,
                          row["split"], f"val {view.select}", row["best_step"], row["steps"],
-                         r.summary.get("train_seconds", ""), r.summary.get("threads", ""),
+                         r.summary.get("train_seconds", ""), r.summary.get("input_wait_seconds", ""),
+                         r.summary.get("threads", ""),
                          *[num(row["best"], k) for k in keys],
                          *[num(row["last"], k) for k in keys], num({"v": row["val"]}, "v"), str(r.run_dir)])
     return buf.getvalue()

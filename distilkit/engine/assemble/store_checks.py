@@ -40,6 +40,13 @@ def store_problems(spec: Any, distill: list[Any], teacher: Any, info: Any, path:
     return out + layout_problems(store, distill, kinds, info, where)
 
 
+def mask_labels(distill: list[Any], kinds: dict[str, str]) -> set[str]:
+    """The label fields by which the terms that read a dense teacher tap on a grid choose their voxels (each one's
+    ``target`` field, default ``voxel_target``): a masked store keeps the voxels of one of them."""
+    return {term.fields.get("target", "voxel_target") for term in distill for role, tap in term.taps.items()
+            if role in term.card.TEACHER_ROLES and kinds.get(tap) in GRID_KINDS}
+
+
 def layout_problems(store: Any, distill: list[Any], kinds: dict[str, str], info: Any,
                     where: str) -> list[tuple[str, str]]:
     """A lossy layout that would drop what a term reads: ``voxels`` narrower than a term's reads of a dense teacher
@@ -50,7 +57,7 @@ def layout_problems(store: Any, distill: list[Any], kinds: dict[str, str], info:
     if store.topk is not None and classes is not None and store.topk >= classes:
         out.append((f"{where}.topk", f"topk {store.topk} keeps every one of the data's {classes} classes: leave topk "
                                      "out (the exact layout)"))
-    labels = set()
+    labels = mask_labels(distill, kinds) if store.voxels != "all" else set()
     for i, term in enumerate(distill):
         voxels = term.card.teacher_voxels(term.params)
         softmax = term.card.teacher_softmax(term.params)
@@ -64,7 +71,6 @@ def layout_problems(store: Any, distill: list[Any], kinds: dict[str, str], info:
                     out.append((f"{where}.voxels", f"distill[{i}] ({term.name}) reads the teacher's {tap!r} at "
                                                    f"{reads} voxels; a store of the {store.voxels} voxels drops some "
                                                    f"of them (use voxels: {reads}, or a live teacher)"))
-                labels.add(term.fields.get("target", "voxel_target"))
             if store.topk is not None and kind == "voxel_logits" and role not in softmax:
                 out.append((f"{where}.topk", f"distill[{i}] ({term.name}) reads the teacher's {tap!r} scores "
                                              "themselves, not only through their softmax: a top-k store keeps "
@@ -75,4 +81,4 @@ def layout_problems(store: Any, distill: list[Any], kinds: dict[str, str], info:
     return out
 
 
-__all__ = ["layout_problems", "store_problems"]
+__all__ = ["layout_problems", "mask_labels", "store_problems"]

@@ -78,7 +78,7 @@ class StoredOutputs:
         with torch.no_grad(), autocast(trainer.device, trainer.stage.spec.train.precision):
             self.outputs = trainer.teacher(trainer.first_batch())
 
-    def batch(self, sample_ids: list[str], draws: list[int], device: Any) -> dict[str, Any]:
+    def of(self, batch: Any, device: Any) -> dict[str, Any]:
         import torch
 
         from distilkit.structures import PointCloud, SparseVoxels

@@ -64,17 +64,22 @@ def _own(t: Tensor) -> Tensor:  # contiguous, in memory of its own (two taps may
     return t.detach().cpu().clone(memory_format=torch.contiguous_format)
 
 
-def _masked(value: Any, kind: str, mask: Tensor | None) -> bool:
-    """Whether a tap's value (a batch of one) is kept at the mask's voxels: a dense tap on the mask's grid."""
-    return mask is not None and kind in GRID_KINDS and isinstance(value, Tensor) and value.dim() == 5 and \
-        tuple(value.shape[2:]) == tuple(mask.shape)
+def _masked(value: Any, kind: str, grid: tuple[int, ...] | None) -> bool:
+    """Whether a tap's value (a batch of one) is kept at a mask's voxels: a dense tap on the mask's (X, Y, Z) grid
+    (None: no mask)."""
+    return grid is not None and kind in GRID_KINDS and isinstance(value, Tensor) and value.dim() == 5 and \
+        tuple(value.shape[2:]) == tuple(grid)
+
+
+def _grid(mask: Tensor | None) -> tuple[int, ...] | None:
+    return None if mask is None else tuple(mask.shape)
 
 
 def _dense(value: Tensor, kind: str, prefix: str, mask: Tensor | None, topk: int | None,
            precision: torch.dtype) -> dict[str, Tensor]:
     """One sample's row of a dense tap in the layout: whole, or its masked voxels, or its top-k classes."""
     v = value.float() if value.is_floating_point() else value
-    if _masked(value[None], kind, mask):
+    if _masked(value[None], kind, _grid(mask)):
         v = v.flatten(1)[:, mask.flatten()]  # (C, n)
     if topk is not None and kind == "voxel_logits" and topk < v.shape[0]:
         top, cls = v.topk(topk, dim=0)
@@ -100,7 +105,7 @@ def sample_tensors(outputs: dict[str, Any], taps: dict[str, str], prefix: str, *
             out.update(_dense(value[0], kind, f"{prefix}:{tap}", mask, topk, precision))
         else:
             raise DataError(f"teacher tap {tap!r} ({type(value).__name__}) has no per-sample rows to store")
-    if any(_masked(outputs[tap], kind, mask) for tap, kind in taps.items()):  # the kept voxels, once a sample
+    if any(_masked(outputs[tap], kind, _grid(mask)) for tap, kind in taps.items()):  # the kept voxels, once a sample
         out[f"{prefix}:@voxels:index"] = _own(mask.flatten().nonzero()[:, 0].to(torch.int32))
     return out
 
@@ -161,8 +166,7 @@ def tap_layout(outputs: dict[str, Any], taps: dict[str, str], mask_shape: tuple[
         if isinstance(value, Tensor) and not isinstance(value, (SparseVoxels, PointCloud)):
             row = value[0]
             entry.update(shape=list(row.shape), dtype=str(row.dtype).removeprefix("torch."),
-                         masked=bool(mask_shape is not None and kind in GRID_KINDS and row.dim() == 4
-                                     and tuple(row.shape[1:]) == tuple(mask_shape)),
+                         masked=_masked(value, kind, mask_shape),
                          topk=topk if topk is not None and kind == "voxel_logits" and topk < row.shape[0] else None)
         if isinstance(value, SparseVoxels):
             entry["spatial_shape"] = list(value.spatial_shape)
@@ -258,6 +262,11 @@ class TeacherOutputs:
             self._open[s] = safe_open(str(path), framework="pt")
         return self._open[s]
 
+    def of(self, batch: Any, device: torch.device) -> dict[str, Any]:
+        """:meth:`batch` for a collated batch: its samples' ids under their augmentation draws (0: none)."""
+        draws = batch.meta.get("augment_draw") or [0] * batch.size
+        return self.batch(list(batch.meta.get("sample_id", ())), list(draws), device)
+
     def batch(self, sample_ids: list[str], draws: list[int], device: torch.device) -> dict[str, Any]:
         """Every stored tap of a batch: the samples' rows under their draws, assembled as the teacher returns them."""
         rows = []
@@ -296,9 +305,7 @@ class WithTeacherOutputs:
 
     def __call__(self, samples: list[Any]) -> Any:
         batch = self.collate(samples)
-        draws = batch.meta.get("augment_draw") or [0] * batch.size
-        batch.meta["teacher_outputs"] = self.store.batch(list(batch.meta.get("sample_id", ())), list(draws),
-                                                         torch.device("cpu"))
+        batch.meta["teacher_outputs"] = self.store.of(batch, torch.device("cpu"))
         return batch
 
 

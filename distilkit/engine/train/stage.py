@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 import yaml
 
@@ -277,8 +278,13 @@ class StageRun:
         stop = trainer.total_steps if self.stop_after is None else min(trainer.total_steps, self.stop_after)
         trainer.student.train()
         loop.emit("before_train")
-        batches = train_batches(trainer.train_set, trainer.plan, trainer.collate, loop.step, stop, self.workers)
-        for batch in batches:
+        batches = iter(train_batches(trainer.train_set, trainer.plan, trainer.collate, loop.step, stop, self.workers))
+        while True:
+            t0 = time.perf_counter()  # the wait for the loader (its workers read, collate and read a teacher store)
+            batch = next(batches, None)
+            loop.waited += time.perf_counter() - t0
+            if batch is None:
+                break
             loop.emit("before_step")
             values = trainer.train_step(self.prepare_training(batch), loop.step)
             loop.values = {**values, "lr": trainer.optimizer.param_groups[0]["lr"]}
@@ -454,11 +460,12 @@ class StageRun:
                                               if stage.spec.teacher else None),
             "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": self.seed,
             "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them
+            "versions": {"torch": torch.__version__, "numpy": np.__version__},  # numpy's streams: within a version
             "deterministic": torch.are_deterministic_algorithms_enabled(), "cpu": processor(), "mkl_cbwr": mkl_cbwr(),
             "vector_math_warmed": vector_math_warmed(),  # MKL VML's first calls made in one thread (repro)
             "classes": {"names": list(self.info.classes.names),
                         "colours": [list(c) for c in self.info.classes.colours]},
-            "steps": loop.step, "train_seconds": round(loop.seconds, 2),
+            "steps": loop.step, "train_seconds": round(loop.seconds, 2), "input_wait_seconds": round(loop.waited, 3),
             "metric": {"name": stage.metric.name, "key": stage.metric.key},
             "best": loop.best, "last": loop.last_scores, "report_split": split, "test": test,
             "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),

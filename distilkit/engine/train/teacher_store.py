@@ -28,7 +28,7 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 
@@ -48,10 +48,13 @@ def store_taps(stage: Any) -> dict[str, str]:
 
 
 def store_labels(stage: Any) -> str:
-    """The batch field whose labels choose a masked store's voxels: the one the stage's terms read as ``target``
-    (``validate`` checks they agree; default ``voxel_target``)."""
-    fields = {t.fields.get("target") for t in stage.distill if "target" in t.fields}
-    return sorted(fields)[0] if len(fields) == 1 else "voxel_target"
+    """The batch field whose labels choose a masked store's voxels: the one by which the stage's terms that read a
+    dense teacher tap choose theirs (:func:`~distilkit.engine.assemble.store_checks.mask_labels`; ``validate`` refuses
+    terms that differ; default ``voxel_target``)."""
+    from distilkit.engine.assemble.store_checks import mask_labels
+
+    fields = mask_labels(stage.distill, stage.teacher.taps if stage.teacher is not None else {})
+    return next(iter(fields)) if len(fields) == 1 else "voxel_target"
 
 
 def keep_mask(stage: Any, batch: Any, info: Any) -> torch.Tensor | None:
@@ -185,18 +188,19 @@ class _Build:
             task = progress.add_task("store", total=len(self.counts))
             waiting = []
             for s in range(len(self.counts)):  # the shards no one holds, built here
-                if self.finished(s) is None and not self._claim(s, block=False, progress=progress):
+                if self.finished(s) is None and not self._claim(s, block=False, say=progress.console.print):
                     waiting.append(s)  # another process is building it
                 progress.update(task, completed=s + 1 - len(waiting))
             for s in waiting:  # then the others', once their builders let go (a dead one's, built here)
-                self._claim(s, block=True, progress=progress)
+                self._claim(s, block=True, say=progress.console.print)
                 progress.advance(task)
         with stage_lock(lock_path(self.run.pipeline.root, self.folder.name), wait=True):
             if not whole(self.folder):
                 self._manifest(start)
 
-    def _claim(self, s: int, block: bool, progress: Any) -> bool:
-        """Shard ``s`` built under its lock unless it is finished by then; False: held by another (``block`` off)."""
+    def _claim(self, s: int, block: bool, say: Callable[..., None] = lambda *a, **k: None) -> bool:
+        """Shard ``s`` built under its lock unless it is finished by then; False: held by another (``block`` off).
+        ``say``: where the line that it waits for another process goes (a progress bar's console)."""
         import fcntl
 
         from distilkit.errors import RunLockedError
@@ -212,8 +216,7 @@ class _Build:
                 if not self.wait:
                     raise RunLockedError(f"{self.folder}: shard {s} of the teacher store is being built by another "
                                          "distilkit run; wait for it (without --no-wait)") from None
-                progress.console.print(f"{self.folder.name}: waiting for shard {s}, built by another run",
-                                       highlight=False)
+                say(f"{self.folder.name}: waiting for shard {s}, built by another run", highlight=False)
                 fcntl.flock(fd, fcntl.LOCK_EX)
             if self.finished(s) is None:
                 self._shard(s)
@@ -255,7 +258,7 @@ class _Build:
                 self._done.pop(s, None)
             done = self.finished(s)
             if done is None:  # deleted or altered since it was built: built again here
-                self._claim(s, block=True, progress=_Quiet())
+                self._claim(s, block=True)  # quietly
                 done = self.finished(s)
                 assert done is not None
             layout = layout or done.get("taps")
@@ -298,15 +301,6 @@ class _Build:
         except Exception as exc:  # noqa: BLE001
             return {"batch": size, "max_difference": None, "error": f"{type(exc).__name__}: {exc}"}
         return {"batch": size, "max_difference": worst, "tap": tap}
-
-
-class _Quiet:
-    """A progress stand-in for the manifest's rebuild of a shard lost since (it prints nothing)."""
-
-    class console:  # noqa: N801
-        @staticmethod
-        def print(*args: Any, **kwargs: Any) -> None:
-            pass
 
 
 __all__ = ["ensure_store", "keep_mask", "store_key", "store_labels", "store_taps", "stored_bytes"]

@@ -26,6 +26,7 @@ from distilkit.engine.train.groups import freeze, param_groups
 from distilkit.engine.train.teacher_mode import apply_mode, evaluating, load_teacher_buffers, teacher_buffers
 from distilkit.weights import load_weights
 from distilkit.engine.train.loader import BatchPlan, Collate
+from distilkit.engine.train.optim import lr_factor, weight_factor
 from distilkit.engine.assemble.resolved import ResolvedStage, ResolvedTerm
 from distilkit.engine.assemble.runs import build_model
 from distilkit.errors import DistilkitError, NonFiniteLossError
@@ -201,8 +202,6 @@ class Trainer:
 
     def _set_lr(self, step: int) -> float:
         """Every group's learning rate at 0-based ``step``: its base rate times the schedule's factor."""
-        from distilkit.engine.train.optim import lr_factor
-
         schedule = self.stage.spec.optimizer.schedule
         factor = lr_factor(schedule, self.stage.schedule or _no_params(), step, self.total_steps)
         for group in self.optimizer.param_groups:
@@ -273,9 +272,7 @@ class Trainer:
             from distilkit.engine.store.teacher_outputs import to_device
 
             read = batch.meta.get("teacher_outputs")  # by the loader (WithTeacherOutputs), else here
-            if read is None:
-                draws = batch.meta.get("augment_draw") or [0] * batch.size
-                read = self.store.batch(list(batch.meta.get("sample_id", ())), list(draws), self.device)
+            read = self.store.of(batch, self.device) if read is None else read
             return {k: to_device(v, self.device) for k, v in read.items()}
         assert self.teacher is not None
         with torch.no_grad(), self._autocast():
@@ -340,10 +337,11 @@ class Trainer:
         with self._autocast():
             s_out = self.student(batch)
         self._check_outputs(self.student, s_out, "student")
-        t_out = self._teacher_outputs(batch) if len(self.objectives) else {}
-        terms: dict[str, Tensor] = {}
-        from distilkit.engine.train.optim import weight_factor
+        return self.term_values(s_out, self._teacher_outputs(batch) if len(self.objectives) else {}, batch)
 
+    def term_values(self, s_out: dict[str, Any], t_out: dict[str, Any], batch: Batch) -> dict[str, Tensor]:
+        """The weighted value of every term given the student's and the teacher's outputs on ``batch``."""
+        terms: dict[str, Tensor] = {}
         for i, term in enumerate(self.terms):
             # terms (and their connectors) in float32, outside autocast
             taps = self._roles(term, s_out, t_out, batch, float32=self.stage.spec.train.precision != "fp32")
