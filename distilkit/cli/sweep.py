@@ -14,7 +14,8 @@ EXAMPLES = {
               "distilkit sweep recipes/sweeps/quickstart_methods.yaml --launcher slurm --partition gpu --gpus-per-run 1 "
               "--time 8:00:00 --slurm account=mylab",
               "distilkit sweep recipes/sweeps/hassc.yaml --launcher slurm --plan   # what it would queue",
-              "distilkit sweep recipes/sweeps/quickstart_methods.yaml --status"],
+              "distilkit sweep recipes/sweeps/quickstart_methods.yaml --status",
+              "distilkit sweep recipes/sweeps/quickstart_methods.yaml --seeds auto --target-width 3 --jobs 2"],
 }
 
 
@@ -23,7 +24,15 @@ def add(sub: Any) -> None:
                               "mean ± std, paired differences with 95 %% intervals", EXAMPLES["sweep"])
     w.add_argument("sweep", help="sweep YAML file (see recipes/sweeps/)")
     w.add_argument("--output", "-o", default="runs", help="output folder (default: runs/)")
-    w.add_argument("--seeds", type=int, nargs="+", default=None, metavar="N", help="override the sweep's seeds")
+    w.add_argument("--seeds", type=_seed, nargs="+", default=None, metavar="N",
+                   help="override the sweep's seeds; `auto`: add seeds in rounds until every method's corrected "
+                        "interval is narrower than --target-width (or --max-seeds have run)")
+    w.add_argument("--target-width", type=float, default=None, metavar="W", help="with --seeds auto: the widest "
+                   "simultaneous 95 %% interval accepted, in the table's units (mIoU points for SSC)")
+    w.add_argument("--max-seeds", type=int, default=20, metavar="N", help="with --seeds auto: at most N seeds "
+                   "(default 20)")
+    w.add_argument("--seed-step", type=int, default=2, metavar="N", help="with --seeds auto: seeds added a round "
+                   "(default 2)")
     w.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
                    help="runs in N parallel processes, the CPU's threads split between them (default: 1)")
     w.add_argument("--plan", action="store_true", help="run, submit and wait for nothing: print one `distilkit run` "
@@ -53,9 +62,33 @@ def add(sub: Any) -> None:
     w.set_defaults(fn=sweep)
 
 
+def _seed(text: str) -> int | str:
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a seed is an integer or `auto`, got {text!r}") from None
+
+
 def sweep(args: argparse.Namespace) -> int:
+    from distilkit.errors import DistilkitError
     from distilkit.sweep.runner import run_sweep
 
+    if args.seeds is not None and "auto" in args.seeds:
+        if args.seeds != ["auto"] or args.target_width is None:
+            raise DistilkitError("--seeds auto: give `auto` alone, with --target-width W (the widest corrected "
+                                 "interval accepted, in the table's units)")
+        if args.plan or args.launcher != "local" or args.status or args.wait or args.collect:
+            raise DistilkitError("--seeds auto runs locally: it decides each round from the runs finished so far "
+                                 "(not with --plan, --collect, --status, --wait or --launcher slurm)")
+        from distilkit.sweep.adaptive import run_until_clear
+
+        run_until_clear(args.sweep, args.output, args.jobs, args.target_width, args.max_seeds, args.seed_step,
+                        args.quiet)
+        return 0
+    if args.target_width is not None:
+        raise DistilkitError("--target-width goes with --seeds auto")
     cluster = {"gpus": args.gpus_per_run, "cpus": args.cpus_per_run, "mem": args.mem, "time": args.time,
                "partition": args.partition, "array_parallelism": args.array_parallelism, "extra": args.slurm}
     run_sweep(args.sweep, args.output, seeds=args.seeds, jobs=args.jobs, plan=args.plan, collect=args.collect,

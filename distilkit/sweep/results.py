@@ -123,16 +123,17 @@ def results_csv(records: list[RunRecord]) -> str:
 
 
 def write_results(root: Path, name: str, records: list[RunRecord], baseline: str | None, order: list[str],
-                  console: Any, missing: list[str]) -> Path:
-    """Print the table; write results.md, results.csv and results.png under ``root``."""
+                  console: Any, missing: list[str], extra: list[str] | None = None) -> Path:
+    """Print the table; write results.md, results.csv and results.png under ``root`` (``extra``: lines for
+    results.md's notes, printed too)."""
     rows, own_metric = sweep_rows(records, baseline, order)
     atomic_write_text(root / "results.csv", results_csv(records))
     notes = [f"Runs not finished (not in the table): {', '.join(missing)}." if missing else "", *own_metric,
-             "One line per run, with every score and its folder: results.csv."]
+             *(extra or []), "One line per run, with every score and its folder: results.csv."]
     path = write_seeds_report(root, rows, baseline, console, stem="results", title=f"sweep {name}",
                               first="variant", notes=[n for n in notes if n])
-    for note in own_metric:
-        console.print(note)
+    for note in [*own_metric, *(extra or [])]:
+        console.print(note, highlight=False, soft_wrap=True)
     return path
 
 

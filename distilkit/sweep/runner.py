@@ -227,8 +227,9 @@ class SweepRun:
 
         return make_console()
 
-    def collect(self) -> Path | None:
-        """Print the table of the finished runs (even under ``quiet``) and write the results' files."""
+    def collect(self, notes: list[str] | None = None) -> Path | None:
+        """Print the table of the finished runs (even under ``quiet``) and write the results' files (``notes``: more
+        lines for results.md, as ``--seeds auto`` says how it chose the seeds)."""
         records, missing = self.records()
         console = self.results_console
         if not records:
@@ -239,7 +240,7 @@ class SweepRun:
         from distilkit.sweep.results import write_results
 
         return write_results(self.root, self.sweep.name, records, self.sweep.baseline, self.order(), console,
-                             missing)
+                             missing, notes or [])
 
 
 class Children:
