@@ -63,7 +63,9 @@ def describe(rows: list[dict[str, Any]]) -> str:
            "Bonferroni: each at level 1 − 0.05/k, the methods not sharing their seeds")
     return (f"Family: the {info['k']} methods compared with the baseline, each at its validation-chosen weight. "
             f"'p Holm' = the p-value of Δ = 0 (the paired t test) adjusted by Holm's step-down over the "
-            f"{info['k']}: a claim with p Holm < 0.05 keeps the chance of any false claim in the table under 5 %. "
+            f"{info['k']} (a method whose paired differences are all equal has no p-value, shown as —, and is left "
+            "out of the adjustment): a claim with p Holm < 0.05 keeps the chance of any false claim in the table "
+            "under 5 %. "
             f"'simultaneous 95 %' = intervals that hold for all {info['k']} at once ({how}); they are wider than "
             "the per-method intervals, which hold each on its own.")
 
