@@ -145,7 +145,8 @@ def test_validate_accepts_the_layouts_a_terms_reads_allow() -> None:
     recipe["stages"]["student"]["teacher"] = {"from": "teacher", "store": {"voxels": "valid", "topk": 4,
                                                                           "precision": "bfloat16"}}
     recipe["stages"]["student"]["distill"] = [{"name": "kd"}, {"name": "dist"}]
-    resolve(recipe_from_dict(recipe))
+    store = resolve(recipe_from_dict(recipe)).stages["student"].spec.teacher.store  # no RecipeError: accepted
+    assert (store.voxels, store.topk, store.precision, store.exact) == ("valid", 4, "bfloat16", False)
 
 
 def _stored_only(shard: int = 1) -> dict:

@@ -51,11 +51,8 @@ def values(trainer: Any, s_out: dict[str, Any], t_out: dict[str, Any], batch: An
 def term_differences(sub: Any, read: list[dict[str, Any]]) -> dict[str, tuple[float, float]]:
     """Each term's largest absolute difference over the samples between its value with the read-back teacher
     outputs and with the live ones, and that difference relative to the live value's magnitude."""
-    from distilkit.engine.store.teacher_outputs import to_device
-
-    out: dict[str, tuple[float, float]] = {}
+    out: dict[str, tuple[float, float]] = {}  # ``read``: on the trainer's device, as the bench reads it
     for s_out, got, batch, live in zip(sub.student, read, sub.batches, sub.terms):
-        got = {k: to_device(v, sub.trainer.device) for k, v in got.items()}
         for key, value in values(sub.trainer, s_out, got, batch).items():
             d = abs(value - live[key])
             old = out.get(key, (0.0, 0.0))

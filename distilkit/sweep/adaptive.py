@@ -60,17 +60,19 @@ def run_until_clear(path: str | Path, output: str | Path, jobs: int, target: flo
     """Run the sweep in rounds (see the module) and write its table with a note on the stopping rule."""
     from distilkit.sweep.results import sweep_rows
     from distilkit.sweep.runner import SweepRun
+    from distilkit.sweep.spec import load_sweep
 
     if not target > 0 or max_seeds < 2 or step < 1:
         raise DistilkitError(f"--seeds auto: --target-width must be > 0, --max-seeds at least 2 and --seed-step at "
                              f"least 1 (got {target:g}, {max_seeds}, {step})")
-    seeds = list(SweepRun(path, output, quiet=True).seeds)[:max_seeds]
+    spec = load_sweep(path)  # read once: every round's SweepRun shares it
+    seeds = list(spec.spec.seeds)[:max_seeds]
     if len(seeds) < 2:
         seeds = next_seeds(seeds, 2 - len(seeds), max_seeds)
     history: list[tuple[int, dict[str, float]]] = []
     failures: list[str] = []
     while True:
-        sweep = SweepRun(path, output, seeds, quiet=quiet)
+        sweep = SweepRun(spec, output, seeds, quiet=quiet)
         failures += sweep.run(jobs)
         records, _ = sweep.records()
         rows, _ = sweep_rows(records, sweep.sweep.baseline, sweep.order())
