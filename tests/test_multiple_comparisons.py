@@ -214,12 +214,15 @@ def _counts(rng: np.random.Generator, seeds: int, scenes: int, classes: int) -> 
     return np.floor(union * rng.uniform(0.2, 1.0, union.shape)), union
 
 
-def _miou(inter: np.ndarray, union: np.ndarray) -> float:
+def _miou(inter: np.ndarray, union: np.ndarray, zero: bool = False) -> float:
+    if zero:  # the official SSC mIoU: every class, one without a voxel scoring 0
+        return sum(i / u if u > 0 else 0.0 for i, u in zip(inter, union)) / len(union)
     ious = [i / u for i, u in zip(inter, union) if u > 0]
     return sum(ious) / len(ious)
 
 
-def _naive(inter: dict, union: dict, draws: int, level: float, seed: int) -> tuple[float, float, float]:
+def _naive(inter: dict, union: dict, draws: int, level: float, seed: int,
+           zero: bool = False) -> tuple[float, float, float]:
     """The bootstrap by loops, with the random draws in the documented order."""
     n_seeds, n_scenes, _ = inter["m"].shape
     rng = np.random.default_rng(seed)
@@ -230,10 +233,10 @@ def _naive(inter: dict, union: dict, draws: int, level: float, seed: int) -> tup
         diffs = []
         for s in seeds[b]:
             drawn = {k: [sum(a[k][s, j] for j in scenes[b]) for a in (inter, union)] for k in ("m", "b")}
-            diffs.append(_miou(*drawn["m"]) - _miou(*drawn["b"]))
+            diffs.append(_miou(*drawn["m"], zero) - _miou(*drawn["b"], zero))
         reps.append(np.mean(diffs))
-    est = np.mean([_miou(inter["m"][s].sum(0), union["m"][s].sum(0)) - _miou(inter["b"][s].sum(0), union["b"][s].sum(0))
-                   for s in range(n_seeds)])
+    est = np.mean([_miou(inter["m"][s].sum(0), union["m"][s].sum(0), zero)
+                   - _miou(inter["b"][s].sum(0), union["b"][s].sum(0), zero) for s in range(n_seeds)])
     low, high = np.quantile(reps, [(1 - level) / 2, (1 + level) / 2])
     return est, low, high
 
@@ -245,6 +248,18 @@ def test_hierarchical_bootstrap_matches_a_loop() -> None:
     got = hierarchical_bootstrap(inter, union, "m", "b", draws=200, seed=7)
     assert got == _naive(inter, union, 200, 0.95, 7)  # integer counts: the same sums, bit for bit
     assert got[1] < got[0] < got[2]
+
+
+def test_hierarchical_bootstrap_with_the_official_miou_matches_a_loop() -> None:
+    """absent="zero": a class absent from a draw scores 0 over every class (the table's mIoU), not left out."""
+    rng = np.random.default_rng(8)
+    (im, um), (ib, ub) = _counts(rng, 3, 4, 3), _counts(rng, 3, 4, 3)
+    inter, union = {"m": im, "b": ib}, {"m": um, "b": ub}
+    got = hierarchical_bootstrap(inter, union, "m", "b", draws=200, seed=7, absent="zero")
+    assert got == pytest.approx(_naive(inter, union, 200, 0.95, 7, zero=True), rel=1e-12, abs=1e-15)
+    assert got != hierarchical_bootstrap(inter, union, "m", "b", draws=200, seed=7)  # the last class is absent
+    with pytest.raises(ValueError, match="absent"):
+        hierarchical_bootstrap(inter, union, "m", "b", absent="drop")
 
 
 def test_hierarchical_bootstrap_one_scene_is_the_seeds_bootstrap() -> None:

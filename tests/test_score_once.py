@@ -17,9 +17,9 @@ def test_a_best_checkpoint_at_the_last_step_is_scored_once(tmp_path: Path, monke
     real = stage_module.StageRun.evaluate
     calls: list[bool] = []  # per evaluation: whether it was of a loaded checkpoint's model
 
-    def counted(self, dataset, model=None):
+    def counted(self, dataset, model=None, scenes=False):
         calls.append(model is not None)
-        return real(self, dataset, model)
+        return real(self, dataset, model, scenes)
 
     monkeypatch.setattr(stage_module.StageRun, "evaluate", counted)
     (result,) = Pipeline(recipe_from_dict(tiny_recipe(steps=1, distill=False)), tmp_path / "runs", quiet=True).run()

@@ -32,6 +32,11 @@ class Metric(MetricCard, ABC):
     def compute(self) -> dict[str, Any]:
         """Scores over everything accumulated: at least every key of ``KEYS`` (floats)."""
 
+    def per_scene(self) -> dict[str, Any] | None:
+        """Each scored sample's counts from which the split's score is computed (``ids`` and arrays with one row
+        per sample), for a bootstrap over the scenes; None: this metric keeps none."""
+        return None
+
     def merge(self, other: "Metric") -> None:
         """Add the state another process accumulated over other samples (multi-process evaluation merges in rank
         order, over contiguous shares: lists concatenate in sample order). The default merges every attribute:

@@ -17,7 +17,7 @@ from distilkit.metrics.base import Metric
 from distilkit.metrics.bev import thin, top_class
 from distilkit.metrics.points import auc, chamfer_distance, emd, jsd_3d, jsd_bev, precision_recall_curves, \
     voxel_confusion
-from distilkit.metrics.ssc import SSCMetric
+from distilkit.metrics.ssc import SSCMetric, ssc_confusion
 
 
 def camera_image(batch: Batch) -> np.ndarray | None:
@@ -44,17 +44,25 @@ def range_box(grid: Any, r: float) -> Tensor:
 
 class SSCScore(SSCScoreCard, Metric):
     """Voxel logits scored as SemanticKITTI SSC: the argmax class per voxel against ``voxel_label``, voxels
-    flagged ``invalid`` left out, one confusion matrix over the split."""
+    flagged ``invalid`` left out, one confusion matrix over the split (the sum of the scenes' own, whose
+    intersections and unions :meth:`per_scene` keeps: a bootstrap over the test scenes reads them)."""
 
     def __init__(self, info: DataInfo) -> None:
         super().__init__(info)
         self.acc = SSCMetric(info.num_classes, info.classes.ignore_index)
         self.ranges = {range_key(r): SSCMetric(info.num_classes, info.classes.ignore_index) for r in self.RANGES}
+        self.scene_ids: list[str] = []
+        self.scene_counts: list[Tensor] = []  # per scene: (2, K - 1) intersections and unions of classes 1..K-1
 
     def update(self, prediction: Tensor, batch: Batch) -> None:
         pred = prediction.argmax(dim=1).cpu()
         target, invalid = batch.targets["voxel_label"].cpu(), batch.targets["invalid"].cpu()
-        self.acc.update(pred, target, invalid)
+        for i in range(len(pred)):  # scene by scene: integer counts, so their sum is the batch's confusion exactly
+            conf = ssc_confusion(pred[i], target[i], self.acc.num_classes, invalid[i], self.acc.ignore_index)
+            self.acc.confusion += conf
+            tp = conf.diagonal()
+            self.scene_counts.append(torch.stack([tp, conf.sum(0) + conf.sum(1) - tp])[:, 1:].clone())
+        self.scene_ids += [str(s) for s in batch.meta.get("sample_id") or [""] * len(pred)]
         grid = self.info.grid
         if grid is None or tuple(grid.shape) != tuple(target.shape[1:]):
             return
@@ -68,6 +76,13 @@ class SSCScore(SSCScoreCard, Metric):
             scores = acc.compute()
             out.update({f"miou_{key}": scores["miou"], f"iou_{key}": scores["iou"]})
         return out
+
+    def per_scene(self) -> dict[str, Any] | None:
+        """Each scored scene's id and its intersections and unions of classes 1..K-1 ((J, K - 1) int64 each)."""
+        if not self.scene_counts:
+            return None
+        counts = torch.stack(self.scene_counts).numpy()
+        return {"ids": list(self.scene_ids), "inter": counts[:, 0], "union": counts[:, 1]}
 
     @classmethod
     def preview(cls, prediction: Tensor, batch: Batch, info: DataInfo) -> dict[str, Any] | None:

@@ -80,6 +80,10 @@ class TeacherSpec(_Strict):
                             "With `ema`, the same as `ema.mode`")
     taps: dict[str, HookTapSpec] = Field(default_factory=dict,
                                          description="extra teacher taps recorded from submodules by forward hooks")
+    control: Literal["random", "shuffled"] | None = Field(
+        None, description="a control for distillation itself (arXiv 2510.12615): random = the architecture with random "
+                          "weights (from the stage's seed); shuffled = the real teacher's outputs for another training "
+                          "sample (a fixed random cycle from the stage's seed, the same augmentation draw)")
     store: StoreSpec | None = Field(None, description="run the frozen teacher once over the training split (under "
                                                       "every transform of train.augment) and read its outputs from "
                                                       "disk: `store: true` or its settings; students that share the "
@@ -93,11 +97,7 @@ class TeacherSpec(_Strict):
     @field_validator("ema", mode="before")
     @classmethod
     def _ema_shorthand(cls, value: Any) -> Any:
-        if value is True:
-            return {}
-        if value is False:
-            return None
-        return value
+        return {} if value is True else None if value is False else value
 
     @model_validator(mode="after")
     def _one_source(self) -> "TeacherSpec":
@@ -108,6 +108,9 @@ class TeacherSpec(_Strict):
                              f"student's moving average){'; got ' + ', '.join(sources) if sources else ''}")
         if self.checkpoint is not None and self.model is None:
             raise ValueError("a `checkpoint` teacher needs `model` (adapter and params)")
+        if self.control is not None and (self.ema is not None or (self.control == "random" and self.store)):
+            raise ValueError(f"`control: {self.control}` with `{'ema' if self.ema else 'store'}`: a control needs a "
+                             "teacher of its own (not the student's average), and a random one runs live (no store)")
         if self.ema is not None and self.model is not None:
             raise ValueError("an `ema` teacher is the student's own model: leave out `model`")
         if self.ema is not None:  # one mode, either spelling: `mode` and `ema.mode` agree (and hash alike)

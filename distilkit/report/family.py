@@ -26,8 +26,8 @@ LEVEL = 0.95
 
 def family(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """The rows a table's claims are about: those with paired differences to the baseline (two seeds at least),
-    each method at the weight chosen on validation."""
-    return [r for r in rows if len(r["delta"]) >= 2 and r.get("chosen", True)]
+    each method at the weight chosen on validation; a control teacher's row is no method (:mod:`.controls`)."""
+    return [r for r in rows if len(r["delta"]) >= 2 and r.get("chosen", True) and not r.get("control")]
 
 
 def annotate(rows: list[dict[str, Any]]) -> None:
@@ -116,18 +116,19 @@ def ranks_markdown(info: dict[str, Any] | None, image: str | None) -> list[str]:
     return lines
 
 
-def _p(p: float) -> str:
+def p_text(p: float) -> str:
+    """A p-value as the reports write it."""
     return "—" if math.isnan(p) else f"{p:.2g}" if p >= 1e-4 else "< 1e-4"
 
 
 def _is(p: float) -> str:
-    text = _p(p)
+    text = p_text(p)
     return text if text.startswith("<") else f"= {text}"
 
 
 def p_cell(row: dict[str, Any]) -> str:
     """A row's Holm-adjusted p-value as the table shows it (— outside the family)."""
-    return _p(row["p_holm"]) if "p_holm" in row else "—"
+    return p_text(row["p_holm"]) if "p_holm" in row else "—"
 
 
 def plot(path: Path, info: dict[str, Any] | None) -> bool:
@@ -139,4 +140,4 @@ def plot(path: Path, info: dict[str, Any] | None) -> bool:
     return True
 
 
-__all__ = ["LEVEL", "annotate", "describe", "family", "of", "p_cell", "plot", "ranks", "ranks_markdown"]
+__all__ = ["LEVEL", "annotate", "describe", "family", "of", "p_cell", "p_text", "plot", "ranks", "ranks_markdown"]

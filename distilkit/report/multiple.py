@@ -252,25 +252,30 @@ def plot_cd(ranks: Mapping[str, float], cd: float, path: Path | str, title: str 
     return path
 
 
-def _miou(counts: np.ndarray) -> np.ndarray:
-    """mIoU over the last axis of (inter, union) stacked on axis 0: the mean over classes with union > 0."""
+def _miou(counts: np.ndarray, absent: str = "skip") -> np.ndarray:
+    """mIoU over the last axis of (inter, union) stacked on axis 0: the mean over the classes with union > 0
+    (``absent="skip"``), or over every class, one with union 0 scoring 0 (``"zero"``: SemanticKITTI's
+    ``evaluate_completion.py``, :func:`distilkit.metrics.ssc.ssc_scores`)."""
     inter, union = counts
     seen = union > 0
     iou = np.divide(inter, union, out=np.zeros_like(inter), where=seen)
+    if absent == "zero":
+        return iou.mean(axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         return iou.sum(axis=-1) / seen.sum(axis=-1)
 
 
 def hierarchical_bootstrap(inter: Mapping[str, np.ndarray], union: Mapping[str, np.ndarray], method: str,
                            baseline: str, draws: int = 2000, level: float = 0.95,
-                           seed: int = 0) -> tuple[float, float, float]:
+                           seed: int = 0, absent: str = "skip") -> tuple[float, float, float]:
     """The paired mIoU difference of ``method`` to ``baseline`` with a percentile bootstrap interval that resamples
     the training seeds and the test scenes, both with replacement. Every seed is scored on the same test scenes, so
     seeds and scenes are crossed, not nested: one draw of the scenes serves every seed of a replicate (Owen 2007,
     "The pigeonhole bootstrap", Ann. Appl. Stat. 1:386–411). Scenes drawn afresh for each seed would treat their
     noise as independent between seeds and divide it by the number of seeds. ``inter[m]``, ``union[m]``:
     intersection and union counts of shape (seeds S, scenes J, classes C), both models over the same seeds and
-    scenes; mIoU sums the counts over the scenes and averages inter/union over the classes with union > 0.
+    scenes; mIoU sums the counts over the scenes and averages inter/union over the classes with union > 0
+    (``absent="zero"``: over every class, one with union 0 scoring 0, as the official SSC mIoU: see :func:`_miou`).
 
     Returns (estimate, lower, upper): the estimate is the mean over the seeds of the per-seed mIoU differences on
     the data as given; the interval is the (1 ± ``level``)/2 quantiles (numpy's linear ones) of ``draws``
@@ -288,7 +293,9 @@ def hierarchical_bootstrap(inter: Mapping[str, np.ndarray], union: Mapping[str, 
         raise ValueError("inter and union: (seeds, scenes, classes), one shape for both models; level in (0, 1)")
     n_seeds, n_scenes, n_classes = shape
     stacked = np.concatenate(arrays, axis=-1)  # (S, J, 4C): inter m, inter b, union m, union b
-    estimate = float(np.mean(_diff(stacked.sum(axis=1), n_classes)))
+    if absent not in ("skip", "zero"):
+        raise ValueError(f"absent: 'skip' or 'zero', got {absent!r}")
+    estimate = float(np.mean(_diff(stacked.sum(axis=1), n_classes, absent)))
     rng = np.random.default_rng(seed)
     seeds = rng.integers(0, n_seeds, size=(draws, n_seeds))
     scenes = rng.integers(0, n_scenes, size=(draws, n_scenes))
@@ -296,16 +303,16 @@ def hierarchical_bootstrap(inter: Mapping[str, np.ndarray], union: Mapping[str, 
     times = np.bincount((rows + scenes).ravel(), minlength=draws * n_scenes).reshape(draws, n_scenes)
     per_seed = np.einsum("bj,sjc->bsc", times.astype(np.float64), stacked)  # each seed's counts on b's scenes
     counts = np.take_along_axis(per_seed, seeds[:, :, None], axis=1)  # (draws, S, 4C): the drawn seeds'
-    replicates = _diff(counts, n_classes).mean(axis=1)
+    replicates = _diff(counts, n_classes, absent).mean(axis=1)
     low, high = np.quantile(replicates, [(1 - level) / 2, (1 + level) / 2])
     return estimate, float(low), float(high)
 
 
-def _diff(counts: np.ndarray, c: int) -> np.ndarray:
+def _diff(counts: np.ndarray, c: int, absent: str = "skip") -> np.ndarray:
     """mIoU(method) − mIoU(baseline) from counts whose last axis is (inter m, inter b, union m, union b) × C."""
     inter = counts[..., :2 * c].reshape(*counts.shape[:-1], 2, c)
     union = counts[..., 2 * c:].reshape(*counts.shape[:-1], 2, c)
-    miou = _miou(np.stack([inter, union]))
+    miou = _miou(np.stack([inter, union]), absent)
     return miou[..., 0] - miou[..., 1]
 
 

@@ -119,7 +119,7 @@ def stage_row(summary: dict[str, Any]) -> dict[str, Any]:
     nan = float("nan")
     return {"stage": summary["stage"], "label": summary.get("label", summary["stage"]), "adapter": summary["adapter"],
             "input": summary.get("input", _frames(summary.get("frames"))),
-            "teacher": summary.get("teacher") or "—",
+            "teacher": summary.get("teacher") or "—", "control": summary.get("teacher_control"),
             "objectives": ", ".join(summary.get("objectives", [])) or "—", "view": view,
             "objective_list": list(summary.get("objectives", [])),
             "best": {k: best.get(k, nan) for k, _, _ in view.columns},

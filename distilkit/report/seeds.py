@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from distilkit.files import atomic_write_text
-from distilkit.report import classes, family
+from distilkit.report import classes, controls, family, scenes
 from distilkit.report.multiple import t_interval, t_quantile as _t_quantile
 from distilkit.report.scores import ScoreView, stage_row
 
@@ -48,7 +48,8 @@ def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None,
     per_stage: dict[str, dict[int, dict[str, Any]]] = {}
     for seed in seeds:
         for result in results_by_seed[seed]:
-            per_stage.setdefault(result.name, {})[seed] = stage_row(result.summary)
+            per_stage.setdefault(result.name, {})[seed] = {**stage_row(result.summary),
+                                                           "scenes": scenes.read(getattr(result, "run_dir", None))}
     compare = compare or {}
     rows = []
     for name, by_seed in per_stage.items():
@@ -65,6 +66,7 @@ def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None,
         row: dict[str, Any] = {"stage": name, "label": first["label"], "seeds": got, "view": view,
                                "reference": reference if name != reference else None,
                                "objectives": first["objectives"], "split": first["split"],
+                               "control": first["control"],  # a control teacher's row (report.controls)
                                # weights of one method: the same input and objectives (a stage without any is alone)
                                "group": _group(name, first, (methods or {}).get(name))}
         for key, get in pick.items():
@@ -78,16 +80,19 @@ def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None,
         row["delta_ci"] = t_interval(paired)
         row["class_iou"] = {s: by_seed[s]["class_scores"] for s in got if by_seed[s]["class_scores"]}
         row["class_names"], row["class_voxels"] = first["class_names"], first["class_voxels"]
+        row["scene_counts"] = {s: by_seed[s]["scenes"] for s in got if by_seed[s]["scenes"] is not None}
         rows.append(row)
     choose_on_validation(rows)
+    controls.annotate(rows)  # each method against its control teachers; their rows leave the family
     family.annotate(rows)  # Holm and simultaneous intervals over the methods at their chosen weights
+    scenes.annotate(rows, baseline)  # an interval over seeds and test scenes, where the runs kept their counts
     return rows
 
 
 def _group(name: str, first: dict[str, Any], method: Any) -> Any:
     """Weights of one method: the caller's method key, else the same input and objectives (a stage without any
     objective is alone)."""
-    if not first["objective_list"]:
+    if not first["objective_list"] or first["control"]:  # a control row follows its method (report.controls)
         return ("stage", name)
     if method is not None:
         return ("method", method)
@@ -272,6 +277,7 @@ def seeds_markdown(rows: list[dict[str, Any]], baseline: str | None, title: str,
         lines += ["", f"![{split} {main} per seed]({image})"]
     if ranked[0] is not None:
         lines += ["", *family.ranks_markdown(*ranked)]
+    lines += controls.markdown(rows) + scenes.markdown(rows)
     return "\n".join(lines + [""])
 
 

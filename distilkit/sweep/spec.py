@@ -13,7 +13,7 @@ import re
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from distilkit.errors import RecipeError
 from distilkit.recipe import (LossSpec, Recipe, needed_stages, parse_yaml, pydantic_problems, recipe_from_dict,
@@ -34,6 +34,8 @@ class VariantSpec(_Strict):
                                                               "recipe's; [] = no distillation)")
     set: dict[str, Any] = Field(default_factory=dict, alias="set",
                                 description="recipe overrides by dotted path, e.g. {stages.student.optimizer.lr: 0.01}")
+    controls: bool = Field(True, description="with the sweep's `controls`: whether this variant gets its control rows")
+    _control: tuple[str, str] | None = PrivateAttr(None)  # (variant, kind) of a control row the sweep added
 
 
 class LauncherSpec(_Strict):
@@ -80,6 +82,10 @@ class SweepSpec(_Strict):
     set: dict[str, Any] = Field(default_factory=dict, alias="set",
                                 description="overrides by dotted path applied to the base recipe for every variant")
     variants: dict[str, VariantSpec] = Field(..., min_length=1, description="name -> variant, in table order")
+    controls: list[Literal["random", "shuffled"]] = Field(
+        default_factory=list, description="control teachers (`teacher.control`): after each variant that distils "
+                                          "from a teacher, the same variant against each control, as `<variant>."
+                                          "<control>` (a variant's `controls: false` leaves it out)")
     launcher: LauncherSpec | None = Field(None, description="resources of each run on a cluster "
                                                             "(`--launcher slurm`)")
 
@@ -108,7 +114,10 @@ class Sweep:
 
     def __init__(self, spec: SweepSpec, base: dict[str, Any], source: str) -> None:
         self.spec, self.base, self.source = spec, base, source
+        spec.variants = {n: v for n, v in spec.variants.items() if v._control is None}  # the file's, then controls
         self.data: dict[str, dict[str, Any]] = {name: variant_data(self, name) for name in spec.variants}
+        spec.variants = with_controls(self)
+        self.data.update({name: variant_data(self, name) for name in self.controls})
         self.recipes: dict[str, Recipe] = {name: recipe_from_dict(d, source) for name, d in self.data.items()}
 
     @property
@@ -124,6 +133,11 @@ class Sweep:
         if self.spec.baseline is not None:
             return self.spec.baseline
         return next((n for n, r in self.recipes.items() if not r.stages[n].distill), None)
+
+    @property
+    def controls(self) -> dict[str, tuple[str, str]]:
+        """Each control row the sweep added: its variant and control kind."""
+        return {n: v._control for n, v in self.spec.variants.items() if v._control is not None}
 
     def upstream_stages(self, variant: str) -> list[str]:
         """The stages a variant's recipe runs before the variant itself (its teacher, ...)."""
@@ -182,6 +196,28 @@ def variant_data(sweep: Sweep, variant: str) -> dict[str, Any]:
     return data
 
 
+def with_controls(sweep: Sweep) -> dict[str, VariantSpec]:
+    """The variants with, after each that distils from a teacher of its own (not its moving average), one row per
+    control of ``controls``: the variant with ``teacher.control`` set (:mod:`distilkit.engine.train.controls`)."""
+    out: dict[str, VariantSpec] = {}
+    for name, variant in sweep.spec.variants.items():
+        out[name] = variant
+        stage = sweep.data[name]["stages"][name]
+        teacher = stage.get("teacher")
+        if not variant.controls or not stage.get("distill") or not isinstance(teacher, dict) or teacher.get("ema"):
+            continue
+        for kind in sweep.spec.controls:
+            added = f"{name}.{kind}"
+            if added in sweep.spec.variants:
+                raise RecipeError([(f"variants.{added}", f"has the name of the {kind} control row of variant "
+                                                         f"{name!r}: rename it")], sweep.source)
+            row = VariantSpec(label=f"{sweep.label(name)} · {kind} teacher", distill=variant.distill,
+                              set={**variant.set, f"stages.{sweep.spec.stage}.teacher.control": kind})
+            row._control = (name, kind)
+            out[added] = row
+    return out
+
+
 def load_sweep(path: str | Path) -> Sweep:
     """Read a sweep file (``yaml.safe_load``) and build every variant's recipe; problems are RecipeErrors."""
     path = Path(path)
@@ -210,4 +246,5 @@ def load_sweep(path: str | Path) -> Sweep:
     return Sweep(spec, base, source)
 
 
-__all__ = ["LauncherSpec", "Sweep", "SweepSpec", "VariantSpec", "load_sweep", "set_path", "variant_data"]
+__all__ = ["LauncherSpec", "Sweep", "SweepSpec", "VariantSpec", "load_sweep", "set_path", "variant_data",
+           "with_controls"]

@@ -9,7 +9,7 @@ from typing import Any
 
 from distilkit.engine.assemble.resolved import (ResolvedAux, ResolvedHook, ResolvedMetric, ResolvedModel, ResolvedRecipe,
                                              ResolvedStage)
-from distilkit.engine.assemble.store_checks import store_problems
+from distilkit.engine.assemble.store_checks import control_problems, store_problems
 from distilkit.engine.assemble.terms import (alignment_problems, lookup, param_groups, resolve_model, resolve_terms,
                                           validate_params)
 from distilkit.errors import RecipeError
@@ -252,7 +252,7 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
         if info is not None:
             problems.extend(alignment_problems(distill, models, info, f"{path}.distill"))
             problems.extend(augment_problems(spec.train.augment, info, f"{path}.train.augment"))
-        problems.extend(store_problems(spec, distill, teacher, info, path))
+        problems.extend(store_problems(spec, distill, teacher, info, path) + control_problems(spec, distill, path))
         for i, term in enumerate(distill):  # teacher and student capabilities the objective calls
             for role, model, caps in (("teacher", teacher, term.card.REQUIRES),
                                       ("student", student, term.card.student_requires(term.params))):

@@ -1,5 +1,6 @@
 """What ``validate`` checks of ``teacher.store`` (issue 58): that a store can hold what the stage reads, and that a
-lossy layout keeps every value the stage's terms read (each refusal one line naming why)."""
+lossy layout keeps every value the stage's terms read; and of ``teacher.control`` (issue 59): that the control
+reaches every use of the teacher (each refusal one line naming why)."""
 
 from __future__ import annotations
 
@@ -81,4 +82,18 @@ def layout_problems(store: Any, distill: list[Any], kinds: dict[str, str], info:
     return out
 
 
-__all__ = ["layout_problems", "mask_labels", "store_problems"]
+def control_problems(spec: Any, distill: list[Any], path: str) -> list[tuple[str, str]]:
+    """``teacher.control: shuffled`` where a term calls the teacher itself (on the sample's own input: the control
+    would not reach it), or where no term reads a teacher tap (nothing to shuffle)."""
+    if spec.teacher is None or spec.teacher.control != "shuffled" or not distill:
+        return []
+    where = f"{path}.teacher.control"
+    out = [(where, f"distill[{i}] ({t.name}) calls the teacher's {', '.join(sorted(t.card.REQUIRES))}() on the "
+                   "sample's own input: the shuffled control gives another sample's outputs to the terms that read "
+                   "teacher taps only; use control: random") for i, t in enumerate(distill) if t.card.REQUIRES]
+    if not out and not any(role in t.card.TEACHER_ROLES for t in distill for role in t.taps):
+        out.append((where, "no distillation term of the stage reads a teacher tap: there is nothing to shuffle"))
+    return out
+
+
+__all__ = ["control_problems", "layout_problems", "mask_labels", "store_problems"]

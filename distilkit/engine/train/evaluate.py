@@ -51,11 +51,13 @@ def _merged(metrics: list[Metric], seconds: float, count: int, world: World) -> 
 def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device, collate: Collate,
              metrics: list[Any], world: World = SINGLE, workers: int = 0, seed: int = 0,
              prepare: Callable[[Batch], Batch] | None = None,
-             progress: Callable[[int | None, int | None], None] | None = None) -> dict[str, Any]:
+             progress: Callable[[int | None, int | None], None] | None = None,
+             scenes: bool = False) -> dict[str, Any]:
     """Scores of the model's prediction tap over ``dataset`` with ``metrics`` (each with its registered ``name``
     and ``cls``): the first one's keys as they are, the others' as ``<name>.<key>``; and ``seconds_per_sample`` of
     the model's forward passes, its auxiliary models' included (``prepare``). ``progress(done, total)`` follows this
-    process's samples (``(None, None)`` at the end)."""
+    process's samples (``(None, None)`` at the end). ``scenes``: also ``scenes``, the first metric's per-scene counts
+    (:meth:`~distilkit.metrics.base.Metric.per_scene`), where it keeps them."""
     was_training = model.training
     model.eval()
     accs = [m.cls(model.info) for m in metrics]
@@ -88,6 +90,9 @@ def evaluate(model: Adapter, dataset: Any, batch_size: int, device: torch.device
     scores: dict[str, Any] = dict(accs[0].compute())
     for m, acc in zip(metrics[1:], accs[1:]):
         scores.update({f"{m.name}.{k}": v for k, v in acc.compute().items()})
+    per_scene = accs[0].per_scene() if scenes else None
+    if per_scene is not None:
+        scores["scenes"] = per_scene
     # the forward time per sample (not the metric's), e.g. a sampler's seconds per scene (+ a refiner's)
     return {**scores, "seconds_per_sample": seconds / max(count, 1)}
 

@@ -38,6 +38,7 @@ from distilkit.engine.hooks import CheckpointHook, EvalHook, Hook, LogHook, Loop
 from distilkit.engine.train.randomness import seed_everything
 from distilkit.files import atomic_write_json, atomic_write_text
 from distilkit.repro import mkl_cbwr, processor, vector_math_warmed
+from distilkit.report.scenes import SCENE_COUNTS
 from distilkit.engine.train.loader import BatchPlan, eval_batches, resolve_workers, train_batches
 from distilkit.engine.assemble.runs import load_run
 from distilkit.engine.train.auxiliary import with_aux_inputs
@@ -198,11 +199,16 @@ class StageRun:
 
         seed_everything(self.seed)
         self.load_aux()
+        from distilkit.engine.train import controls
+
         teacher, store = None, None
         stored = self.stage.spec.teacher is not None and self.stage.spec.teacher.store is not None
+        control = self.stage.spec.teacher.control if self.stage.spec.teacher is not None else None
         if self.stage.teacher is not None and self.stage.distill and self.stage.ema is None and not stored:
-            teacher = load_run(self.upstream("teacher"), model=self.stage.teacher, info=self.info,
-                               device=self.device, role="teacher")  # an EMA: the trainer's
+            teacher = (controls.random_teacher(self.stage.teacher, self.info, self.seed, self.device)
+                       if control == "random" else  # the architecture with random weights, not the checkpoint's
+                       load_run(self.upstream("teacher"), model=self.stage.teacher, info=self.info,
+                                device=self.device, role="teacher"))  # an EMA: the trainer's
         init = None
         if self.stage.spec.init is not None:
             path = self.upstream("init")
@@ -223,8 +229,15 @@ class StageRun:
             from distilkit.data.augment import Augmented
 
             train_set = Augmented(train_set, augmentation)
+        collate = self.pipeline.collate
+        if control == "shuffled" and self.stage.distill:  # each sample meets another's teacher outputs
+            sigma = controls.cycle(len(train_set), self.seed)
+            if store is not None:
+                store = controls.PartnerStore(store, sigma)
+            else:
+                train_set, collate = controls.Partnered(train_set, sigma), controls.WithPartner(collate)
         plan = BatchPlan(len(train_set), self.spec.batch_size, self.seed, self.world, group)
-        self.trainer = Trainer(self.stage, self.info, train_set, plan, self.device, collate=self.pipeline.collate,
+        self.trainer = Trainer(self.stage, self.info, train_set, plan, self.device, collate=collate,
                                teacher=teacher, init_weights=init, world=self.world, prepare=self.prepare_training,
                                store=store)
         self.trainer.kept = self.checkpoints.kept
@@ -364,7 +377,7 @@ class StageRun:
                                          "scores": json.dumps(loop.best["scores"])})
 
     # -- evaluate ----------------------------------------------------------------------------
-    def evaluate(self, dataset: Any, model: Any = None) -> dict[str, Any]:
+    def evaluate(self, dataset: Any, model: Any = None, scenes: bool = False) -> dict[str, Any]:
         """Scores of the student (or ``model``) on ``dataset`` with the stage's metrics, each process scoring its
         share; a stochastic model draws the same noise at every evaluation (the stage's seed, in a stream of its
         own that training does not see)."""
@@ -374,7 +387,7 @@ class StageRun:
         return evaluate(model if model is not None else self.trainer.student, dataset, self.spec.batch_size,
                         self.device, self.pipeline.collate, self.stage.metrics, world=self.world,
                         workers=self.workers, seed=self.seed, prepare=self.prepare,
-                        progress=self.eval_progress if self.world.main else None)
+                        progress=self.eval_progress if self.world.main else None, scenes=scenes)
 
     def best_model(self) -> tuple[Any, int] | None:
         """The student of ``best.pt`` and its step (None before the first evaluation); every process reads the file
@@ -393,12 +406,27 @@ class StageRun:
         last step: the same weights)."""
         assert self.trainer is not None
         dataset = self.split(split)
-        out: dict[str, Any] = {"last": self.evaluate(dataset), "last_step": self.trainer.total_steps}
-        if best is not None and best[1] != self.trainer.total_steps:
-            out["best"], out["best_step"] = self.evaluate(dataset, best[0]), best[1]
+        same = best is None or best[1] == self.trainer.total_steps
+        out: dict[str, Any] = {"last": self.evaluate(dataset, scenes=same), "last_step": self.trainer.total_steps}
+        if not same:
+            assert best is not None
+            out["best"], out["best_step"] = self.evaluate(dataset, best[0], scenes=True), best[1]
         else:
             out["best"], out["best_step"] = out["last"], self.trainer.total_steps
+        self.write_scene_counts(split, out["best"].pop("scenes", None), out["best_step"])
         return out
+
+    def write_scene_counts(self, split: str, scenes: dict[str, Any] | None, step: int) -> None:
+        """``scene_counts.npz``: the best checkpoint's per-scene intersections and unions on ``split`` (ids, arrays
+        and class names only: loaded without pickle), for the report's bootstrap over test scenes
+        (:mod:`distilkit.report.scenes`); kept out of summary.json, whose size they would multiply."""
+        if scenes is None or not self.world.main:
+            return
+        path, tmp = self.run_dir / SCENE_COUNTS, self.run_dir / ".scene_counts.tmp.npz"
+        np.savez_compressed(tmp, ids=np.array(scenes["ids"], dtype=str), inter=scenes["inter"],
+                            union=scenes["union"], split=np.array(split), step=np.array(step),
+                            classes=np.array(self.info.classes.names[1:], dtype=str))
+        os.replace(tmp, path)
 
     # -- publish -----------------------------------------------------------------------------
     def write_preview(self, best: tuple[Any, int] | None) -> Path | None:
@@ -458,6 +486,7 @@ class StageRun:
             "adapter": stage.student.adapter, "input": stage.student.cls.describe(stage.student.params),
             "teacher": stage.teacher_from or (stage.spec.teacher.checkpoint or ("ema" if stage.ema else None)
                                               if stage.spec.teacher else None),
+            "teacher_control": stage.spec.teacher.control if stage.spec.teacher and stage.distill else None,
             "objectives": [f"{t.name}×{t.weight:g}" for t in stage.distill], "seed": self.seed,
             "processes": self.world.size, "threads": torch.get_num_threads(),  # rounding depends on them
             "versions": {"torch": torch.__version__, "numpy": np.__version__},  # numpy's streams: within a version

@@ -275,8 +275,9 @@ class Trainer:
             read = self.store.of(batch, self.device) if read is None else read
             return {k: to_device(v, self.device) for k, v in read.items()}
         assert self.teacher is not None
+        other = batch.meta.get("teacher_batch")  # control: shuffled, live: the partners' batch (controls.WithPartner)
         with torch.no_grad(), self._autocast():
-            t_out = self.teacher(batch)
+            t_out = self.teacher(batch if other is None else self.prepare(other))
         self._check_outputs(self.teacher, t_out, "teacher")
         return t_out
 
