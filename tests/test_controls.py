@@ -237,3 +237,31 @@ def test_the_report_has_a_section_against_the_controls(tmp_path) -> None:
     lines = [line for line in section.splitlines() if line.startswith("| kd_4") or line.startswith("| dist")]
     assert [line.split(" | ")[1] for line in lines] == ["shuffled", "random", "shuffled"]
     assert len([line for line in section.splitlines() if line.startswith("| kd_1")]) == 1
+
+
+def test_a_sweep_adds_only_the_controls_a_variant_can_take(tmp_path) -> None:
+    """A stored teacher's random row runs live (no store); a term that calls the teacher gets no shuffled row;
+    an `ema: {}` teacher (the student's own) gets none; every row sits after its variant."""
+    import yaml
+
+    from distilkit.sweep.spec import load_sweep
+
+    recipe = tiny_recipe(steps=1)
+    recipe["stages"]["student"]["teacher"]["store"] = True
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
+    (tmp_path / "s.yaml").write_text("name: s\nrecipe: r.yaml\nstage: student\nteacher: teacher\n"
+                                     "controls: [random, shuffled]\nvariants:\n  dskd: {}\n  none: {distill: []}\n"
+                                     "  kd: {distill: [{name: kd}]}\n")
+    sweep = load_sweep(tmp_path / "s.yaml")
+    assert list(sweep.recipes) == ["dskd", "dskd.random", "dskd.shuffled", "none", "kd", "kd.random", "kd.shuffled"]
+    assert sweep.recipes["dskd.random"].stages["dskd.random"].teacher.store is None
+    assert sweep.recipes["dskd.shuffled"].stages["dskd.shuffled"].teacher.store is not None  # the real one's store
+    (tmp_path / "s2.yaml").write_text("name: s2\nrecipe: r.yaml\nstage: student\nteacher: teacher\n"
+                                      "controls: [shuffled, random]\nvariants:\n  vsd: {distill: [{name: vsd}]}\n")
+    assert list(load_sweep(tmp_path / "s2.yaml").controls) == ["vsd.random"]  # VSD calls the teacher itself
+    own = tiny_recipe(steps=1)
+    own["stages"]["student"]["teacher"] = {"ema": {}}
+    (tmp_path / "r3.yaml").write_text(yaml.safe_dump(own))
+    (tmp_path / "s3.yaml").write_text("name: s3\nrecipe: r3.yaml\nstage: student\ncontrols: [random]\n"
+                                      "variants:\n  dskd: {}\n")
+    assert load_sweep(tmp_path / "s3.yaml").controls == {}

@@ -120,3 +120,11 @@ def test_a_run_without_counts_gets_no_bootstrap_and_the_report_says_which_is_wid
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / scenes.SCENE_COUNTS).write_bytes(b"not an npz")
     assert scenes.read(tmp_path / "bad") is None
+
+
+def test_the_bootstrap_takes_each_rows_difference_to_its_own_reference(tmp_path) -> None:
+    """report.compare: kd's Δ is to dist, and so is its bootstrap (the same estimate as its Δ)."""
+    rows = {r["stage"]: r for r in seed_rows(_rows(tmp_path, 0.05), "none", compare={"kd": "dist"})}
+    assert rows["kd"]["reference"] == "dist"
+    assert rows["kd"]["boot"]["estimate"] == pytest.approx(rows["kd"]["delta_mean"], abs=1e-12)
+    assert rows["dist"]["boot"]["estimate"] == pytest.approx(rows["dist"]["delta_mean"], abs=1e-12)

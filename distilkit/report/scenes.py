@@ -38,19 +38,19 @@ def read(run_dir: Path | None) -> dict[str, Any] | None:
 
 
 def annotate(rows: list[dict[str, Any]], baseline: str | None) -> None:
-    """Set ``boot`` (``ci``, ``estimate``, ``scenes``) on each row with paired differences to ``baseline`` over two
-    seeds at least, where every paired seed of both kept its counts on the same scenes; the rows' ``scene_counts``
-    (per seed) come from :func:`read`."""
+    """Set ``boot`` (``ci``, ``estimate``, ``scenes``) on each row with paired differences over two seeds at least to
+    its reference (``row["reference"]``, else ``baseline``: the stage its Δ is taken to), where every paired seed of
+    both kept its counts on the same scenes; the rows' ``scene_counts`` (per seed) come from :func:`read`."""
     import numpy as np
 
     from distilkit.report.multiple import hierarchical_bootstrap
 
-    base = next((r for r in rows if r["stage"] == baseline), None)
-    if base is None or not base.get("scene_counts") or base["view"].main[0] != "miou":
-        return
+    by_name = {r["stage"]: r for r in rows}
     for row in rows:
         row.pop("boot", None)
-        if row is base or len(row["delta"]) < 2 or not row.get("scene_counts"):
+        base = by_name.get(row.get("reference") or baseline or "")
+        if (base is None or row is base or len(row["delta"]) < 2 or not row.get("scene_counts")
+                or not base.get("scene_counts") or row["view"].main[0] != "miou"):
             continue
         seeds = [s for s in row["seeds"] if s in base["seeds"]]
         mine, theirs = row["scene_counts"], base["scene_counts"]

@@ -24,7 +24,7 @@ def widths(rows: list[dict[str, Any]]) -> dict[str, float]:
     else its own t-interval (nan where it has fewer than two seeds)."""
     out = {}
     for row in rows:
-        if not row["delta"] or not row.get("chosen", True):
+        if not row["delta"] or not row.get("chosen", True) or row.get("control"):  # a control row is no method
             continue
         low, high = row.get("sim_ci", row["delta_ci"])
         out[row["label"]] = row["view"].main[2] * (high - low)

@@ -116,8 +116,8 @@ class Sweep:
         self.spec, self.base, self.source = spec, base, source
         spec.variants = {n: v for n, v in spec.variants.items() if v._control is None}  # the file's, then controls
         self.data: dict[str, dict[str, Any]] = {name: variant_data(self, name) for name in spec.variants}
-        spec.variants = with_controls(self)
-        self.data.update({name: variant_data(self, name) for name in self.controls})
+        spec.variants = with_controls(self)  # each control row after its variant, in the table's order
+        self.data = {name: self.data.get(name) or variant_data(self, name) for name in spec.variants}
         self.recipes: dict[str, Recipe] = {name: recipe_from_dict(d, source) for name, d in self.data.items()}
 
     @property
@@ -198,24 +198,47 @@ def variant_data(sweep: Sweep, variant: str) -> dict[str, Any]:
 
 def with_controls(sweep: Sweep) -> dict[str, VariantSpec]:
     """The variants with, after each that distils from a teacher of its own (not its moving average), one row per
-    control of ``controls``: the variant with ``teacher.control`` set (:mod:`distilkit.engine.train.controls`)."""
+    control of ``controls`` it can take: the variant with ``teacher.control`` set
+    (:mod:`distilkit.engine.train.controls`; a random teacher runs live, without the variant's ``store``). A variant
+    whose terms call the teacher themselves, or read no teacher tap, gets no shuffled row (there is nothing the
+    shuffle reaches: ``validate`` would refuse it)."""
     out: dict[str, VariantSpec] = {}
     for name, variant in sweep.spec.variants.items():
         out[name] = variant
         stage = sweep.data[name]["stages"][name]
         teacher = stage.get("teacher")
-        if not variant.controls or not stage.get("distill") or not isinstance(teacher, dict) or teacher.get("ema"):
+        if (not variant.controls or not stage.get("distill") or not isinstance(teacher, dict)
+                or teacher.get("ema") not in (None, False)):
             continue
         for kind in sweep.spec.controls:
+            if kind == "shuffled" and not _shuffles(stage["distill"]):
+                continue
             added = f"{name}.{kind}"
             if added in sweep.spec.variants:
                 raise RecipeError([(f"variants.{added}", f"has the name of the {kind} control row of variant "
                                                          f"{name!r}: rename it")], sweep.source)
+            where = f"stages.{sweep.spec.stage}.teacher"
             row = VariantSpec(label=f"{sweep.label(name)} · {kind} teacher", distill=variant.distill,
-                              set={**variant.set, f"stages.{sweep.spec.stage}.teacher.control": kind})
+                              set={**variant.set, f"{where}.control": kind,
+                                   **({f"{where}.store": None} if kind == "random" else {})})
             row._control = (name, kind)
             out[added] = row
     return out
+
+
+def _shuffles(distill: list[Any]) -> bool:
+    """Whether a shuffled teacher reaches the terms: none calls the teacher itself and one reads a teacher tap
+    (unknown names: left to the recipe's own check)."""
+    from distilkit.errors import UnknownNameError
+    from distilkit.registry import OBJECTIVES
+
+    cards = []
+    for term in distill:
+        try:
+            cards.append(OBJECTIVES.entry(str(term.get("name") if isinstance(term, dict) else term)).card)
+        except UnknownNameError:
+            return True
+    return not any(c.REQUIRES for c in cards) and any(c.TEACHER_ROLES for c in cards)
 
 
 def load_sweep(path: str | Path) -> Sweep:
