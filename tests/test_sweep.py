@@ -169,12 +169,17 @@ def test_the_store_sweeps_keep_each_variants_store_and_the_stored_methods_sweep_
     compares each layout with the live teacher."""
     stored = load_sweep(ROOT / "recipes" / "sweeps" / "quickstart_methods_stored.yaml")
     live = load_sweep(ROOT / "recipes" / "sweeps" / "quickstart_methods.yaml")
-    assert list(stored.recipes) == list(live.recipes)
+    assert list(stored.recipes) == list(live.recipes) and stored.controls == live.controls
+    assert {kind for _, kind in live.controls.values()} == {"random", "shuffled"}
     for name, recipe in stored.recipes.items():
         stage, twin = recipe.stages[name], live.recipes[name].stages[name]
         assert stage.distill == twin.distill
-        assert (stage.teacher is None) if name == "none" else (stage.teacher.store is not None and
-                                                                stage.teacher.from_ == twin.teacher.from_ == "teacher")
+        if name == "none":
+            assert stage.teacher is None
+            continue
+        assert stage.teacher.from_ == twin.teacher.from_ == "teacher" and stage.teacher.control == twin.teacher.control
+        # a random teacher has no store to read (it is not the stored teacher): it runs live, as in the live sweep
+        assert (stage.teacher.store is None) if stage.teacher.control == "random" else stage.teacher.store is not None
     layouts = load_sweep(ROOT / "recipes" / "sweeps" / "store_layouts.yaml").recipes
     got = {n: r.stages[n].teacher.store for n, r in layouts.items()}
     assert got["live"] is None and got["float32"].exact and got["bfloat16"].precision == "bfloat16"
@@ -229,8 +234,9 @@ def test_the_paper_tables_are_the_same_runs_as_the_readme_comparison(name: str, 
     readme = SweepRun(ROOT / "recipes" / "sweeps" / "quickstart_methods.yaml", tmp_path, quiet=True)
     table = SweepRun(ROOT / "recipes" / "sweeps" / f"{name}.yaml", tmp_path, quiet=True)
 
-    def objectives(sweep: SweepRun, variant: str) -> list:
-        return [(t.name, t.weight) for t in sweep.sweep.recipes[variant].stages[variant].distill]
+    def objectives(sweep: SweepRun, variant: str) -> tuple:  # the terms, and the control teacher of a control row
+        return ([(t.name, t.weight) for t in sweep.sweep.recipes[variant].stages[variant].distill],
+                sweep.sweep.controls.get(variant, (None, None))[1])
 
     for variant in table.sweep.recipes:
         (twin,) = [v for v in readme.sweep.recipes if objectives(readme, v) == objectives(table, variant)]

@@ -14,11 +14,11 @@ are left out of the table's family (its corrections and ranks) and shown as chos
 from __future__ import annotations
 
 import math
-import statistics
 from typing import Any
 
 from distilkit.report import multiple
 from distilkit.report.family import p_text
+from distilkit.report.numbers import interval, mean_std, pm, signed
 
 
 def annotate(rows: list[dict[str, Any]]) -> None:
@@ -35,9 +35,8 @@ def annotate(rows: list[dict[str, Any]]) -> None:
         row["control_of"], row["chosen"] = method["stage"], method.get("chosen", True)
         seeds = [s for s in method["seeds"] if s in row["seeds"]]
         delta = [method["main"][method["seeds"].index(s)] - row["main"][row["seeds"].index(s)] for s in seeds]
-        entry = {"kind": kind, "label": row["label"], "seeds": seeds, "delta": delta,
-                 "mean": statistics.fmean(delta) if delta else math.nan,
-                 "std": statistics.stdev(delta) if len(delta) > 1 else math.nan,
+        mean, std = mean_std(delta)
+        entry = {"kind": kind, "label": row["label"], "seeds": seeds, "delta": delta, "mean": mean, "std": std,
                  "ci": multiple.t_interval(delta), "p": multiple.paired_t_pvalue(delta)}
         method.setdefault("vs_control", {})[kind] = entry
         if method.get("chosen", True) and len(delta) >= 2:
@@ -58,7 +57,6 @@ def markdown(rows: list[dict[str, Any]]) -> list[str]:
         return []
     view = methods[0]["view"]
     scale = view.main[2]
-    one = (lambda d: f"{scale * d:+.2f}") if scale != 1.0 else (lambda d: f"{d:+.4g}")
     k = sum("p_holm" in e for r in methods for e in r["vs_control"].values())
     lines = ["", "## Against the control teachers", "",
              f"Each method minus the same method, objectives and weights against a control teacher, seed by seed, in "
@@ -70,14 +68,10 @@ def markdown(rows: list[dict[str, Any]]) -> list[str]:
              "| method | control | seeds | Δ per seed | Δ | Δ 95 % interval | p Holm |", "|---|---|---|---|---|---|---|"]
     for row in methods:
         for kind, e in row["vs_control"].items():
-            low, high = e["ci"]
-            std = "" if math.isnan(e["std"]) else f" ± {abs(scale) * e['std']:.2f}" if scale != 1.0 else \
-                f" ± {e['std']:.2g}"
             mark = " ◆" if row.get("chosen") and row.get("alternatives", 1) > 1 else ""
             lines.append(f"| {row['label']}{mark} | {kind} | {','.join(map(str, e['seeds']))} | "
-                         f"{' / '.join(one(d) for d in e['delta'])} | {one(e['mean'])}{std} | "
-                         f"{'—' if math.isnan(low) else f'[{one(low)}, {one(high)}]'} | "
-                         f"{p_text(e.get('p_holm', math.nan))} |")
+                         f"{' / '.join(signed(d, scale) for d in e['delta'])} | {pm(e['mean'], e['std'], scale, '+')} | "
+                         f"{interval(*e['ci'], scale)} | {p_text(e.get('p_holm', math.nan))} |")
     return lines + [""]
 
 

@@ -16,6 +16,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from distilkit.report.numbers import interval, signed
+
 SCENE_COUNTS = "scene_counts.npz"
 DRAWS = 2000
 
@@ -73,8 +75,6 @@ def markdown(rows: list[dict[str, Any]]) -> list[str]:
         return []
     scale = booted[0]["view"].main[2]
 
-    def cell(low: float, high: float) -> str:
-        return "—" if math.isnan(low) else f"[{scale * low:+.2f}, {scale * high:+.2f}]"
     wider = [r for r in booted if _width(r["boot"]["ci"]) > _width(r["delta_ci"])]
     scenes = booted[0]["boot"]["scenes"]
     lines = ["", "## Scenes and seeds", "",
@@ -91,8 +91,8 @@ def markdown(rows: list[dict[str, Any]]) -> list[str]:
              "the t quantile's widening): read the wider of the two.", "",
              "| row | Δ | t over seeds | seeds × scenes (bootstrap) | wider |", "|---|---|---|---|---|"]
     for r in booted:
-        lines.append(f"| {r['label']} | {scale * r['delta_mean']:+.2f} | {cell(*r['delta_ci'])} | "
-                     f"{cell(*r['boot']['ci'])} | {'bootstrap' if r in wider else 't'} |")
+        lines.append(f"| {r['label']} | {signed(r['delta_mean'], scale)} | {interval(*r['delta_ci'], scale)} | "
+                     f"{interval(*r['boot']['ci'], scale)} | {'bootstrap' if r in wider else 't'} |")
     return lines + [""]
 
 

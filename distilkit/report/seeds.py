@@ -11,13 +11,13 @@ both report through :func:`write_seeds_report`.
 from __future__ import annotations
 
 import math
-import statistics
 from pathlib import Path
 from typing import Any
 
 from distilkit.files import atomic_write_text
 from distilkit.report import classes, controls, family, scenes
 from distilkit.report.multiple import t_interval, t_quantile as _t_quantile
+from distilkit.report.numbers import interval, mean_std, pm, signed
 from distilkit.report.scores import ScoreView, stage_row
 
 
@@ -28,12 +28,6 @@ def default_baseline(resolved: Any) -> str | None:
         if not resolved.stages[name].distill and name not in teachers:
             return name
     return None
-
-
-def _mean_std(xs: list[float]) -> tuple[float, float]:
-    if any(math.isnan(x) for x in xs):  # a score a stage does not have
-        return math.nan, math.nan
-    return statistics.fmean(xs), statistics.stdev(xs) if len(xs) > 1 else math.nan
 
 
 def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None,
@@ -72,11 +66,11 @@ def seed_rows(results_by_seed: dict[int, list[Any]], baseline: str | None,
         for key, get in pick.items():
             values = [get(by_seed[s]) for s in got]
             row[key] = values
-            row[f"{key}_mean"], row[f"{key}_std"] = _mean_std(values)
+            row[f"{key}_mean"], row[f"{key}_std"] = mean_std(values)
         comparable = base and name != reference and base[min(base)]["view"] == view
         paired = [pick["main"](by_seed[s]) - pick["main"](base[s]) for s in got if s in base] if comparable else []
         row["delta"] = paired
-        row["delta_mean"], row["delta_std"] = _mean_std(paired) if paired else (math.nan, math.nan)
+        row["delta_mean"], row["delta_std"] = mean_std(paired)
         row["delta_ci"] = t_interval(paired)
         row["class_iou"] = {s: by_seed[s]["class_scores"] for s in got if by_seed[s]["class_scores"]}
         row["class_names"], row["class_voxels"] = first["class_names"], first["class_voxels"]
@@ -123,26 +117,15 @@ def detectable_effect(std: float, n: int, power: float = 0.8, level: float = 0.9
     return (_t_quantile(0.5 + level / 2, n - 1) + _t_quantile(power, n - 1)) * std / math.sqrt(n)
 
 
-def _pm(mean: float, std: float, scale: float = 100.0, sign: str = "") -> str:
-    value = f"{scale * mean:{sign}.2f}" if scale != 1.0 else f"{mean:{sign}.4g}"
-    if math.isnan(std):
-        return value
-    return f"{value} ± {scale * std:.2f}" if scale != 1.0 else f"{value} ± {std:.2g}"
-
-
 def _deltas(row: dict[str, Any], corrected: bool = False) -> tuple[str, ...]:
     """Per seed, mean ± std, the interval (and, in a table with a family, Holm's p and the simultaneous interval)."""
     if not row["delta"]:
         return ("—",) * (5 if corrected else 3)
     scale = row["view"].main[2]
-    one = (lambda d: f"{scale * d:+.2f}") if scale != 1.0 else (lambda d: f"{d:+.4g}")
-    per_seed = " / ".join(one(d) for d in row["delta"])
-
-    def interval(low: float, high: float) -> str:
-        return "—" if math.isnan(low) else f"[{one(low)}, {one(high)}]"
-    out = (per_seed, _pm(row["delta_mean"], row["delta_std"], scale, "+"), interval(*row["delta_ci"]))
+    per_seed = " / ".join(signed(d, scale) for d in row["delta"])
+    out = (per_seed, pm(row["delta_mean"], row["delta_std"], scale, "+"), interval(*row["delta_ci"], scale))
     if corrected:
-        out += (family.p_cell(row), interval(*row["sim_ci"]) if "sim_ci" in row else "—")
+        out += (family.p_cell(row), interval(*row["sim_ci"], scale) if "sim_ci" in row else "—")
     return out
 
 
@@ -167,9 +150,9 @@ def _cells(row: dict[str, Any], per_row: bool = False, corrected: bool = False) 
     view: ScoreView = row["view"]
     second = view.second[2] if view.second else 1.0
     ref = [row.get("reference") or "—"] if per_row else []
-    return [_pm(row["val_mean"], row["val_std"], view.main[2]), _pm(row["main_mean"], row["main_std"], view.main[2]),
-            _pm(row["second_mean"], row["second_std"], second),
-            _pm(row["last_main_mean"], row["last_main_std"], view.main[2]), *ref, *_deltas(row, corrected)]
+    return [pm(row["val_mean"], row["val_std"], view.main[2]), pm(row["main_mean"], row["main_std"], view.main[2]),
+            pm(row["second_mean"], row["second_std"], second),
+            pm(row["last_main_mean"], row["last_main_std"], view.main[2]), *ref, *_deltas(row, corrected)]
 
 
 def _mark(row: dict[str, Any]) -> str:

@@ -113,6 +113,7 @@ class Sweep:
     """A loaded sweep: the spec, its base recipe (as data) and one recipe per variant."""
 
     def __init__(self, spec: SweepSpec, base: dict[str, Any], source: str) -> None:
+        spec = spec.model_copy()  # the caller's spec keeps its variants; this copy gains the control rows
         self.spec, self.base, self.source = spec, base, source
         spec.variants = {n: v for n, v in spec.variants.items() if v._control is None}  # the file's, then controls
         self.data: dict[str, dict[str, Any]] = {name: variant_data(self, name) for name in spec.variants}

@@ -262,10 +262,12 @@ class TeacherOutputs:
             self._open[s] = safe_open(str(path), framework="pt")
         return self._open[s]
 
-    def of(self, batch: Any, device: torch.device) -> dict[str, Any]:
-        """:meth:`batch` for a collated batch: its samples' ids under their augmentation draws (0: none)."""
+    def of(self, batch: Any, device: torch.device, rename: dict[str, str] | None = None) -> dict[str, Any]:
+        """:meth:`batch` for a collated batch: its samples' ids under their augmentation draws (0: none); with
+        ``rename``, each id read at the id it maps to (a shuffled control's partner), the others at their own."""
         draws = batch.meta.get("augment_draw") or [0] * batch.size
-        return self.batch(list(batch.meta.get("sample_id", ())), list(draws), device)
+        ids = [str(s) for s in batch.meta.get("sample_id", ())]
+        return self.batch([rename.get(s, s) for s in ids] if rename else ids, list(draws), device)
 
     def batch(self, sample_ids: list[str], draws: list[int], device: torch.device) -> dict[str, Any]:
         """Every stored tap of a batch: the samples' rows under their draws, assembled as the teacher returns them."""

@@ -109,9 +109,7 @@ class PartnerStore:
         self.store, self.partner = store, {ids[i]: ids[j] for i, j in enumerate(sigma)}
 
     def of(self, batch: Any, device: torch.device) -> dict[str, Any]:
-        draws = batch.meta.get("augment_draw") or [0] * batch.size
-        ids = [self.partner.get(str(s), str(s)) for s in batch.meta.get("sample_id", ())]
-        return self.store.batch(ids, list(draws), device)
+        return self.store.of(batch, device, rename=self.partner)
 
 
 __all__ = ["PARTNER", "PartnerStore", "Partnered", "STREAM", "WithPartner", "control_seed", "cycle", "random_teacher"]
