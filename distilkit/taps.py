@@ -10,6 +10,7 @@ tap of the student and the teacher on the first batch, so a wrong shape is one c
 | feature_map       | dense features, either of the two below (what feature objectives read)    |
 | image_features    | (B, C, H, W) features of a camera's image (a ``feature_map``)             |
 | volume_features   | (B, C, X, Y, Z) features on a voxel grid (a ``feature_map``)              |
+| bev_features      | (B, C, X, Y) features on a voxel grid's bird's-eye plane (a ``feature_map``) |
 | occupancy_logits  | (B, 2, X, Y, Z) empty / occupied scores (VoxFormer's query proposals)     |
 | depth_map         | (B, H, W) metres along a camera's axis, per pixel                         |
 | point_logits      | (M, K) per-point class scores (points of the batch, concatenated)         |
@@ -18,7 +19,8 @@ tap of the student and the teacher on the first batch, so a wrong shape is one c
 | scalar            | a 0-d tensor                                                              |
 
 A kind may refine a parent kind (``image_features`` is a ``feature_map``): a term that reads the parent
-accepts taps of every refinement (:func:`kind_fits`). Voxel taps live on a grid and image taps come from a
+accepts taps of every refinement (:func:`kind_fits`). A recipe makes a ``bev_features`` tap of any voxel tap by
+collapsing it over height (``taps: {bev: {of: completion, kind: bev_features, collapse: max}}``). Voxel taps live on a grid and image taps come from a
 camera; adapters declare which (``Adapter.tap_grid``, ``Adapter.tap_camera``), so ``validate`` checks
 alignments before training, and a :class:`SparseVoxels` value carries its grid's geometry. A plugin adds
 a kind with :func:`register_tap_kind`.
@@ -111,6 +113,9 @@ register_tap_kind("feature_map", _tensor((4, 5), "(B, C, H, W) or (B, C, X, Y, Z
 register_tap_kind("image_features", _tensor((4,), "(B, C, H, W) image features"), "features of a camera image",
                   parent="feature_map")
 register_tap_kind("volume_features", _tensor((5,), "(B, C, X, Y, Z) volume features"), "features on a voxel grid",
+                  parent="feature_map")
+register_tap_kind("bev_features", _tensor((4,), "(B, C, X, Y) bird's-eye-view features"),
+                  "features on a voxel grid's (X, Y) plane: a BEV network's, or a volume's collapsed over height",
                   parent="feature_map")
 register_tap_kind("occupancy_logits", _two_classes, "empty / occupied scores per voxel (query proposals)")
 register_tap_kind("depth_map", _tensor((3,), "(B, H, W) depth in metres"), "a depth map of a camera image")

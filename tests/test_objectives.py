@@ -25,14 +25,26 @@ def voxel_objectives() -> list[str]:
     from distilkit.data.datasets import synthetic_info
     from distilkit.data.params import SyntheticParams
 
-    kinds = set(ADAPTERS.get("scpnet").TAPS.values()) | {"feature_map"}
+    kinds = set(ADAPTERS.get("scpnet").TAPS.values()) | {"feature_map", "bev_features"}  # BEV: the recipes' BEV_TAPS
     fields = synthetic_info(SyntheticParams(**TINY_DATA)).fields
     return [e.name for e in OBJECTIVES if set(e.obj.CONSUMES.values()) <= kinds and not e.obj.REQUIRES
             and all(e.obj.default_field(role, fields) in fields for role in e.obj.BATCH)]
 
 
+BEV_TAPS = {"bev": {"of": "completion", "kind": "bev_features", "collapse": "max"}}  # bird's-eye maps of both models
+
+
+def with_bev_taps(r: dict) -> dict:
+    """A tiny recipe whose student and teacher also have a bird's-eye tap (for LiCROcc's and the voxel-to-BEV
+    terms)."""
+    student = r["stages"]["student"]
+    student["model"]["taps"] = dict(BEV_TAPS)
+    student["teacher"] = {**student["teacher"], "taps": dict(BEV_TAPS)}
+    return r
+
+
 def sweep_recipe() -> dict:
-    r = tiny_recipe(steps=1)
+    r = with_bev_taps(tiny_recipe(steps=1))
     student = r["stages"].pop("student")
     for name in voxel_objectives():
         stage = {k: v for k, v in student.items() if k != "distill"}

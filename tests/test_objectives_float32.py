@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from conftest import ROOT, tiny_recipe
-from test_objectives import voxel_objectives
+from test_objectives import voxel_objectives, with_bev_taps
 from distilkit.registry import OBJECTIVES
 
 # relative: the models' bf16 outputs move the taps by bf16's rounding (2^-8) through a network. Measured: 0.015 % (DIST)
@@ -52,8 +52,26 @@ def check(terms: dict[str, dict[str, torch.Tensor]], name: str) -> None:
         assert abs(float(low) - float(ref)) <= TOLERANCE * abs(float(ref)) + 1e-6, (key, float(low), float(ref))
 
 
+CAMERA = {"monoocc_image"}  # reads image features only: checked on its own below
+
+
 def test_every_registered_objective_is_covered_here() -> None:
-    assert set(voxel_objectives()) | set(POINT_STAGES) == set(OBJECTIVES.names())
+    assert set(voxel_objectives()) | set(POINT_STAGES) | CAMERA == set(OBJECTIVES.names())
+
+
+def test_the_image_objective_reduces_bf16_taps_in_float32() -> None:
+    """MonoOcc's image term on image features as a bf16 camera model returns them, after the trainer's conversion
+    (``to_float32``): a float32 scalar within bf16's rounding of the same term on the float32 features."""
+    from distilkit.data.batch import Batch
+    from distilkit.taps import to_float32
+
+    term = OBJECTIVES.get("monoocc_image")(OBJECTIVES.get("monoocc_image").Params())
+    g = torch.Generator().manual_seed(0)
+    s, t = torch.randn(2, 8, 6, 20, generator=g), torch.randn(2, 8, 3, 10, generator=g)
+    ref = term(s, t, Batch({}, {}, {"size": 2}))
+    low = term(to_float32(s.bfloat16()), to_float32(t.bfloat16()), Batch({}, {}, {"size": 2}))
+    assert low.dtype == torch.float32 and low.dim() == 0 and torch.isfinite(low)
+    assert abs(float(low) - float(ref)) <= TOLERANCE * abs(float(ref)) and float(low) != float(ref)
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +81,7 @@ def voxel_terms() -> dict[str, dict[str, torch.Tensor]]:
     from distilkit.engine.assemble.resolve import resolve
     from distilkit.recipe import recipe_from_dict
 
-    r = tiny_recipe(steps=1)
+    r = with_bev_taps(tiny_recipe(steps=1))
     r["stages"]["student"]["distill"] = [{"name": name, "weight": 1.0} for name in voxel_objectives()]
     res = resolve(recipe_from_dict(r), "objectives")
     return {p: terms_at(res, "student", res.data_params, p) for p in ("fp32", "bf16")}

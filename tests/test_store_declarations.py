@@ -80,6 +80,8 @@ def value_of(kind: str, g: torch.Generator) -> Any:
         return torch.randn(B, K, *SHAPE, generator=g, dtype=torch.float64) * 2
     if kind in ("feature_map", "volume_features"):
         return torch.randn(B, C, *SHAPE, generator=g, dtype=torch.float64)
+    if kind == "bev_features":  # the grid's bird's-eye plane
+        return torch.randn(B, C, *SHAPE[:2], generator=g, dtype=torch.float64)
     if kind == "sparse_features":
         grid = torch.stack(torch.meshgrid(*[torch.arange(n) for n in SHAPE], indexing="ij"), -1).reshape(-1, 3)
         coords = torch.cat([torch.cat([torch.full((len(grid), 1), b), grid], 1) for b in range(B)])

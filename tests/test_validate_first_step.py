@@ -46,6 +46,14 @@ MISMATCHED = {
     "pvkd": ("dry", {"taps": {"student": "query_features", "teacher": "completion", "student_logits": "logits",
                                "teacher_logits": "narrow"}}),
     "hassc_hvm": ("lidar", {}),  # a camera student has no volume features for its head
+    "licrocc_kl": ("dry", {"taps": LOGITS}),
+    # a camera student has no bird's-eye tap (nor, here, the teacher: its tap named is a volume, refused on its own
+    # line), nor a volume for MonoOcc's KL; the LiDAR teacher has no image features for MonoOcc's image term
+    "licrocc_bev": ("lidar", {"taps": {"teacher": "completion_dense"}}),
+    "licrocc_affinity": ("lidar", {"taps": {"teacher": "completion_dense"}}),
+    "bev_from_voxels": ("lidar", {}),
+    "monoocc_kl": ("lidar", {}),
+    "monoocc_image": ("lidar", {}),
     "vsd": ("scenes", {}),  # a teacher without predict_noise (LiDiff's refinement network)
     "distillation_dpo": ("scenes", {}),
 }

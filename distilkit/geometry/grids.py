@@ -48,4 +48,18 @@ def grid_factors(target: "VoxelGrid | tuple[int, ...]",
             f"the other's)")
 
 
-__all__ = ["grid_factors"]
+def plane_factors(target: "VoxelGrid", source: "VoxelGrid") -> tuple[str, tuple[int, ...]] | str:
+    """:func:`grid_factors` of two grids' bird's-eye (X, Y) planes: their heights may differ (a BEV student's
+    pillars beside a teacher's voxels), their planes must be one area tiled by integer factors."""
+    if not isinstance(target, VoxelGrid) or not isinstance(source, VoxelGrid):
+        return grid_factors(tuple(_grid_shape(target))[:2], tuple(_grid_shape(source))[:2])
+    for axis, name in ((0, "x"), (1, "y")):
+        lo = (target.origin[axis], source.origin[axis])
+        hi = (lo[0] + target.shape[axis] * target.voxel_size, lo[1] + source.shape[axis] * source.voxel_size)
+        if abs(lo[0] - lo[1]) > 1e-6 or abs(hi[0] - hi[1]) > 1e-6:
+            return (f"they cover {name} from {lo[0]:g} to {hi[0]:g} m and from {lo[1]:g} to {hi[1]:g} m (one area is "
+                    "needed)")
+    return grid_factors(tuple(target.shape[:2]), tuple(source.shape[:2]))
+
+
+__all__ = ["grid_factors", "plane_factors"]

@@ -8,6 +8,7 @@ Class/channel dimension is 1 for dense maps; ``mask`` arguments are bool tensors
 map without its class dimension.
 """
 
+from distilkit.losses.bev import bev_from_voxels, collapse_height, column_weights
 from distilkit.losses.ce import weighted_cross_entropy
 from distilkit.losses.cleaners import cleaners
 from distilkit.losses.dpo import distillation_dpo
@@ -17,8 +18,10 @@ from distilkit.losses.hardness import (geometry_weighted_ce, hard_voxel_ce, loca
                                       sample_hard_voxels, voxel_sample)
 from distilkit.losses.hassc import hassc_kd, teacher_batch_miou
 from distilkit.losses.l2cocc import l2cocc_fsd, l2cocc_pad, l2cocc_relation
+from distilkit.losses.licrocc import licrocc_affinity, licrocc_bev, licrocc_kl
 from distilkit.losses.logit import dist, kd
 from distilkit.losses.mgd import mgd
+from distilkit.losses.monoocc import monoocc_image, monoocc_kl
 from distilkit.losses.proposal import depth_l1, occupancy_ce
 from distilkit.losses.pvkd import pvkd, pvkd_affinity, supervoxel_ids, supervoxel_radial_bin
 from distilkit.losses.rgo2d import rgo2d, rgo2d_region
@@ -32,4 +35,5 @@ __all__ = ["dskd", "kd", "fitnet", "pkt", "nst", "dist", "pvkd", "pvkd_affinity"
            "select_keypoints", "structural", "weighted_ce", "partial_ce", "geo_scal", "sem_scal", "log_frequency_weights",
            "depth_l1", "occupancy_ce", "distillation_dpo", "hassc_kd", "teacher_batch_miou", "l2cocc_pad", "l2cocc_fsd",
            "l2cocc_relation", "local_geometric_anisotropy", "geometry_weighted_ce", "sample_hard_voxels",
-           "hard_voxel_ce", "voxel_sample", "weighted_cross_entropy", "supervoxel_radial_bin"]
+           "hard_voxel_ce", "voxel_sample", "weighted_cross_entropy", "supervoxel_radial_bin", "licrocc_kl", "licrocc_bev",
+           "licrocc_affinity", "monoocc_kl", "monoocc_image", "bev_from_voxels", "collapse_height", "column_weights"]

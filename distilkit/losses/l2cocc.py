@@ -71,14 +71,20 @@ def _fsd_map(student_features: Tensor, teacher_features: Tensor, mask: Tensor, r
             student_features.shape[2:]:
         raise ValueError(f"l2cocc_fsd: features {tuple(student_features.shape)} and {tuple(teacher_features.shape)} "
                          f"must match, the mask {tuple(mask.shape)} be (B, *spatial)")
+    sums, counts = cosine_distance_sums(student_features, teacher_features, mask)
+    if reduce == "pooled":
+        sums, counts = sums.sum().reshape(1), counts.sum().reshape(1)
+    return torch.where(counts > 0, sums / counts.clamp_min(1), sums * 0).mean()
+
+
+def cosine_distance_sums(student_features: Tensor, teacher_features: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """(B,) each sample's sum of 1 - cos(f_S, f_T) (``F.cosine_similarity`` over the channels of (B, C, *spatial)
+    maps) over the positions where ``mask`` (B, *spatial) holds, and (B,) their numbers. L2COcc's FSD and LiCROcc's
+    CMRD average them."""
     keep = mask.flatten(1).bool()
     distance = 1 - F.cosine_similarity(student_features, teacher_features.to(student_features.dtype), dim=1)
     distance = torch.where(keep, distance.flatten(1), torch.zeros_like(distance.flatten(1)))
-    if reduce == "pooled":
-        sums, counts = distance.sum().reshape(1), keep.sum().reshape(1)
-    else:
-        sums, counts = distance.sum(1), keep.sum(1)
-    return torch.where(counts > 0, sums / counts.clamp_min(1), sums * 0).mean()
+    return distance.sum(1), keep.sum(1)
 
 
 def l2cocc_fsd(student_features: Tensor | Sequence[Tensor], teacher_features: Tensor | Sequence[Tensor],
@@ -180,4 +186,4 @@ def l2cocc_relation(student_features: Tensor, teacher_features: Tensor) -> Tenso
     return _RelationL1.apply(a, b)
 
 
-__all__ = ["REDUCTIONS", "l2cocc_fsd", "l2cocc_pad", "l2cocc_relation"]
+__all__ = ["REDUCTIONS", "cosine_distance_sums", "l2cocc_fsd", "l2cocc_pad", "l2cocc_relation"]

@@ -10,13 +10,13 @@ from torch import Tensor
 
 from distilkit.cards.objectives.common import MaskName
 from distilkit.data.classes import IGNORE_INDEX
-from distilkit.errors import GridMismatchError
+from distilkit.errors import GridMismatchError, TapError
 from distilkit.geometry.voxel import align_across_grids
 from distilkit.losses.ce import deterministic_form_needed
 from distilkit.losses.proposal import linear_resize_matrix
 from distilkit.structures import SparseVoxels
 
-__all__ = ["MaskName", "adaptive_pool_matrix", "aligned_pairs", "conv1x1", "match_spatial", "occupied_at",
+__all__ = ["MaskName", "adaptive_pool_matrix", "aligned_pairs", "conv1x1", "map_pairs", "match_spatial", "occupied_at",
            "release_labels", "voxel_mask"]
 
 
@@ -120,3 +120,16 @@ def occupied_at(labels: Tensor, shape: tuple[int, ...]) -> Tensor:
                                 f"{shape}")
     pool = F.max_pool3d if len(shape) == 3 else F.max_pool2d
     return pool(occ[:, None], kernel_size=factors)[:, 0] > 0
+
+
+def map_pairs(taps: dict[str, object], extra: list[tuple[str, str]], term: str) -> list[tuple[str, str]]:
+    """The (student, teacher) roles of a term's map pairs: ``student``/``teacher``, then each of ``extra``
+    (``student_2``/``teacher_2``, ...) the recipe names both taps of; one named alone is an error."""
+    pairs = [("student", "teacher")]
+    for s_role, t_role in extra:
+        if (s_role in taps) != (t_role in taps):
+            raise TapError(f"{term}: {s_role if s_role in taps else t_role} is given without "
+                           f"{t_role if s_role in taps else s_role} (name both taps of a pair)")
+        if s_role in taps:
+            pairs.append((s_role, t_role))
+    return pairs

@@ -7,8 +7,9 @@ batch, trained with the student, saved with its checkpoints. A registered connec
 ``build(student_channels, teacher_channels, spatial_dims) -> nn.Module`` acting on (B, C, *S) maps (``dims`` 2
 or 3) or on (N, C) rows (``dims`` 0: rows, and the features of sparse voxels). Built in: ``linear`` (also
 ``conv1x1``: a 1x1 convolution on maps, a linear layer on rows), ``mlp`` (two of them with a ReLU between, as wide
-as the wider side) and ``conv3`` (a 3x3(x3) convolution on maps, for spatial context), declared in
-:mod:`distilkit.cards.connectors`.
+as the wider side), ``conv3`` (a 3x3(x3) convolution on maps, for spatial context) and ``height_max`` /
+``height_mean`` (voxel features collapsed over height onto the bird's-eye plane, then ``linear``: a 3-D student
+against a BEV teacher), declared in :mod:`distilkit.cards.connectors`.
 """
 
 from __future__ import annotations
@@ -48,6 +49,35 @@ def _conv3(cs: int, ct: int, dims: int) -> nn.Module:
     return (nn.Conv3d if dims == 3 else nn.Conv2d)(cs, ct, 3, padding=1)
 
 
+class HeightCollapse(nn.Module):
+    """A volume or sparse voxels collapsed over height onto the (X, Y) plane (max or mean per channel,
+    :func:`~distilkit.losses.bev.collapse_height`), then a 1x1 convolution to the other side's channels: a 3-D
+    student's features against a bird's-eye teacher map. Takes the tap's whole value."""
+
+    whole = True  # the Connector hands it the value itself (sparse voxels: not only their features)
+
+    def __init__(self, cs: int, ct: int, how: str) -> None:
+        super().__init__()
+        self.how, self.proj = how, conv1x1(cs, ct, 2)
+
+    def forward(self, value: Any) -> Tensor:
+        from distilkit.losses.bev import collapse_height
+
+        return self.proj(collapse_height(value, self.how))
+
+
+def _height(how: str) -> Any:
+    def build(cs: int, ct: int, dims: int) -> nn.Module:
+        if dims not in (0, 3):
+            raise TapError(f"connector height_{how} collapses voxel features over height: it needs (B, C, X, Y, Z) "
+                           "features or sparse voxels, not a 2-D map")
+        return HeightCollapse(cs, ct, how)
+    return build
+
+
+_height_max, _height_mean = _height("max"), _height("mean")
+
+
 class Connector(nn.Module):
     """A registered connector (``kind``) from the student's channels to the teacher's, built from one pair of tap
     values; sparse voxels are projected on their features."""
@@ -58,6 +88,8 @@ class Connector(nn.Module):
         self.proj = CONNECTORS.get(kind)(cs, ct, dims)
 
     def forward(self, value: Any) -> Any:
+        if getattr(self.proj, "whole", False):
+            return self.proj(value)
         if isinstance(value, SparseVoxels):
             return value.with_feats(self.proj(value.feats))
         return self.proj(value)

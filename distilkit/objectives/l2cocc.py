@@ -14,7 +14,7 @@ from distilkit.choices import Choice
 from distilkit.data.batch import Batch
 from distilkit.losses.l2cocc import l2cocc_fsd, l2cocc_pad, l2cocc_relation
 from distilkit.objectives.base import MultiTapObjective
-from distilkit.objectives.common import occupied_at, release_labels
+from distilkit.objectives.common import map_pairs, occupied_at, release_labels
 
 _EMPTY_NAN = Choice("a sample (or map) with nothing to align", "0", "not stated",
                     "NaN (KLDivLoss and .mean() over no element)")
@@ -59,13 +59,7 @@ class FSD(FSDCard, MultiTapObjective):
     def compute(self, taps: dict[str, Any], batch: Batch) -> Tensor:
         from distilkit.errors import TapError
 
-        pairs = [("student", "teacher")]
-        for s_role, t_role in _EXTRA:
-            if (s_role in taps) != (t_role in taps):
-                raise TapError(f"l2cocc_fsd: {s_role if s_role in taps else t_role} is given without "
-                               f"{t_role if s_role in taps else s_role} (name both taps of a pair)")
-            if s_role in taps:
-                pairs.append((s_role, t_role))
+        pairs = map_pairs(taps, _EXTRA, "l2cocc_fsd")
         labels = release_labels(taps["target"], self.ignore_index)
         students, teachers, masks = [], [], []
         for s_role, t_role in pairs:

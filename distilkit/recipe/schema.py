@@ -10,6 +10,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from distilkit.recipe.augment import AugmentSpec
+from distilkit.recipe.hook_taps import HookTapSpec
 from distilkit.recipe.store import StoreSpec
 
 SCHEMA_VERSION = 1
@@ -20,17 +21,6 @@ MAX_NOTE = 1000
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
-
-
-class HookTapSpec(_Strict):
-    """A tap recorded from any submodule by its dotted path (no adapter code needed)."""
-
-    module: str = Field(..., description="dotted path of the submodule, as in `model.named_modules()`")
-    kind: str = Field(..., description="tap kind of the recorded value (e.g. volume_features)")
-    at: str = Field("output", description="what is recorded: a registered recorder (`distilkit list recorders`): "
-                                         "output, input (its first), method (the return value of `method`)")
-    method: str | None = Field(None, description="with `at: method`: the submodule's method whose return value is "
-                                                 "recorded (e.g. encode)")
 
 
 class ModelSpec(_Strict):

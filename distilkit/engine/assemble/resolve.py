@@ -10,8 +10,8 @@ from typing import Any
 from distilkit.engine.assemble.resolved import (ResolvedAux, ResolvedHook, ResolvedMetric, ResolvedModel, ResolvedRecipe,
                                              ResolvedStage)
 from distilkit.engine.assemble.store_checks import control_problems, store_problems
-from distilkit.engine.assemble.terms import (alignment_problems, lookup, param_groups, resolve_model, resolve_terms,
-                                          validate_params)
+from distilkit.engine.assemble.terms import (alignment_problems, hook_problems, lookup, param_groups, resolve_model,
+                                          resolve_terms, validate_params)
 from distilkit.errors import RecipeError
 from distilkit.recipe import LossSpec, Recipe, stage_order
 from distilkit.registry import DATASETS, HOOKS, METRICS, OBJECTIVES, OPTIMIZERS, SCHEDULES, TASK_LOSSES
@@ -222,6 +222,8 @@ def resolve(recipe: Recipe, source: str = "recipe") -> ResolvedRecipe:
                 assert spec.teacher.model is not None
                 teacher = resolve_model(spec.teacher.model, f"{path}.teacher.model", problems)
             if teacher is not None and spec.teacher.taps:  # this stage records more of the teacher
+                problems.extend(hook_problems(teacher.adapter, teacher.card, teacher.hooks, spec.teacher.taps,
+                                              f"{path}.teacher.taps"))
                 teacher = ResolvedModel(teacher.adapter, teacher.card, teacher.params,
                                         {**teacher.hooks, **spec.teacher.taps})
         models = {"student": student, "teacher": teacher}

@@ -12,7 +12,7 @@ from distilkit.engine.assemble.resolved import ResolvedModel, ResolvedTerm
 from distilkit.errors import UnknownNameError
 from distilkit.recipe import LossSpec, ModelSpec, ParamGroupSpec, pydantic_problems
 from distilkit.registry import ADAPTERS, CONNECTORS, RECORDERS, Registry
-from distilkit.taps import TAP_KINDS, kind_fits
+from distilkit.taps import DENSE_GRID_KINDS, TAP_KINDS, kind_fits
 
 
 def lookup(reg: Registry[Any], name: str, path: str, problems: list[tuple[str, str]]) -> Any:
@@ -36,16 +36,37 @@ def resolve_model(spec: ModelSpec, path: str, problems: list[tuple[str, str]]) -
     if entry is None:
         return None
     params = validate_params(entry.card.Params, spec.params, f"{path}.params", problems)
-    for name, hook in spec.taps.items():
-        if name in entry.card.TAPS:
-            problems.append((f"{path}.taps.{name}", f"adapter {spec.adapter!r} already has a tap {name!r}"))
-        if hook.kind not in TAP_KINDS:
-            problems.append((f"{path}.taps.{name}.kind", f"unknown tap kind {hook.kind!r} (registered: "
-                                                         f"{', '.join(TAP_KINDS)})"))
-        recorder = lookup(RECORDERS, hook.at, f"{path}.taps.{name}.at", problems)
-        if recorder is not None and recorder.name == "method" and not hook.method:
-            problems.append((f"{path}.taps.{name}.method", "`at: method` needs the method's name"))
+    problems.extend(hook_problems(entry.name, entry.card, {}, spec.taps, f"{path}.taps"))
     return None if params is None else ResolvedModel(entry.name, entry.card, params, dict(spec.taps))
+
+
+VOXEL_KINDS = ("sparse_features", *sorted(DENSE_GRID_KINDS))  # what a tap can be collapsed from
+
+
+def hook_problems(adapter: str, card: Any, known: dict[str, Any], hooks: dict[str, Any],
+                  path: str) -> list[tuple[str, str]]:
+    """What is wrong with a recipe's ``hooks`` (``taps:``) of a model whose adapter already has ``card.TAPS`` and the
+    recipe taps ``known``: a name taken, an unknown kind or recorder, a tap made ``of`` one that is not a voxel tap of
+    the model."""
+    out = []
+    kinds = {**card.TAPS, **{n: h.kind for n, h in known.items()}, **{n: h.kind for n, h in hooks.items()}}
+    for name, hook in hooks.items():
+        if name in card.TAPS:
+            out.append((f"{path}.{name}", f"adapter {adapter!r} already has a tap {name!r}"))
+        if hook.kind not in TAP_KINDS:
+            out.append((f"{path}.{name}.kind", f"unknown tap kind {hook.kind!r} (registered: {', '.join(TAP_KINDS)})"))
+        if hook.of is not None:
+            source = kinds.get(hook.of)
+            if source is None:
+                out.append((f"{path}.{name}.of", f"the model has no tap {hook.of!r} (it has: {', '.join(kinds)})"))
+            elif source not in VOXEL_KINDS or hook.of == name:
+                out.append((f"{path}.{name}.of", f"tap {hook.of!r} is {source}: only a voxel tap ({', '.join(VOXEL_KINDS)}) "
+                                                 "collapses over height"))
+            continue
+        recorder = lookup(RECORDERS, hook.at, f"{path}.{name}.at", out)
+        if recorder is not None and recorder.name == "method" and not hook.method:
+            out.append((f"{path}.{name}.method", "`at: method` needs the method's name"))
+    return out
 
 
 def _resolve_fields(term_path: str, cls: Any, given: dict[str, str], info: Any,
@@ -62,9 +83,14 @@ def _resolve_fields(term_path: str, cls: Any, given: dict[str, str], info: Any,
     return out
 
 
+HEIGHT_CONNECTORS = ("height_max", "height_mean")  # a student voxel tap through one of them is a bird's-eye map
+
+
 def _resolve_taps(term_path: str, cls: Any, given: dict[str, str], models: dict[str, ResolvedModel | None],
-                  problems: list[tuple[str, str]]) -> dict[str, str]:
-    """Pick the tap of each role: the recipe's choice (checked) or the model's first tap of that kind."""
+                  problems: list[tuple[str, str]], collapsed: bool = False) -> dict[str, str]:
+    """Pick the tap of each role: the recipe's choice (checked) or the model's first tap of that kind
+    (``collapsed``: the student's tap goes through a height connector first, so a voxel tap serves a bird's-eye
+    role)."""
     out: dict[str, str] = {}
     for role in given:
         if role not in cls.CONSUMES and role not in cls.BATCH:
@@ -76,6 +102,8 @@ def _resolve_taps(term_path: str, cls: Any, given: dict[str, str], models: dict[
         if model is None or (role in optional and role not in given):
             continue
         taps = model.taps
+        if collapsed and role == "student":  # what the connector makes of each voxel tap
+            taps = {n: "bev_features" if k in VOXEL_KINDS else k for n, k in taps.items()}
         if role in given:
             tap = given[role]
             if tap not in taps:
@@ -105,13 +133,13 @@ def resolve_terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: 
         if entry is None:
             continue
         params = validate_params(entry.card.Params, spec.params, f"{p}.params", problems)
-        taps = _resolve_taps(p, entry.card, spec.taps, models, problems)
-        fields = _resolve_fields(p, entry.card, spec.taps, info, problems)
-        weight = spec.weight if spec.weight is not None else float(getattr(entry.card, "DEFAULT_WEIGHT", 1.0))
         connector = getattr(spec, "connector", None) or getattr(entry.card, "DEFAULT_CONNECTOR", None)
         if connector not in (None, "none"):
             found = lookup(CONNECTORS, connector, f"{p}.connector", problems)
             connector = found.name if found is not None else connector
+        taps = _resolve_taps(p, entry.card, spec.taps, models, problems, connector in HEIGHT_CONNECTORS)
+        fields = _resolve_fields(p, entry.card, spec.taps, info, problems)
+        weight = spec.weight if spec.weight is not None else float(getattr(entry.card, "DEFAULT_WEIGHT", 1.0))
         if params is not None:
             if connector not in (None, "none") and not entry.card.TEACHER_ROLES:
                 problems.append((f"{p}.connector", f"{spec.name} reads no teacher tap: there is nothing to project to"))
@@ -138,7 +166,7 @@ def alignment_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedMode
     """Student/teacher tap pairs that cannot be aligned, known from the adapters' declarations: sparse
     features must lie on grids of one volume that differ by integer factors per axis, voxel logits must
     share the grid, image features must come from the same camera."""
-    from distilkit.geometry.grids import grid_factors
+    from distilkit.geometry.grids import grid_factors, plane_factors
 
     out = []
     s_model, t_model = models.get("student"), models.get("teacher")
@@ -158,17 +186,33 @@ def alignment_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedMode
                 out.append((f"{path}[{i}]", f"{where} see through cameras {_camera_text(s_cam)} and "
                                             f"{_camera_text(t_cam)}: image features of different cameras (or frames) "
                                             "cannot be compared pixel by pixel"))
-            s_grid = s_model.card.tap_grid(s_tap, s_model.params, info)
-            t_grid = t_model.card.tap_grid(tap, t_model.params, info)
+            (s_grid, s_plane), (t_grid, t_plane) = tap_grid(s_model, s_tap, info), tap_grid(t_model, tap, info)
+            s_plane = s_plane or (partner == "student" and term.connector in HEIGHT_CONNECTORS)
             if s_grid is None or t_grid is None:
                 continue
             kind = term.card.CONSUMES[role]
+            if s_plane or t_plane:  # a bird's-eye plane pairs with the other's plane (a volume: its (X, Y))
+                how = plane_factors(s_grid, t_grid)
+                if isinstance(how, str):
+                    out.append((f"{path}[{i}]", f"{where}: their bird's-eye planes {s_grid.shape[:2]} and "
+                                                f"{t_grid.shape[:2]} cannot be aligned: {how}"))
+                continue
             how = grid_factors(s_grid, t_grid)
             if isinstance(how, str) or (kind == "voxel_logits" and how[0] != "same"):
                 why = how if isinstance(how, str) else f"{kind} must share one grid"
                 out.append((f"{path}[{i}]", f"{where} on grids {_grid_text(s_grid)} and {_grid_text(t_grid)} cannot "
                                             f"be aligned: {why}"))
     return out
+
+
+def tap_grid(model: ResolvedModel, tap: str, info: Any) -> tuple[Any, bool]:
+    """The voxel grid a tap lives on (None: not on one, or not known before training) and whether the tap is that
+    grid's bird's-eye plane (a tap collapsed over height, or a ``bev_features`` tap)."""
+    hook = model.hooks.get(tap)
+    if hook is not None and getattr(hook, "of", None) is not None:
+        return tap_grid(model, hook.of, info)[0], True
+    grid = model.card.tap_grid(tap, model.params, info)
+    return grid, model.taps.get(tap) == "bev_features"
 
 
 def param_groups(given: list[Any] | None, task: list[ResolvedTerm], distill: list[ResolvedTerm]) -> list[dict[str, Any]]:
