@@ -117,3 +117,53 @@ def test_validate_checks_the_planes_of_a_bird_s_eye_pair() -> None:
     shifted = VoxelGrid((0.8, -25.6, -2.0), (64, 64, 8), 0.8)
     assert "one area" in plane_factors(teacher, shifted)
     assert "integer factor" in plane_factors(teacher, VoxelGrid((0.0, -25.6, -2.0), (48, 48, 8), 64 * 0.8 / 48))
+
+
+def test_the_bev_bench_times_each_term_against_its_release_form_with_the_same_value() -> None:
+    """`distilkit bench bev --quick`: a row per term, each fast form's value the release form's (float32)."""
+    import contextlib
+    import io
+
+    from distilkit.bench import run_bench
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        rows = {row["objective"]: row for row in run_bench(["bev"], quick=True, repeat=1)}
+    assert set(rows) == {"licrocc_kl (PDD)", "licrocc_bev (CMRD)", "licrocc_affinity (BRD)",
+                         "licrocc_affinity unresized", "monoocc_kl (raw, as released)", "bev_from_voxels (LWD)"}
+    for name, row in rows.items():
+        assert row["fast_ms"] > 0 and row["naive_ms"] > 0 and row["rel_err"] < 1e-5, (name, row)
+
+
+@pytest.mark.parametrize(("adapter", "params", "tap"), [
+    ("scpnet", {"channels": 4, "point_mlp": [8], "seg_channels": 4}, "completion"),
+    ("scpnet", {"channels": 4, "point_mlp": [8], "seg_channels": 4}, "completion_dense"),
+    ("js3cnet", {"seg_channels": 4, "embed": 4, "ssc_channels": 4, "pvi_hidden": 4, "knn": 4}, "completion"),
+    ("voxformer", {"geometry": "ground-truth"}, "query_features"),
+    ("voxformer", {"geometry": "ground-truth"}, "logits"),
+])
+def test_each_voxel_network_has_a_bird_s_eye_tap_of_its_voxel_taps(adapter, params, tap) -> None:
+    """SCPNet, JS3C-Net and the VoxFormer-style camera model: a `bev` tap of any voxel tap (sparse or dense) is
+    its column max, (B, C, X, Y) on the tap's grid's plane."""
+    from conftest import TINY_DATA
+    from distilkit.data.datasets import build_synthetic, collate_street, synthetic_info
+    from distilkit.data.params import SyntheticParams
+    from distilkit.engine.assemble.resolved import ResolvedModel
+    from distilkit.engine.assemble.runs import build_model
+    from distilkit.recipe import HookTapSpec
+    from distilkit.registry import ADAPTERS
+    from distilkit.taps import check_tap
+
+    data = SyntheticParams(**TINY_DATA, camera={"height": 24, "width": 80})
+    info = synthetic_info(data)
+    cls = ADAPTERS.get(adapter)
+    hooks = {"bev": HookTapSpec(of=tap, kind="bev_features", collapse="max")}
+    torch.manual_seed(0)
+    model = build_model(ResolvedModel(adapter, cls, cls.Params(**params), hooks), info).eval()
+    ds = build_synthetic(data, "train")
+    with torch.no_grad():
+        out = model(collate_street([ds[0], ds[1]]))
+    check_tap(out["bev"], "bev_features", f"{adapter}.bev")
+    assert torch.equal(out["bev"], collapse_height(out[tap], "max", batch=2))
+    plane = out[tap].spatial_shape[:2] if isinstance(out[tap], SparseVoxels) else tuple(out[tap].shape[2:4])
+    assert out["bev"].shape[0] == 2 and tuple(out["bev"].shape[2:]) == tuple(plane)

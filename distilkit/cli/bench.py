@@ -24,6 +24,7 @@ BENCH_NAMES: dict[str, str] = {
     "nst": "NST's MMD, by its Gram identity",
     "structural": "ScoreLiDAR's structural loss: key points and the point-wise distance matrices",
     "relation": "L2COcc's relational term in tiles of one GEMM against the dense P x P cosine matrices",
+    "bev": "LiCROcc's, MonoOcc's and the voxel-to-BEV terms at their papers' sizes against their releases' forms",
     "sampler": "LiDiff's sampler at 8 against 50 steps",
     "guidance": "LiDiff's sampler with classifier-free guidance against without",
     "complete": "`distilkit complete` on a 125,000-point scan, with and without refinement",
