@@ -30,7 +30,7 @@ def _recipe(distill: list[dict], student_taps=BEV, teacher_taps=BEV) -> dict:
 
 
 def test_the_round_4_terms_train_a_student_from_bird_s_eye_taps(tmp_path) -> None:
-    distill = [{"name": "licrocc_kl"}, {"name": "licrocc_bev", "params": {"auto_weight": "regularised"}},
+    distill = [{"name": "licrocc_kl"}, {"name": "licrocc_bev", "params": {"auto_weight": "release"}},
                {"name": "licrocc_affinity", "params": {"size": [4, 4]}}, {"name": "bev_from_voxels"},
                {"name": "monoocc_kl", "taps": {"student": "completion_dense", "teacher": "completion_dense"}}]
     pipe = Pipeline(recipe_from_dict(_recipe(distill)), tmp_path, quiet=True)
@@ -167,3 +167,129 @@ def test_each_voxel_network_has_a_bird_s_eye_tap_of_its_voxel_taps(adapter, para
     assert torch.equal(out["bev"], collapse_height(out[tap], "max", batch=2))
     plane = out[tap].spatial_shape[:2] if isinstance(out[tap], SparseVoxels) else tuple(out[tap].shape[2:4])
     assert out["bev"].shape[0] == 2 and tuple(out["bev"].shape[2:]) == tuple(plane)
+
+
+def _labels(shape, seed):
+    g = torch.Generator().manual_seed(seed)
+    labels = torch.randint(1, 5, shape, generator=g)
+    labels[torch.rand(shape, generator=g) < 0.7] = 0
+    labels[torch.rand(shape, generator=g) < 0.1] = 255
+    return labels
+
+
+def test_cmrd_masks_the_cells_over_a_column_with_a_class_and_transposes_them_as_the_release() -> None:
+    from distilkit.data.batch import Batch
+    from distilkit.losses.licrocc import licrocc_bev
+    from distilkit.registry import OBJECTIVES
+
+    cls = OBJECTIVES.get("licrocc_bev")
+    labels = _labels((2, 8, 8, 4), 0)
+    labels[:, :, :4] = 0  # the left half of every plane empty: the mask is not symmetric
+    g = torch.Generator().manual_seed(1)
+    s, t = torch.randn(2, 3, 4, 4, generator=g), torch.randn(2, 3, 4, 4, generator=g)
+    batch = Batch({}, {"voxel_target": labels}, {"size": 2})
+    column = ((labels != 0) & (labels != 255)).any(dim=3)  # (2, 8, 8): a column holds a class
+    mask = column.view(2, 4, 2, 4, 2).any(dim=4).any(dim=2)  # its blocks at the map's 4 x 4 cells
+    plain = cls(cls.Params()).compute({"student": s, "teacher": t, "target": labels}, batch)
+    assert torch.allclose(plain, licrocc_bev([s], [t], [mask]))
+    flipped = cls(cls.Params(transpose_mask=True)).compute({"student": s, "teacher": t, "target": labels}, batch)
+    assert torch.allclose(flipped, licrocc_bev([s], [t], [mask.transpose(1, 2)])) and not torch.allclose(flipped, plain)
+    with pytest.raises(Exception, match="square"):
+        cls(cls.Params(transpose_mask=True)).compute({"student": s[..., :2], "teacher": t[..., :2], "target": labels},
+                                                      batch)
+
+
+def test_scene_weights_and_the_release_s_automatic_weight() -> None:
+    from distilkit.data.batch import Batch
+    from distilkit.errors import DistilkitError
+    from distilkit.losses.licrocc import licrocc_kl
+    from distilkit.registry import OBJECTIVES
+
+    cls = OBJECTIVES.get("licrocc_kl")
+    labels = _labels((2, 4, 4, 2), 2)
+    g = torch.Generator().manual_seed(3)
+    s, t = torch.randn(2, 5, 4, 4, 2, generator=g), torch.randn(2, 5, 4, 4, 2, generator=g)
+    taps = {"student": s, "teacher": t, "target": labels}
+    flagged = Batch({}, {"voxel_target": labels}, {"size": 2, "scene_useful": [True, False]})
+    weighted = cls(cls.Params(unuseful_weight=1e-5)).compute(taps, flagged)
+    assert torch.allclose(weighted, licrocc_kl(s, t, labels, torch.tensor([1.0, 1e-5])))
+    assert not torch.allclose(weighted, cls(cls.Params()).compute(taps, flagged))
+    with pytest.raises(DistilkitError, match="scene_useful"):
+        cls(cls.Params(unuseful_weight=1e-5)).compute(taps, Batch({}, {"voxel_target": labels}, {"size": 2}))
+    auto = cls(cls.Params(auto_weight="release"))
+    value = auto.compute(taps, flagged)
+    assert torch.allclose(value, 0.5 * licrocc_kl(s, t, labels))  # 0.5 / sigma^2 at sigma = 1
+    (grad,) = torch.autograd.grad(value, auto.sigma)
+    assert float(grad) < 0  # no regulariser, as the release's class: sigma grows, the weight decays
+
+
+def test_the_voxel_to_bev_weights_come_from_the_split_s_points_and_its_adapter_trains() -> None:
+    from distilkit.data.batch import Batch
+    from distilkit.registry import OBJECTIVES
+
+    class Split:  # two samples: labelled voxels and points of classes 0..2
+        def __len__(self):
+            return 2
+
+        def __getitem__(self, i):
+            return {"voxel_label": torch.tensor([[0, 0, 1, 2]]).numpy(), "point_label": torch.tensor([0, 1, 1, 2]).numpy()}
+
+    cls = OBJECTIVES.get("bev_from_voxels")
+    term = cls(cls.Params())
+    term.prepare(Split())
+    shares = torch.tensor([2, 4, 2] + [0] * (term.num_classes - 3), dtype=torch.float64) / 8  # the points', not voxels'
+    assert torch.allclose(term.class_weight.double(), 1 / (shares + 0.001) / 50, rtol=1e-6)
+    coords = torch.tensor([[0, 0, 0, 0], [0, 0, 0, 1], [0, 1, 1, 0], [1, 1, 0, 1]])
+    voxels = SparseVoxels(coords, torch.randn(4, 6), (2, 2, 2))
+    student = torch.randn(2, 3, 2, 2, requires_grad=True)
+    labels = torch.randint(0, 3, (2, 2, 2, 2))
+    batch = Batch({}, {"voxel_target": labels}, {"size": 2})
+    taps = {"student": student, "teacher": voxels, "target": labels}
+    term.setup(taps, batch)
+    term.compute(taps, batch).backward()
+    conv = term.adapter[1].weight
+    assert conv.grad is not None and float(conv.grad.abs().sum()) > 0 and float(student.grad.abs().sum()) > 0
+
+
+def test_a_collapsed_tap_keeps_the_rows_of_samples_without_voxels() -> None:
+    from torch import nn
+
+    from distilkit.data.batch import Batch
+    from distilkit.engine.assemble.recorders import attach_recorders
+    from distilkit.recipe import HookTapSpec
+
+    class Net(nn.Module):
+        def forward(self, batch):  # sample 1 of 2 has no voxel
+            return {"voxels": SparseVoxels(torch.tensor([[0, 1, 0, 1]]), torch.ones(1, 3), (2, 2, 2))}
+
+    net = Net()
+    attach_recorders(net, {"bev": HookTapSpec(of="voxels", kind="bev_features", collapse="max")})
+    out = net(Batch({}, {}, {"size": 2}))
+    assert out["bev"].shape == (2, 3, 2, 2) and float(out["bev"][1].abs().sum()) == 0
+
+
+def test_validate_refuses_a_height_connector_on_a_map_and_a_map_against_a_volume(tmp_path) -> None:
+    on_map = [{"name": "licrocc_bev", "connector": "height_max", "taps": {"student": "bev"}}]
+    with pytest.raises(RecipeError, match="height_max collapses a voxel tap"):
+        Pipeline(recipe_from_dict(_recipe(on_map)), tmp_path, quiet=True)
+    against = [{"name": "fitnets", "taps": {"student": "bev", "teacher": "completion_dense"}}]
+    with pytest.raises(RecipeError, match="a bird's-eye map and a volume"):
+        Pipeline(recipe_from_dict(_recipe(against)), tmp_path, quiet=True)
+
+
+def test_validate_refuses_bird_s_eye_maps_of_two_planes_for_a_cell_by_cell_term(tmp_path) -> None:
+    """A camera student's query grid is half the LiDAR teacher's: their planes tile, but CMRD compares cells."""
+    from conftest import TINY_DATA
+
+    camera_bev = {"bev": {"of": "query_features", "kind": "bev_features", "collapse": "max"}}
+    train = {"steps": 1, "batch_size": 1, "device": "cpu"}
+    recipe = {"schema_version": 1, "name": "planes", "seed": 0,
+              "data": {"dataset": "synthetic-lidar", "params": {**TINY_DATA, "camera": {"height": 24, "width": 80}}},
+              "stages": {"lidar": {"model": {"adapter": "scpnet", "params": {"channels": 4, "point_mlp": [8],
+                                                                             "seg_channels": 4}}, "train": train},
+                         "camera": {"model": {"adapter": "voxformer", "params": {"geometry": "ground-truth"},
+                                              "taps": camera_bev},
+                                    "teacher": {"from": "lidar", "taps": BEV},
+                                    "distill": [{"name": "licrocc_bev"}], "train": train}}}
+    with pytest.raises(RecipeError, match="compares the maps cell by cell: one plane"):
+        Pipeline(recipe_from_dict(recipe), tmp_path, quiet=True)

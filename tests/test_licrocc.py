@@ -116,7 +116,7 @@ def test_cmrd_is_the_release_over_its_maps_and_samples(sizes):
     g_theirs = torch.autograd.grad(theirs, students)
     assert all(torch.allclose(a, b_, rtol=1e-10, atol=1e-15) for a, b_ in zip(g_ours, g_theirs))
     assert torch.autograd.gradcheck(lambda x: licrocc_bev([x], teachers[:1], masks[:1]), (students[0],))
-    # the release's mask is [x, y] on [C, y, x] features: the transposed mask is its value on a square map
+    # any mask the objective builds (its transpose_mask: tests/test_bev_taps.py) is read as the release reads it
     if sizes[0][0] == sizes[0][1]:
         flipped = [m.transpose(1, 2) for m in masks]
         assert torch.allclose(licrocc_bev(students, teachers, flipped), _release_cmrd(students, teachers, flipped,

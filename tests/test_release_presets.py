@@ -66,6 +66,8 @@ CLAIMS: list[tuple[str, str, dict[str, Any]]] = [
                                            "distill[monoocc_kl].params.form": "raw"}),
     ("sweeps/l2cocc.yaml", "monoocc", {"distill[monoocc_kl].weight": 2.0, "distill[monoocc_kl].params.form": "softmax"}),
     ("sweeps/quickstart_methods.yaml", "licrocc_kl_10", {"distill[licrocc_kl].weight": 10.0}),
+    ("sweeps/quickstart_methods_stored.yaml", "licrocc_kl_10", {"distill[licrocc_kl].weight": 10.0}),
+    ("sweeps/quickstart_methods_stored.yaml", "bev_2", {"distill[bev_from_voxels].weight": 2.0}),
     ("sweeps/quickstart_methods.yaml", "licrocc_bev_4", {"distill[licrocc_bev].weight": 4.0}),
     ("sweeps/quickstart_methods.yaml", "licrocc_brd_40", {"distill[licrocc_affinity].weight": 40.0,
                                                           "distill[licrocc_affinity].params.size": [32, 32]}),

@@ -30,15 +30,17 @@ class VoxelToBEV(BEVCard, MultiTapObjective):
     """Voxel-to-BEV distillation: the teacher's sparse voxels max-pooled over each column (empty columns 0), through
     the release's adapter (trained with the student), against the student's bird's-eye map by the label-weighted
     distance sqrt(mean_cells W sum_c (T - S)^2), W the column's sum of its voxels' class weights 1 / (f_c + 0.001)
-    / 50 (f_c: the class's share of the training split's voxels, empty included; ignored voxels weigh as empty);
+    / 50 (f_c: the class's share of the training split's points, as the release; an empty or ignored voxel weighs
+    as class 0, whose share is the unlabelled points');
     weight 2 (the release's). ``weighting: none``: the plain MSE of its voxel-to-pillar terms."""
 
     CHOICES = (Choice("the label-weighted term's layer", "the recipe's map pair (the plane of the labels or a "
                       "coarser one: the weights averaged over its blocks)", "the layer before classification "
                       "(Fig. 1)", "the level-0 encoder pair at 240 x 180 against a 480 x 360 weight map: the "
                       "released script fails at its first step (weight_mse.py L16)", ""),
-               Choice("class weights", "1 / (f_c + 0.001) / 50 from this split's voxel shares", _NO_PAPER,
-                      "the same formula on SemanticKITTI's point shares (semantic-kitti.yaml's content)", ""),
+               Choice("class weights", "1 / (f_c + 0.001) / 50, f_c this split's point shares (voxel shares where "
+                      "it has no points)", _NO_PAPER, "the same formula on SemanticKITTI's point shares "
+                      "(semantic-kitti.yaml's content); empty voxels count as class 0, the unlabelled points", ""),
                Choice("the target's gradient", "the adapter trains with the student (the teacher is frozen)",
                       "the knowledge-distillation model is updated (Fig. 1)", "the same: nothing is detached", ""),
                Choice("ties of the column max", "share the gradient (scatter_reduce)", _NO_PAPER,
@@ -50,9 +52,13 @@ class VoxelToBEV(BEVCard, MultiTapObjective):
         self.register_buffer("class_weight", torch.ones(1))
 
     def prepare(self, train_set: Any) -> None:
+        """The class weights 1 / (f_c + 0.001) / 50 of the training split: f_c the class's share of its points (the
+        release's, from SemanticKITTI's point counts: class 0 the unlabelled points), or of its labelled voxels
+        where the data has no points."""
         from distilkit.data.stats import label_counts
 
-        counts, _ = label_counts(train_set, self.num_classes)
+        voxels, points = label_counts(train_set, self.num_classes)
+        counts = points if float(points.sum()) > 0 else voxels
         share = counts.double() / max(float(counts.sum()), 1.0)
         self.class_weight = (1.0 / (share + 0.001) / 50).to(self.class_weight)
 

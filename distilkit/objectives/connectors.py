@@ -60,10 +60,10 @@ class HeightCollapse(nn.Module):
         super().__init__()
         self.how, self.proj = how, conv1x1(cs, ct, 2)
 
-    def forward(self, value: Any) -> Tensor:
+    def forward(self, value: Any, batch: int | None = None) -> Tensor:
         from distilkit.losses.bev import collapse_height
 
-        return self.proj(collapse_height(value, self.how))
+        return self.proj(collapse_height(value, self.how, batch=batch))
 
 
 def _height(how: str) -> Any:
@@ -87,9 +87,10 @@ class Connector(nn.Module):
         (cs, dims), (ct, _) = _channels(student), _channels(teacher)
         self.proj = CONNECTORS.get(kind)(cs, ct, dims)
 
-    def forward(self, value: Any) -> Any:
+    def forward(self, value: Any, batch: int | None = None) -> Any:
+        """The projected tap; ``batch``: the batch's size, for a connector that makes a map of sparse voxels."""
         if getattr(self.proj, "whole", False):
-            return self.proj(value)
+            return self.proj(value, batch)
         if isinstance(value, SparseVoxels):
             return value.with_feats(self.proj(value.feats))
         return self.proj(value)

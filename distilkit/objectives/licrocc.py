@@ -26,15 +26,16 @@ _SCENES = Choice("scenes 'not useful' (night, rain)", "every sample weighs 1", _
                  "`params: {unuseful_weight: 1.0e-5}` with a batch field `scene_useful`")
 _AUTO = Choice("automatic loss weights", "off: the recipe's weights", _NO_PAPER,
                "AutomaticWeightedLoss (0.5 / sigma^2 per term, its log(1 + sigma^2) commented out) is never built: "
-               "distill_len = 0 is hard-coded (L107)", "`params: {auto_weight: release}` (or `regularised`)")
+               "distill_len = 0 is hard-coded (L107)", "`params: {auto_weight: release}`")
 _MODE = Choice("the frozen teacher's mode", "eval (`teacher: {mode: eval}`)", _NO_PAPER,
                "train: frozen parameters, nothing calls .eval(): BatchNorm batch statistics and its Dropout(0.5) "
                "before the output layer are on", "`teacher: {mode: train}`")
 
 
 class _AutoWeighted(MultiTapObjective):
-    """A term with the release's automatic weight as an option: 0.5 / sigma^2 times the term (``release``), plus
-    log(1 + sigma^2) (``regularised``); sigma learned with the student, initially 1."""
+    """A term with the release's automatic weight as an option: 0.5 / sigma^2 times the term (``release``), sigma
+    learned with the student, initially 1, without a regulariser (the release's class has its log(1 + sigma^2)
+    commented out)."""
 
     def __init__(self, params: Any) -> None:
         super().__init__(params)
@@ -43,9 +44,7 @@ class _AutoWeighted(MultiTapObjective):
     def weighted(self, loss: Tensor) -> Tensor:
         if self.sigma is None:
             return loss
-        var = self.sigma.to(loss.dtype) ** 2
-        out = 0.5 / var * loss
-        return out + torch.log1p(var) if self.params.auto_weight == "regularised" else out
+        return 0.5 / self.sigma.to(loss.dtype) ** 2 * loss
 
     def scene_weights(self, batch: Batch, like: Tensor) -> Tensor | None:
         """The batch's per-sample weights: 1, or ``unuseful_weight`` where ``scene_useful`` is false."""

@@ -48,8 +48,9 @@ class VoxelKL(KLCard, MultiTapObjective):
 class ImageCosine(ImageCard, Objective):
     """MonoOcc's image-feature distillation: 1 - the mean over the pixels of cos(f_S, f_T) over the channels, the
     teacher's map resized to the student's (bilinear, corners aligned); weight 2 (``ratio_2d_distill``). Off in
-    every released config; there the student's 128 channels pass an MLP to the teacher's 512 (``connector:
-    mlp`` is distilkit's nearest: no ReLU after its second layer)."""
+    every released config; there the student's 128 channels pass an MLP 128 -> 256 -> 512 with a ReLU after each
+    layer to the teacher's 512 (``connector: mlp`` is distilkit's nearest: as wide as the wider side, 512, and no
+    ReLU after its second layer)."""
 
     CHOICES = (Choice("whether it runs", "when a recipe names it", _NO_PAPER,
                       "off in every config (use_large_model=False; its teacher features are not loaded)", ""),)

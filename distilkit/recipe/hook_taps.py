@@ -25,8 +25,9 @@ class HookTapSpec(BaseModel):
                                                  "recorded (e.g. encode)")
     collapse: Literal["max", "mean"] | None = Field(
         None, description="the value ((B, C, X, Y, Z) or sparse voxels) reduced over height per channel onto the "
-                          "(X, Y) plane, a bev_features tap: max (the voxel-to-BEV release's scatter-max over a "
-                          "column's active voxels, an empty column 0) or mean")
+                          "(X, Y) plane, a bev_features tap: max or mean (sparse voxels: over a column's active "
+                          "voxels, an empty column 0, the voxel-to-BEV release's scatter-max; a dense volume: over "
+                          "every height)")
 
     @model_validator(mode="after")
     def _one_source(self) -> "HookTapSpec":

@@ -13,11 +13,10 @@ MAX_MAPS = 3  # the release's three BEV scales
 _EXTRA = [(f"student_{i}", f"teacher_{i}") for i in range(2, MAX_MAPS + 1)]
 _PAPER = "LiCROcc (Ma et al., RA-L 2025, arXiv 2407.16197), ssc_rs.py"
 
-AutoWeight = Literal["off", "release", "regularised"]
+AutoWeight = Literal["off", "release"]
 _AUTO = ("off: the weight as given (the release: its distill_len = 0 leaves AutomaticWeightedLoss unbuilt); "
-         "release: the term times 0.5 / sigma^2 with a learned sigma (initial 1) and no regulariser (its class, "
-         "whose log(1 + sigma^2) is commented out: sigma grows and the weight decays towards 0); regularised: "
-         "with + log(1 + sigma^2)")
+         "release: the term times 0.5 / sigma^2 with a learned sigma (initial 1) and no regulariser, as its class "
+         "would compute (its log(1 + sigma^2) is commented out: sigma grows and the weight decays towards 0)")
 _UNUSEFUL = ("the weight of a sample whose batch says `scene_useful: false` (the release's 1e-5 for night and rain "
              "scenes, never applied: its dataset calls every scene useful); 1: every sample alike")
 

@@ -46,24 +46,16 @@ def _method(sub: nn.Module, spec: Any, record: Record) -> None:
     setattr(sub, name, wrapped)  # an instance attribute: this model only
 
 
-def _collapsed(spec: Any, record: Record) -> Record:
-    """``record`` of the value collapsed over height where the spec says ``collapse`` (a ``bev_features`` tap)."""
-    if getattr(spec, "collapse", None) is None:
-        return record
-    from distilkit.losses.bev import collapse_height
-
-    return lambda value: record(collapse_height(value, spec.collapse))
-
-
 def attach_recorders(model: nn.Module, hooks: dict[str, Any], role: str = "model") -> None:
     """Record each ``hooks[name]`` (a spec with ``module``, ``kind``, ``at`` and ``method``, or ``of`` another tap)
-    into the model's outputs; a spec with ``collapse`` records the value collapsed over height (sparse voxels: the
-    batch's size is its largest batch index + 1; a tap ``of`` another has the batch's own)."""
+    into the model's outputs; a spec with ``collapse`` gives the value collapsed over height (at the end of the
+    model's forward, with the batch's size: sparse voxels of a sample without any still make its row)."""
     if not hooks:
         return
     modules = dict(model.named_modules())
     recorded: dict[str, Any] = {}
     derived = {name: spec for name, spec in hooks.items() if getattr(spec, "of", None) is not None}
+    collapsed = [name for name, spec in hooks.items() if getattr(spec, "collapse", None) is not None]
     for name, spec in hooks.items():
         if name in derived:
             continue
@@ -72,22 +64,41 @@ def attach_recorders(model: nn.Module, hooks: dict[str, Any], role: str = "model
             close = difflib.get_close_matches(spec.module, [m for m in modules if m], n=3, cutoff=0.5)
             hint = f"; did you mean {' or '.join(map(repr, close))}?" if close else ""
             raise TapError(f"{role} tap {name!r}: {type(model).__name__} has no submodule {spec.module!r}{hint}")
-        RECORDERS.get(spec.at)(sub, spec, _collapsed(spec, lambda value, name=name: recorded.__setitem__(name, value)))
+        RECORDERS.get(spec.at)(sub, spec, lambda value, name=name: recorded.__setitem__(name, value))
 
     def merge(_mod: nn.Module, args: tuple[Any, ...], outputs: dict[str, Any]) -> dict[str, Any]:
         out = {**outputs, **recorded}
         recorded.clear()
-        if derived:
-            from distilkit.losses.bev import collapse_height
-
-            size = getattr(args[0], "size", None) if args else None
-            for name, spec in derived.items():  # each of a voxel tap (validate): never of another derived one
-                if spec.of not in out:
+        if collapsed:
+            size = _batch_size(args)
+            for name in collapsed:  # each of a voxel tap (validate): never of another collapsed one
+                spec = hooks[name]
+                source = spec.of if name in derived else name
+                if source in out:
+                    out[name] = _collapse(out[source], spec.collapse, size, f"{role} tap {name!r}")
+                elif name in derived:
                     raise TapError(f"{role} tap {name!r} is made of tap {spec.of!r}, which the model did not return "
                                    f"(it returned: {', '.join(out)})")
-                out[name] = collapse_height(out[spec.of], spec.collapse, batch=size if isinstance(size, int) else None)
         return out
 
     model.register_forward_hook(merge)
     model.tap_kinds = {**getattr(model, "tap_kinds", {}), **{n: s.kind for n, s in hooks.items()}}
 
+
+
+def _batch_size(args: tuple[Any, ...]) -> int | None:
+    """The batch size of a forward's first argument (a :class:`~distilkit.data.batch.Batch`), if it says one."""
+    try:
+        size = getattr(args[0], "size", None) if args else None
+    except (KeyError, TypeError):
+        return None
+    return size if isinstance(size, int) else None
+
+
+def _collapse(value: Any, how: str, batch: int | None, what: str) -> Any:
+    from distilkit.losses.bev import collapse_height
+
+    try:
+        return collapse_height(value, how, batch=batch)
+    except ValueError as exc:
+        raise TapError(f"{what} collapses its value over height: {exc}") from None

@@ -138,6 +138,11 @@ def resolve_terms(specs: list[LossSpec], reg: Registry[Any], path: str, models: 
             found = lookup(CONNECTORS, connector, f"{p}.connector", problems)
             connector = found.name if found is not None else connector
         taps = _resolve_taps(p, entry.card, spec.taps, models, problems, connector in HEIGHT_CONNECTORS)
+        student = models.get("student")
+        if connector in HEIGHT_CONNECTORS and student is not None and "student" in taps and \
+                student.taps.get(taps["student"]) not in VOXEL_KINDS:
+            problems.append((f"{p}.connector", f"{connector} collapses a voxel tap over height; the student tap "
+                                               f"{taps['student']!r} is {student.taps.get(taps['student'])}"))
         fields = _resolve_fields(p, entry.card, spec.taps, info, problems)
         weight = spec.weight if spec.weight is not None else float(getattr(entry.card, "DEFAULT_WEIGHT", 1.0))
         if params is not None:
@@ -186,16 +191,27 @@ def alignment_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedMode
                 out.append((f"{path}[{i}]", f"{where} see through cameras {_camera_text(s_cam)} and "
                                             f"{_camera_text(t_cam)}: image features of different cameras (or frames) "
                                             "cannot be compared pixel by pixel"))
+            kind, s_kind = term.card.CONSUMES[role], term.card.CONSUMES[partner]
+            height = partner == "student" and term.connector in HEIGHT_CONNECTORS
+            s_tap_kind, t_tap_kind = ("bev_features" if height else s_model.taps.get(s_tap)), t_model.taps.get(tap)
+            collapses = s_kind == "bev_features" and kind in VOXEL_KINDS  # the term collapses the teacher's itself
+            if not collapses and {s_tap_kind, t_tap_kind} & {"bev_features"} and {s_tap_kind, t_tap_kind} & set(
+                    VOXEL_KINDS):
+                out.append((f"{path}[{i}]", f"{where} are a bird's-eye map and a volume ({s_tap_kind} and "
+                                            f"{t_tap_kind}): give the volume a bird's-eye tap (`taps: {{bev: {{of: "
+                                            "..., kind: bev_features, collapse: max}}`) or the student `connector: "
+                                            "height_max`"))
+                continue
             (s_grid, s_plane), (t_grid, t_plane) = tap_grid(s_model, s_tap, info), tap_grid(t_model, tap, info)
-            s_plane = s_plane or (partner == "student" and term.connector in HEIGHT_CONNECTORS)
+            s_plane = s_plane or height
             if s_grid is None or t_grid is None:
                 continue
-            kind = term.card.CONSUMES[role]
             if s_plane or t_plane:  # a bird's-eye plane pairs with the other's plane (a volume: its (X, Y))
                 how = plane_factors(s_grid, t_grid)
-                if isinstance(how, str):
-                    out.append((f"{path}[{i}]", f"{where}: their bird's-eye planes {s_grid.shape[:2]} and "
-                                                f"{t_grid.shape[:2]} cannot be aligned: {how}"))
+                if isinstance(how, str) or ("bev_features" in (kind, s_kind) and how[0] != "same"):
+                    why = how if isinstance(how, str) else f"{term.name} compares the maps cell by cell: one plane"
+                    out.append((f"{path}[{i}]", f"{where}: their bird's-eye planes {tuple(s_grid.shape[:2])} and "
+                                                f"{tuple(t_grid.shape[:2])} cannot be aligned: {why}"))
                 continue
             how = grid_factors(s_grid, t_grid)
             if isinstance(how, str) or (kind == "voxel_logits" and how[0] != "same"):

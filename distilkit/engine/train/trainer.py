@@ -257,7 +257,7 @@ class Trainer:
             taps = {role: to_float32(v) for role, v in taps.items()}
         taps.update({role: batch.field(name) for role, name in term.spec.fields.items()})
         if term.connector is not None and term.spec.connector is not None and "student" in taps:
-            taps["student"] = term.connector(taps["student"])
+            taps["student"] = term.connector(taps["student"], batch.size)
         return taps
 
     @property
