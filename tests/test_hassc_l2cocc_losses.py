@@ -355,3 +355,25 @@ def test_l2cocc_relation_in_float32_is_float64s_within_1e6_value_1e5_gradient() 
     assert got.dtype == torch.float32 and got.item() == pytest.approx(want.item(), rel=1e-6)
     (g64,), (g32,) = torch.autograd.grad(want, s), torch.autograd.grad(got, s32)
     assert g32.dtype == torch.float32 and ((g32.double() - g64).norm() / g64.norm()).item() < 1e-5
+
+
+def test_the_per_sample_kl_and_cosine_sums_compute_only_the_kept_positions() -> None:
+    """kl_per_sample and cosine_distance_sums gather the kept positions first: their gradients check, a position
+    left out cannot reach the value (a NaN there stays out) and gets a zero gradient."""
+    from distilkit.losses.logit import kl_per_sample
+    g = torch.Generator().manual_seed(5)
+    s, t = rand(3, 4, 3, 2, g=g), rand(3, 4, 3, 2, g=g)
+    keep = torch.rand(3, 3, 2, generator=g) < 0.5
+    keep[0], keep[1, 0, 0] = False, True  # sample 0 keeps nothing, sample 1 at least one
+    assert torch.autograd.gradcheck(lambda s, t: kl_per_sample(s, t, keep, 1.7), (s, t))
+    assert torch.autograd.gradcheck(lambda s, t: l2.cosine_distance_sums(s, t, keep)[0], (s, t))
+    want = [naive_kl_of_sample(s, t, torch.where(keep, 0, 255), 1.0, i) for i in range(3)]
+    poisoned = s.detach().clone()
+    poisoned[:, :, ~keep.any(0)] = float("nan")  # positions that no sample keeps
+    poisoned[0] = float("nan")  # every position of the sample that keeps none
+    got = kl_per_sample(poisoned.requires_grad_(), t, keep)
+    assert torch.allclose(got, torch.stack(want).detach(), rtol=1e-9, atol=0)
+    sums, counts = l2.cosine_distance_sums(poisoned, t, keep)
+    assert torch.isfinite(sums).all() and counts.tolist() == keep.flatten(1).sum(1).tolist() and sums[0] == 0
+    got.sum().backward()
+    assert (poisoned.grad.permute(0, 2, 3, 1)[~keep] == 0).all()

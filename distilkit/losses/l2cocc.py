@@ -37,7 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from distilkit.losses.logit import kl_per_sample
+from distilkit.losses.logit import kept_rows, kl_per_sample, per_sample_sums
 
 _ENTRIES = 1 << 24  # the most entries of one tile of the P x P matrix (64 MiB in float32)
 _CPU_TILE = 1024  # the tiles' edge on the CPU (4 MiB in float32: a core's L2, between the GEMM and the next pass)
@@ -81,10 +81,12 @@ def cosine_distance_sums(student_features: Tensor, teacher_features: Tensor, mas
     """(B,) each sample's sum of 1 - cos(f_S, f_T) (``F.cosine_similarity`` over the channels of (B, C, *spatial)
     maps) over the positions where ``mask`` (B, *spatial) holds, and (B,) their numbers. L2COcc's FSD and LiCROcc's
     CMRD average them."""
-    keep = mask.flatten(1).bool()
-    distance = 1 - F.cosine_similarity(student_features, teacher_features.to(student_features.dtype), dim=1)
-    distance = torch.where(keep, distance.flatten(1), torch.zeros_like(distance.flatten(1)))
-    return distance.sum(1), keep.sum(1)
+    keep = mask.bool()
+    student = kept_rows(student_features, keep)
+    teacher = kept_rows(teacher_features.to(student_features.dtype), keep)
+    distance = 1 - F.cosine_similarity(student, teacher, dim=1)  # (M,): only the masked positions computed
+    counts = keep.flatten(1).sum(1)
+    return per_sample_sums(distance, counts), counts
 
 
 def l2cocc_fsd(student_features: Tensor | Sequence[Tensor], teacher_features: Tensor | Sequence[Tensor],

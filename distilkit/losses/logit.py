@@ -31,16 +31,29 @@ def kd(student_logits: Tensor, teacher_logits: Tensor, temperature: float = 1.0,
     return temperature**2 * kl.mean()
 
 
+def kept_rows(x: Tensor, keep: Tensor) -> Tensor:
+    """The (M, C) channel vectors of (B, C, *S) ``x`` at the M positions where ``keep`` (B, *S) holds, sample by
+    sample in order: the masked positions gathered once, so that a term computes nothing at the others."""
+    sample, position = keep.reshape(keep.shape[0], -1).nonzero(as_tuple=True)
+    return x.flatten(2)[sample, :, position]
+
+
+def per_sample_sums(values: Tensor, counts: Tensor) -> Tensor:
+    """(B,) the sums of (M,) ``values`` over each sample's rows (rows in sample order, ``counts`` (B,) of them per
+    sample, as :func:`kept_rows` gives them): each a pairwise ``sum``, as accurate as the mean over a full grid."""
+    return torch.stack([part.sum() for part in values.split(counts.tolist())])
+
+
 def kl_per_sample(student_logits: Tensor, teacher_logits: Tensor, keep: Tensor, temperature: float = 1.0) -> Tensor:
     """(B,) each sample's mean over its kept positions of KL(softmax(t/T) || softmax(s/T)) (0 where none is kept);
-    logits (B, K, *S), ``keep`` (B, *S) bool. HASSC's and L2COcc's per-sample reductions are built on it."""
-    log_ps = torch.log_softmax(student_logits.flatten(2) / temperature, dim=1)
-    log_pt = torch.log_softmax(teacher_logits.to(student_logits.dtype).flatten(2) / temperature, dim=1)
-    kl = (log_pt.exp() * (log_pt - log_ps)).sum(1)  # (B, N): one KL per position
-    keep = keep.flatten(1)
-    counts = keep.sum(1)
-    sums = (kl * keep).sum(1)
-    return torch.where(counts > 0, sums / counts.clamp_min(1), sums * 0)
+    logits (B, K, *S), ``keep`` (B, *S) bool. Only the kept positions are computed (gathered first: at a scene's
+    occupied voxels, a few per cent of the grid). HASSC's and L2COcc's per-sample reductions are built on it."""
+    keep = keep.bool()
+    log_ps = torch.log_softmax(kept_rows(student_logits, keep) / temperature, dim=1)
+    log_pt = torch.log_softmax(kept_rows(teacher_logits.to(student_logits.dtype), keep) / temperature, dim=1)
+    kl = (log_pt.exp() * (log_pt - log_ps)).sum(1)  # (M,): one KL per kept position
+    counts = keep.reshape(keep.shape[0], -1).sum(1)
+    return per_sample_sums(kl, counts) / counts.clamp_min(1)  # a sample without a kept position sums nothing: 0
 
 
 def pearson_rows(a: Tensor, b: Tensor, eps: float = 1e-8) -> Tensor:

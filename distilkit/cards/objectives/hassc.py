@@ -30,7 +30,8 @@ class HASSCKDCard(ObjectiveCard):
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 48.0
-    VERSION = 2  # 2: the dynamic weight per sample over classes 1..K-1 (was: the batch pooled, all K classes)
+    VERSION = 3  # 2: the dynamic weight per sample over classes 1..K-1 (was: the batch pooled, all K classes); 3: only
+    # the valid voxels computed, each sample's sum pairwise (was: every voxel, masked; equal up to rounding)
 
     @classmethod
     def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:

@@ -23,6 +23,8 @@ class PADCard(ObjectiveCard):
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 70.0
+    VERSION = 2  # 2: only the kept voxels computed, each sample's sum pairwise (was: every voxel, masked; equal up
+    # to rounding)
 
     @classmethod
     def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
@@ -57,7 +59,8 @@ class FSDCard(ObjectiveCard):
     OPTIONAL = frozenset(role for pair in _EXTRA for role in pair)
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 4.0
-    VERSION = 2  # 2: per-sample reduction by default, several map pairs averaged (was: pooled over the batch)
+    VERSION = 3  # 2: per-sample reduction by default, several map pairs averaged (was: pooled over the batch); 3: only
+    # the masked positions computed, each sample's sum pairwise (was: every position, masked; equal up to rounding)
 
     @classmethod
     def teacher_voxels(cls, params: BaseModel) -> dict[str, str]:
