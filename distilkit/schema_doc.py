@@ -188,18 +188,26 @@ def objectives_markdown() -> str:
            "Generated from the objective registry by `distilkit list objectives --markdown`; a test keeps it in sync.",
            "Every objective is also a plain function in `distilkit.losses` (tested against naive float64",
            "implementations of the paper's formula). Weights are the defaults for this field when a recipe gives none.",
-           "", "| name | paper | default weight | taps (role: kind) |", "|---|---|---|---|"]
+           "", "The last column says how each teacher tap must match its student partner's (the student role of the",
+           "same suffix): channels `equal` (a student `connector` makes them so), `any` or `own` (the term projects),",
+           "then `same` size, `aligned` (voxel grids in an integer ratio), `resampled` (any size: the term resizes)",
+           "or `collapsed` (the teacher's voxels, height collapsed, on the student's plane); \"divides the labels'",
+           "grid\": the maps are masked by the labels pooled to their size. `distilkit init` pairs taps by it, and",
+           "tests/test_objective_match.py checks each against its objective.", "",
+           "| name | paper | default weight | taps (role: kind) | teacher taps match the student's |",
+           "|---|---|---|---|---|"]
     for e in OBJECTIVES:
         taps = ", ".join(f"{r}: {k}" + (" (optional)" if r in getattr(e.obj, "OPTIONAL", ()) else "")
                          for r, k in e.obj.CONSUMES.items())
-        out.append(f"| [`{e.name}`](#{e.name}) | {e.paper} | {e.meta['default_weight']:g} | {taps} |")
+        out.append(f"| [`{e.name}`](#{e.name}) | {e.paper} | {e.meta['default_weight']:g} | {taps} | "
+                   f"{_match_text(e.obj) or '—'} |")
     out.append("")
     for e in OBJECTIVES:
         doc = " ".join((e.obj.__doc__ or "").split())
         out += [f"## {e.name}", "", e.description + ".", "", f"- **Paper:** {e.paper}",
                 f"- **Equation:** `{e.meta['equation']}`", f"- **Tensors:** {e.meta['shapes']}",
                 f"- **Default weight:** {e.meta['default_weight']:g}", f"- **Function:** `{e.meta['function']}`",
-                "", doc, ""]
+                *([f"- **Teacher taps:** {_match_text(e.obj)}"] if _match_text(e.obj) else []), "", doc, ""]
         props = e.obj.Params.model_json_schema().get("properties", {})
         if props:
             out += ["| parameter | default | description |", "|---|---|---|"]
@@ -208,6 +216,14 @@ def objectives_markdown() -> str:
             out.append("")
         out += ["```yaml", "distill:", f"  - {{name: {e.name}, weight: {e.meta['default_weight']:g}}}", "```", ""]
     return "\n".join(out + choices_markdown())
+
+
+def _match_text(card: Any) -> str:
+    """Each teacher role's match with its default parameters (``teacher: equal · same``); one role said alone."""
+    match = card.match()
+    if len(match) == 1 and "teacher" in match:
+        return match["teacher"].text()
+    return "; ".join(f"{role}: {m.text()}" for role, m in match.items())
 
 
 def choices_markdown() -> list[str]:

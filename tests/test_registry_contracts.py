@@ -16,7 +16,7 @@ from distilkit.data.datasets import build_synthetic, collate_street, synthetic_i
 from distilkit.data.params import SyntheticParams
 from distilkit.metrics.base import Metric
 from distilkit.registry import ADAPTERS, DATASETS, METRICS, OBJECTIVES, TASK_LOSSES
-from distilkit.taps import TAP_KINDS, check_tap
+from distilkit.taps import DENSE_GRID_KINDS, TAP_KINDS, check_tap
 from distilkit.term import Term
 
 BUILTIN = {"adapters": ["scpnet", "js3cnet", "voxformer-proposal", "voxformer"], "metrics": ["ssc", "occupancy"]}
@@ -55,10 +55,31 @@ def test_adapter_contract(name: str) -> None:
         out = model(collate_street([ds[0], ds[1]]))
     for tap, kind in cls.TAPS.items():
         check_tap(out[tap], kind, f"{name}.{tap}")
-        if kind == "sparse_features" and cls.tap_grid(tap, params, info) is not None:
+        grid = cls.tap_grid(tap, params, info)
+        if kind == "sparse_features" and grid is not None:
             # the value carries the geometry the adapter declares (validate's alignments use the declaration)
-            assert out[tap].grid == cls.tap_grid(tap, params, info), f"{name}.{tap} carries its declared grid"
+            assert out[tap].grid == grid, f"{name}.{tap} carries its declared grid"
+        if kind in DENSE_GRID_KINDS:  # a dense volume's grid is declared (validate and init align with it) and true
+            assert grid is not None and tuple(out[tap].shape[2:]) == tuple(grid.shape), f"{name}.{tap} on its grid"
     assert set(ADAPTERS.entry(name).consumes) <= set(cls.TAPS.values())
+
+
+@pytest.mark.parametrize("name", names(ADAPTERS))
+def test_adapter_aux_inputs_and_data_params_are_real(name: str) -> None:
+    """``AUX_INPUTS`` names inputs the adapter reads that no dataset gives, each from a registered adapter's
+    prediction; ``DATA_PARAMS`` are parameters of the synthetic data that serve the adapter (``distilkit init``
+    writes both)."""
+    from distilkit.schema_doc import aux_only_inputs
+
+    cls = ADAPTERS.get(name)
+    reads = cls.INPUTS | cls.inputs(cls.Params())
+    for field, adapter in cls.AUX_INPUTS.items():
+        assert field in reads and field in aux_only_inputs(frozenset({field})), (name, field)
+        assert adapter in ADAPTERS.names(), (name, adapter)
+    if cls.DATA_PARAMS:
+        info = synthetic_info(SyntheticParams(**TINY_DATA, **cls.DATA_PARAMS))
+        assert cls.check_data(cls.Params(), info) == [], name
+        assert cls.check_data(cls.Params(), synthetic_info(SyntheticParams(**TINY_DATA))) != [], name
 
 
 TERMS = [("objective", n) for n in names(OBJECTIVES)] + [("task loss", n) for n in names(TASK_LOSSES)]

@@ -5,7 +5,8 @@ and its implementation subclasses the card (see :mod:`distilkit.cards`)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, ClassVar
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from pydantic import BaseModel
 
@@ -30,6 +31,10 @@ class AdapterCard:
     VERSION: ClassVar[int] = 1
     NETWORKS: ClassVar[dict[str, str]] = {}  # by ``params.size`` ("" without one): the paper's network or a stand-in
     CAPABILITIES: ClassVar[frozenset[str]] = frozenset()  # methods a term may call through its context
+    # an input only an auxiliary model's tap provides -> the adapter whose prediction it is (``distilkit init`` adds
+    # that stage; e.g. VoxFormer's ``proposal``: voxformer-proposal)
+    AUX_INPUTS: ClassVar[dict[str, str]] = {}
+    DATA_PARAMS: ClassVar[dict[str, Any]] = {}  # data parameters the adapter needs (VoxFormer: ``camera: {}``)
 
     @classmethod
     def inputs(cls, params: BaseModel) -> frozenset[str]:
@@ -84,6 +89,43 @@ class AdapterCard:
         return [name for name, k in cls.TAPS.items() if kind_fits(k, kind)]
 
 
+CHANNELS = ("equal", "any", "own")
+SPATIAL = ("same", "aligned", "resampled", "collapsed")
+
+
+@dataclass(frozen=True)
+class Match:
+    """How a teacher role's tap must match its student partner's (the student role of the same suffix:
+    ``teacher_logits`` pairs with ``student_logits``), for ``distilkit init`` and the objectives page; each built-in
+    declaration is tested against its loss (tests/test_objective_match.py).
+
+    ``channels``: ``equal`` (compared channel by channel: a connector on the ``student`` role makes the widths
+    equal; on another role they must be), ``any`` (each side keeps its width), ``own`` (the term projects the
+    student itself: its default connector or a head of its own). ``spatial``: ``same`` (one voxel grid, or maps of
+    one size), ``aligned`` (voxel grids in an integer ratio, matched voxel by voxel across them), ``resampled`` (any
+    sizes of one dimensionality: the term resizes), ``collapsed`` (the teacher's voxel grid, its height collapsed,
+    is the student's bird's-eye plane). ``on_labels``: the maps' size must divide the labels' grid (the term masks
+    them by the labels pooled to their size)."""
+
+    channels: Literal["equal", "any", "own"]
+    spatial: Literal["same", "aligned", "resampled", "collapsed"]
+    on_labels: bool = False
+
+    def __post_init__(self) -> None:
+        if self.channels not in CHANNELS or self.spatial not in SPATIAL:
+            raise ValueError(f"Match: channels must be one of {CHANNELS} and spatial one of {SPATIAL}, got "
+                             f"{self.channels!r} and {self.spatial!r}")
+
+    def text(self) -> str:
+        """``channels · spatial`` (``, on the labels' grid``), as the objectives page shows it."""
+        return f"{self.channels} · {self.spatial}" + (" (divides the labels' grid)" if self.on_labels else "")
+
+
+def partner(role: str) -> str:
+    """The student role a teacher role pairs with: the one of the same suffix (``teacher_2``: ``student_2``)."""
+    return "student" + role[len("teacher"):]
+
+
 class TermCard:
     """What a term declares (the contract is :mod:`distilkit.term`'s docstring): its parameters, roles and where
     each comes from, the capabilities it calls, its default weight, connector and parameter groups, its version."""
@@ -101,6 +143,17 @@ class TermCard:
     DEFAULT_CONNECTOR: ClassVar[str | None] = None  # e.g. "linear": the student tap is projected first
     DEFAULT_PARAM_GROUPS: ClassVar[list[dict[str, Any]]] = []  # optimizer groups asked for by default
     VERSION: ClassVar[int] = 1  # bump when the term's numbers change: stages using it retrain
+    # teacher role -> how its tap must match the student partner's; {} for a term that declares none (a plug-in's:
+    # then the first step decides) or reads no teacher tap
+    MATCH: ClassVar[dict[str, Match]] = {}
+    # role -> the tap names it prefers, in order, where a model has several taps of its kind (``distilkit init``)
+    TAP_HINTS: ClassVar[dict[str, tuple[str, ...]]] = {}
+
+    @classmethod
+    def match(cls, params: BaseModel | None = None) -> dict[str, Match]:
+        """How each teacher role's tap must match its partner's with these parameters (default: ``MATCH``; None:
+        the defaults)."""
+        return cls.MATCH
 
     @classmethod
     def roles(cls) -> dict[str, str]:
@@ -182,4 +235,4 @@ def declare_objective(name: str, impl: str, card: type[TermCard], *, description
                        function=f"distilkit.losses.{function or name}")
 
 
-__all__ = ["AdapterCard", "MetricCard", "NoParams", "ObjectiveCard", "TermCard", "declare_objective"]
+__all__ = ["AdapterCard", "Match", "MetricCard", "NoParams", "ObjectiveCard", "TermCard", "declare_objective", "partner"]

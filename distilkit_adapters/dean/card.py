@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from distilkit.cards.base import AdapterCard
 from distilkit.data.info import DataInfo
 from distilkit.registry import ADAPTERS
+from distilkit.structures import VoxelGrid
 from distilkit_adapters._cards import fields_of_one_size
 
 Features = Literal["occupancy", "height", "position"]
@@ -53,6 +54,13 @@ class DeanLabelerCard(AdapterCard):
     @classmethod
     def inputs(cls, params: BaseModel) -> frozenset[str]:
         return frozenset({getattr(params, "geometry")})
+
+    @classmethod
+    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> VoxelGrid | None:
+        """The U-Net's last features live on the data's grid, as its logits do."""
+        if tap == "features":
+            return info.grid
+        return super().tap_grid(tap, params, info)
 
     @classmethod
     def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:

@@ -60,7 +60,7 @@ class JS3CNetCard(MultiFrameLidarCard):
 
     @classmethod
     def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> VoxelGrid | None:
-        if tap == "completion" and info.grid is not None:  # the SSC decoder works at half resolution
+        if tap in ("completion", "ssc_dense") and info.grid is not None:  # the SSC decoder works at half resolution
             return info.grid.coarsen(2)
         return super().tap_grid(tap, params, info)
 

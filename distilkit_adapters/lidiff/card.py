@@ -114,6 +114,7 @@ class LiDiffRefineCard(AdapterCard):
     Params = RefineParams
     INPUTS = frozenset({"coarse", "scene", "scene_lengths"})
     TAPS = {"refined": "points", "completion": "points"}
+    AUX_INPUTS = {"coarse": "lidiff"}  # a LiDiff stage's completion
     PREDICTION_TAP = "completion"
     DEFAULT_TASK_LOSSES = [{"name": "chamfer", "taps": {"student": "refined"}}]
     VERSION = 2  # 2: trained on jittered ground truth by default (LiDiff)

@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from distilkit.data.info import DataInfo
 from distilkit.registry import ADAPTERS
+from distilkit.structures import VoxelGrid
 from distilkit_adapters._cards import MultiFrameLidarCard, fields_of_one_size
 
 
@@ -66,6 +67,13 @@ class SCPNetCard(MultiFrameLidarCard):
                 "paper": "the paper's network: the release's completion sub-network + Cylinder3D's sparse asymmetric "
                          "U-Net in spconv 1.x's key semantics (loads the release's spconv 1.x state dict; "
                          "semantics: spconv2 for Cylinder3D's spconv 2.x ports)"}
+
+    @classmethod
+    def tap_grid(cls, tap: str, params: BaseModel, info: DataInfo) -> VoxelGrid | None:
+        """The completion sub-network's dense volume lives on the data's grid, as its sparse tap does."""
+        if tap == "completion_dense":
+            return info.grid
+        return super().tap_grid(tap, params, info)
 
     @classmethod
     def check_data(cls, params: BaseModel, info: DataInfo) -> list[tuple[str, str]]:

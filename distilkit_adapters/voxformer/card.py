@@ -96,6 +96,7 @@ class VoxFormerProposalCard(AdapterCard):
                 for size in ("tiny", "paper")}
     INPUTS = CAMERA_INPUTS
     TAPS = {"depth": "depth_map", "occupancy": "occupancy_logits"}
+    DATA_PARAMS = {"camera": {}}  # a camera on the data (synthetic-lidar renders one)
     PREDICTION_TAP = "occupancy"
     DEFAULT_TASK_LOSSES = [{"name": "occupancy_ce", "weight": 1.0},
                            {"name": "depth_l1", "weight": 0.1, "params": {"sky_depth": 80.0}}]
@@ -137,6 +138,8 @@ class VoxFormerCard(AdapterCard):
         return f"CPU stand-in: a small ResNet of basic blocks, {mixing} self-attention over the queries"
 
     TAPS = {"image_features": "image_features", "query_features": "sparse_features", "logits": "voxel_logits"}
+    DATA_PARAMS = {"camera": {}}
+    AUX_INPUTS = {"proposal": "voxformer-proposal"}  # stage 1's occupancy (``geometry: proposals``)
     PREDICTION_TAP = "logits"
     DEFAULT_TASK_LOSSES = [{"name": "weighted_ce", "weight": 1.0}, {"name": "sem_scal", "weight": 1.0},
                            {"name": "geo_scal", "weight": 1.0}]

@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.cards.base import ObjectiveCard, declare_objective
+from distilkit.cards.base import Match, ObjectiveCard, declare_objective
 
 
 class BEVParams(BaseModel):
@@ -28,6 +28,15 @@ class BEVCard(ObjectiveCard):
     """The voxel-to-BEV term (card of :class:`distilkit.objectives.bev.VoxelToBEV`), weight 2."""
 
     Params = BEVParams
+    MATCH = {"teacher": Match("own", "collapsed", on_labels=True)}
+
+    @classmethod
+    def match(cls, params: BaseModel | None = None) -> dict[str, Match]:
+        """The release's adapter projects the teacher's plane (``adapter: none``: equal widths); the class weights
+        pool the labels to the map (``weighting: none``: any plane)."""
+        own = params is None or getattr(params, "adapter") == "release"
+        labels = params is None or getattr(params, "weighting") == "labels"
+        return {"teacher": Match("own" if own else "equal", "collapsed", on_labels=labels)}
     CONSUMES = {"student": "bev_features", "teacher": "sparse_features"}
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 2.0

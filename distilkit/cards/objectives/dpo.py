@@ -32,6 +32,7 @@ class DistillationDPOCard(VSDCard):
     always (its second completion)."""
 
     Params = DPOParams
+    TAP_HINTS = {"student": ("samples",), "noise": ("start_noise",)}
     CONSUMES = {"student": "points", "noise": "points"}
     BATCH = {"condition": "scan", "target": "scene", "target_lengths": "scene_lengths"}
     STUDENT_REQUIRES = frozenset({"generate"})

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.cards.base import ObjectiveCard, declare_objective
+from distilkit.cards.base import Match, ObjectiveCard, declare_objective
 
 
 class DSKDParams(BaseModel):
@@ -17,6 +17,7 @@ class DSKDCard(ObjectiveCard):
     """Dense-to-Sparse KD (card of :class:`distilkit.objectives.dskd.DSKD`), default weight beta = 3000."""
 
     Params = DSKDParams
+    MATCH = {"teacher": Match("any", "aligned")}
     CONSUMES = {"student": "sparse_features", "teacher": "sparse_features"}
     DEFAULT_WEIGHT = 3000.0
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.cards.base import ObjectiveCard, declare_objective
+from distilkit.cards.base import Match, ObjectiveCard, declare_objective
 from distilkit.cards.objectives.common import NoParams
 
 
@@ -12,6 +12,7 @@ class FitNetsCard(ObjectiveCard):
     """FitNets' hint (card of :class:`distilkit.objectives.feature.FitNets`)."""
 
     Params = NoParams
+    MATCH = {"teacher": Match("own", "resampled")}  # its default linear connector projects
     CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
     DEFAULT_WEIGHT = 1.0
     DEFAULT_CONNECTOR = "linear"
@@ -22,6 +23,7 @@ class NSTCard(ObjectiveCard):
     """NST (card of :class:`distilkit.objectives.feature.NST`)."""
 
     Params = NoParams
+    MATCH = {"teacher": Match("any", "resampled")}  # both pooled to the smaller size
     CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
     DEFAULT_WEIGHT = 50.0
 
@@ -35,6 +37,7 @@ class MGDCard(ObjectiveCard):
     """MGD (card of :class:`distilkit.objectives.feature.MGD`)."""
 
     Params = MGDParams
+    MATCH = {"teacher": Match("own", "resampled")}  # its 1x1 ``align`` where the widths differ
     CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
     DEFAULT_WEIGHT = 1.0
 

@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.cards.base import ObjectiveCard, declare_objective
+from distilkit.cards.base import Match, ObjectiveCard, declare_objective
 
 
 class HASSCKDParams(BaseModel):
@@ -27,6 +27,7 @@ class HASSCKDCard(ObjectiveCard):
     """HASSC's KD (card of :class:`distilkit.objectives.hassc.HASSCKD`), weight 48 as the release."""
 
     Params = HASSCKDParams
+    MATCH = {"teacher": Match("equal", "same")}
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 48.0
@@ -67,6 +68,7 @@ class HASSCHardVoxelsCard(ObjectiveCard):
     """HASSC's hard voxel mining (card of :class:`distilkit.objectives.hassc.HASSCHardVoxels`)."""
 
     Params = HardVoxelParams
+    MATCH = {"teacher": Match("any", "resampled")}  # hard positions found in its scores at any size and width
     CONSUMES = {"student": "voxel_logits", "features": "volume_features", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 1.0

@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.cards.base import ObjectiveCard, declare_objective
+from distilkit.cards.base import Match, ObjectiveCard, declare_objective
 from distilkit.cards.objectives.common import NoParams
 
 
@@ -20,6 +20,7 @@ class PADCard(ObjectiveCard):
     """L2COcc's prediction alignment (card of :class:`distilkit.objectives.l2cocc.PAD`), weight 70."""
 
     Params = PADParams
+    MATCH = {"teacher": Match("equal", "same")}
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 70.0
@@ -53,6 +54,8 @@ class FSDCard(ObjectiveCard):
     ``MAX_MAPS`` map pairs, weight 4."""
 
     Params = FSDParams
+    MATCH = {role: Match("equal", "same", on_labels=True)
+             for role in ("teacher", "teacher_2", "teacher_3", "teacher_4")}
     CONSUMES = {"student": "feature_map", "teacher": "feature_map",
                 **{role: "feature_map" for pair in _EXTRA for role in pair}}
     TEACHER_ROLES = frozenset({"teacher", *(t for _, t in _EXTRA)})
@@ -72,6 +75,7 @@ class RelationCard(ObjectiveCard):
     """L2COcc's relational feature similarity (card of :class:`distilkit.objectives.l2cocc.Relation`), weight 5."""
 
     Params = NoParams
+    MATCH = {"teacher": Match("any", "same")}  # P x P affinities: one number of positions
     CONSUMES = {"student": "feature_map", "teacher": "feature_map"}
     DEFAULT_WEIGHT = 5.0
 

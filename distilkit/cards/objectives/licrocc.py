@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.cards.base import ObjectiveCard, declare_objective
+from distilkit.cards.base import Match, ObjectiveCard, declare_objective
 
 MAX_MAPS = 3  # the release's three BEV scales
 _EXTRA = [(f"student_{i}", f"teacher_{i}") for i in range(2, MAX_MAPS + 1)]
@@ -50,6 +50,7 @@ class KLCard(ObjectiveCard):
     """LiCROcc's PDD (card of :class:`distilkit.objectives.licrocc.PDD`), weight 10."""
 
     Params = KLParams
+    MATCH = {"teacher": Match("equal", "same")}
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 10.0
@@ -67,6 +68,7 @@ class BEVCard(ObjectiveCard):
     """LiCROcc's CMRD (card of :class:`distilkit.objectives.licrocc.CMRD`): up to three map pairs, weight 4."""
 
     Params = BEVParams
+    MATCH = {role: Match("equal", "same", on_labels=True) for role in ("teacher", "teacher_2", "teacher_3")}
     CONSUMES = {"student": "bev_features", "teacher": "bev_features",
                 **{role: "bev_features" for pair in _EXTRA for role in pair}}
     TEACHER_ROLES = frozenset({"teacher", *(t for _, t in _EXTRA)})
@@ -79,6 +81,14 @@ class AffinityCard(ObjectiveCard):
     """LiCROcc's BRD (card of :class:`distilkit.objectives.licrocc.BRD`): up to three map pairs, weight 40."""
 
     Params = AffinityParams
+    MATCH = {role: Match("any", "resampled") for role in ("teacher", "teacher_2", "teacher_3")}
+
+    @classmethod
+    def match(cls, params: BaseModel | None = None) -> dict[str, Match]:
+        """Both maps resized to ``size`` (any sizes); ``size: null`` compares them as they are: one size."""
+        if params is not None and getattr(params, "size", 32) is None:
+            return {role: Match("any", "same") for role in cls.MATCH}
+        return cls.MATCH
     CONSUMES = BEVCard.CONSUMES
     TEACHER_ROLES = BEVCard.TEACHER_ROLES
     OPTIONAL = BEVCard.OPTIONAL

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.cards.base import ObjectiveCard, declare_objective
+from distilkit.cards.base import Match, ObjectiveCard, declare_objective
 from distilkit.cards.objectives.common import MaskName
 
 
@@ -18,6 +18,7 @@ class KDCard(ObjectiveCard):
     """Vanilla KD per voxel (card of :class:`distilkit.objectives.logit.KD`)."""
 
     Params = KDParams
+    MATCH = {"teacher": Match("equal", "same")}
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}  # the labels that choose the voxels
     DEFAULT_WEIGHT = 1.0
@@ -43,6 +44,7 @@ class DISTCard(ObjectiveCard):
     """DIST with voxels as the rows (card of :class:`distilkit.objectives.logit.DIST`)."""
 
     Params = DISTParams
+    MATCH = {"teacher": Match("equal", "same")}
     CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
     BATCH = {"target": "voxel_target"}  # the labels that choose the voxels
     DEFAULT_WEIGHT = 1.0

@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.cards.base import ObjectiveCard, declare_objective
+from distilkit.cards.base import Match, ObjectiveCard, declare_objective
 from distilkit.cards.objectives.common import NoParams
 
 _PAPER = "MonoOcc (Zheng et al., ICRA 2024, arXiv 2403.08766), utils/ssc_loss.py"
@@ -25,6 +25,7 @@ class KLCard(ObjectiveCard):
     """MonoOcc's voxel-feature distillation (card of :class:`distilkit.objectives.monoocc.VoxelKL`), weight 2."""
 
     Params = KLParams
+    MATCH = {"teacher": Match("equal", "same", on_labels=True)}
     CONSUMES = {"student": "volume_features", "teacher": "volume_features"}
     BATCH = {"target": "voxel_target"}
     DEFAULT_WEIGHT = 2.0
@@ -38,6 +39,7 @@ class ImageCard(ObjectiveCard):
     """MonoOcc's image-feature distillation (card of :class:`distilkit.objectives.monoocc.ImageCosine`), weight 2."""
 
     Params = NoParams
+    MATCH = {"teacher": Match("equal", "resampled")}  # the teacher's map resized to the student's
     CONSUMES = {"student": "image_features", "teacher": "image_features"}
     DEFAULT_WEIGHT = 2.0
 

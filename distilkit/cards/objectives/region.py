@@ -6,12 +6,14 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.cards.base import ObjectiveCard, declare_objective
+from distilkit.cards.base import Match, ObjectiveCard, declare_objective
 
 # logits of both models, plus an optional feature pair (image features in Scribble2Scene)
 LOGITS_AND_OPTIONAL_FEATURES = {"student": "voxel_logits", "teacher": "voxel_logits",
                                 "student_features": "feature_map", "teacher_features": "feature_map"}
 FEATURE_ROLES = frozenset({"student_features", "teacher_features"})
+# the feature term is FitNets' MSE after the student is resized, with no connector on its role: equal widths
+LOGITS_AND_FEATURES_MATCH = {"teacher": Match("equal", "same"), "teacher_features": Match("equal", "resampled")}
 
 
 class RGO2DParams(BaseModel):
@@ -29,6 +31,7 @@ class RGO2DCard(ObjectiveCard):
     """RGO²D (card of :class:`distilkit.objectives.region.RGO2D`)."""
 
     Params = RGO2DParams
+    MATCH = LOGITS_AND_FEATURES_MATCH
     CONSUMES = LOGITS_AND_OPTIONAL_FEATURES
     TEACHER_ROLES = frozenset({"teacher", "teacher_features"})
     OPTIONAL = FEATURE_ROLES
@@ -58,6 +61,7 @@ class CleanerSCard(ObjectiveCard):
     """CleanerS (card of :class:`distilkit.objectives.region.CleanerS`); default weight 0.25."""
 
     Params = CleanerSParams
+    MATCH = LOGITS_AND_FEATURES_MATCH
     CONSUMES = LOGITS_AND_OPTIONAL_FEATURES
     TEACHER_ROLES = frozenset({"teacher", "teacher_features"})
     OPTIONAL = FEATURE_ROLES

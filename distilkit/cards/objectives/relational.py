@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from distilkit.cards.base import ObjectiveCard, declare_objective
+from distilkit.cards.base import Match, ObjectiveCard, declare_objective
 from distilkit.cards.objectives.common import MaskName
 
 
@@ -21,6 +21,7 @@ class PKTCard(ObjectiveCard):
     """PKT over sampled voxels (card of :class:`distilkit.objectives.relational.PKT`)."""
 
     Params = PKTParams
+    MATCH = {"teacher": Match("any", "aligned")}
     CONSUMES = {"student": "sparse_features", "teacher": "sparse_features"}
     DEFAULT_WEIGHT = 500.0
 
@@ -41,6 +42,7 @@ class PVKDCard(ObjectiveCard):
     """PVKD as SCPNet Table 4 uses it (card of :class:`distilkit.objectives.relational.PVKD`)."""
 
     Params = PVKDParams
+    MATCH = {"teacher": Match("any", "aligned"), "teacher_logits": Match("equal", "same")}
     CONSUMES = {"student": "sparse_features", "teacher": "sparse_features",
                 "student_logits": "voxel_logits", "teacher_logits": "voxel_logits"}
     TEACHER_ROLES = frozenset({"teacher", "teacher_logits"})

@@ -41,6 +41,7 @@ class VSDCard(ObjectiveCard):
     ``predict_noise``, and the student's ``generate`` for a fresh auxiliary sample."""
 
     Params = VSDParams
+    TAP_HINTS = {"student": ("samples",)}  # LiDiff's first points tap is eps_pred
     CONSUMES = {"student": "points"}
     TEACHER_ROLES = frozenset()
     BATCH = {"condition": "scan"}

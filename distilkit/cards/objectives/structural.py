@@ -30,6 +30,7 @@ class StructuralCard(ObjectiveCard):
     :class:`distilkit.objectives.structural.Structural`)."""
 
     Params = StructuralParams
+    TAP_HINTS = {"student": ("samples",)}
     CONSUMES = {"student": "points"}
     TEACHER_ROLES = frozenset()
     BATCH = {"target": "scene", "target_lengths": "scene_lengths"}

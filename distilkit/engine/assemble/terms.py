@@ -8,6 +8,7 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
+from distilkit.cards.base import partner as student_partner
 from distilkit.engine.assemble.resolved import ResolvedModel, ResolvedTerm
 from distilkit.errors import UnknownNameError
 from distilkit.recipe import LossSpec, ModelSpec, ParamGroupSpec, pydantic_problems
@@ -180,7 +181,7 @@ def alignment_problems(terms: list[ResolvedTerm], models: dict[str, ResolvedMode
     for i, term in enumerate(terms):
         for role, tap in term.taps.items():
             # a teacher role pairs with the student role of the same suffix (teacher_logits: student_logits)
-            partner = "student" + role[len("teacher"):] if role in term.card.TEACHER_ROLES else None
+            partner = student_partner(role) if role in term.card.TEACHER_ROLES else None
             if partner not in term.taps:
                 continue
             s_tap = term.taps[partner]
