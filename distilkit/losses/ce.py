@@ -34,8 +34,8 @@ def weighted_cross_entropy(logits: Tensor, target: Tensor, weight: Tensor | None
     'sum' reductions computed deterministically where PyTorch's are flagged.
 
     Args:
-        logits: (N, K) or (B, K, *S) raw scores; target: (N,) or (B, *S) class ids (long), ``ignore_index`` where a
-            position counts for nothing.
+        logits: (N, K) or ``(B, K, *S)`` raw scores; target: (N,) or ``(B, *S)`` class ids (long), ``ignore_index``
+            where a position counts for nothing.
         weight: (K,) class weights, of ``logits``' dtype (as ``F.cross_entropy`` requires); a class of weight 0 counts
             for nothing, in the loss or in the denominator.
         reduction: 'mean' = Σ_i w_{y_i} ℓ_i / Σ_i w_{y_i} over the positions not ignored (NaN when that sum is 0, as

@@ -23,8 +23,8 @@ def cleaners(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, tem
     voxels, labelled or not). KD-T = MSE(F_s, F_t) of equal-shaped feature maps.
 
     Args:
-        student_logits, teacher_logits: (B, K, *S) logits.
-        labels: (B, *S) integer labels (0 = empty, ``ignore_index`` = never used).
+        student_logits, teacher_logits: ``(B, K, *S)`` logits.
+        labels: ``(B, *S)`` integer labels (0 = empty, ``ignore_index`` = never used).
     """
     if student_logits.shape != teacher_logits.shape or student_logits.dim() < 3:
         raise ValueError(f"cleaners: expects equal (B, K, *S) logits, got {tuple(student_logits.shape)} and "

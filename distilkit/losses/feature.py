@@ -143,7 +143,7 @@ def nst(student: Tensor, teacher: Tensor) -> Tensor:
     """NST: squared MMD with the polynomial kernel k(a, b) = (a^T b)^2 between the sets of
     channel responses, each channel L2-normalised over space.
 
-    (B, C_s, *S) and (B, C_t, *S) with equal spatial shape (2-D or 3-D); C_s != C_t allowed.
+    ``(B, C_s, *S)`` and ``(B, C_t, *S)`` with equal spatial shape (2-D or 3-D); C_s != C_t allowed.
     L = mean k(T, T) + mean k(S, S) - 2 mean k(S, T), means over B x C x C'. Computed with C x C
     Gram matrices (no C x C x S tensor).
     """

@@ -42,7 +42,7 @@ Reduce = Literal["per_sample", "pooled"]
 
 
 def local_geometric_anisotropy(labels: Tensor, ignore_index: int = IGNORE) -> Tensor:
-    """(B, *spatial) float: the number of face neighbours with another label (see the module docstring)."""
+    """``(B, *spatial)`` float: the number of face neighbours with another label (see the module docstring)."""
     if labels.dim() < 2:
         raise ValueError(f"local_geometric_anisotropy: labels must be (B, *spatial), got {tuple(labels.shape)}")
     valid = labels != ignore_index
@@ -70,9 +70,9 @@ def _per_sample_or_pooled(num: Tensor, den: Tensor, reduce: str) -> Tensor:
 
 def geometry_weighted_ce(logits: Tensor, labels: Tensor, class_weights: Tensor | None, lga: Tensor,
                          ignore_index: int = IGNORE, reduce: Reduce = "per_sample") -> Tensor:
-    """w_y · CE(z, y) · (1 + LGA) on (B, K, *S) logits, (B, *S) labels and LGA, averaged over each sample's valid
-    voxels then over the samples (``per_sample``: the release, one sample per GPU) or over the batch's valid voxels
-    pooled (``pooled``); a sample (batch) without a valid voxel gives 0."""
+    """w_y · CE(z, y) · (1 + LGA) on ``(B, K, *S)`` logits, ``(B, *S)`` labels and LGA, averaged over each sample's
+    valid voxels then over the samples (``per_sample``: the release, one sample per GPU) or over the batch's valid
+    voxels pooled (``pooled``); a sample (batch) without a valid voxel gives 0."""
     if labels.shape != logits.shape[:1] + logits.shape[2:] or lga.shape != labels.shape:
         raise ValueError(f"geometry_weighted_ce: logits {tuple(logits.shape)}, labels {tuple(labels.shape)} and LGA "
                          f"{tuple(lga.shape)} must be (B, K, *S), (B, *S) and (B, *S)")

@@ -28,9 +28,9 @@ RELEASE_EPS = 1e-5  # the release's TP / (TP + FP + FN + 1e-5)
 
 def hassc_kd(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, temperature: float = 1.0,
              teacher_miou: float | Tensor | None = None) -> Tensor:
-    """HASSC's KD term on (B, K, *spatial) logits and (B, *spatial) labels (255 ignored): mean_b w_b T^2 KL_b with
-    w_b = exp(``teacher_miou``) — a scalar (one weight for the batch) or (B,) (one per sample, the release) — or 1
-    when None. See the module docstring."""
+    """HASSC's KD term on ``(B, K, *spatial)`` logits and ``(B, *spatial)`` labels (255 ignored): mean_b w_b T^2
+    KL_b with w_b = exp(``teacher_miou``) — a scalar (one weight for the batch) or (B,) (one per sample, the
+    release) — or 1 when None. See the module docstring."""
     if student_logits.shape != teacher_logits.shape or labels.shape != student_logits.shape[:1] + \
             student_logits.shape[2:]:
         raise ValueError(f"hassc_kd: student {tuple(student_logits.shape)}, teacher {tuple(teacher_logits.shape)} and "

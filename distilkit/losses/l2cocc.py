@@ -50,7 +50,8 @@ def _voxels(x: Tensor) -> Tensor:
 
 def l2cocc_pad(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, include_empty: bool = False) -> Tensor:
     """L2COcc's prediction alignment: the batch mean of each sample's KL(p_T || p_S) averaged over its valid,
-    non-empty voxels and the classes (see the module docstring). Logits (B, K, *spatial), labels (B, *spatial)."""
+    non-empty voxels and the classes (see the module docstring). Logits ``(B, K, *spatial)``, labels
+    ``(B, *spatial)``."""
     if student_logits.shape != teacher_logits.shape or labels.shape != student_logits.shape[:1] + \
             student_logits.shape[2:]:
         raise ValueError(f"l2cocc_pad: student {tuple(student_logits.shape)}, teacher {tuple(teacher_logits.shape)} "
@@ -91,8 +92,8 @@ def cosine_distance_sums(student_features: Tensor, teacher_features: Tensor, mas
 
 def l2cocc_fsd(student_features: Tensor | Sequence[Tensor], teacher_features: Tensor | Sequence[Tensor],
                mask: Tensor | Sequence[Tensor], reduce: Reduce = "per_sample") -> Tensor:
-    """L2COcc's numeric feature similarity: over the positions where ``mask`` (B, *spatial) holds, 1 - cos(f_S,
-    f_T) over the channels of (B, C, *spatial) features, averaged per sample then over the batch (``per_sample``:
+    """L2COcc's numeric feature similarity: over the positions where ``mask`` ``(B, *spatial)`` holds, 1 - cos(f_S,
+    f_T) over the channels of ``(B, C, *spatial)`` features, averaged per sample then over the batch (``per_sample``:
     the release, one sample per GPU) or over the batch's positions pooled (``pooled``: the release's code at B > 1
     on one GPU). Sequences of maps (each pair of one shape, with its own mask): the mean over the maps — the
     release sums over its maps and divides by their number before its weight 4."""
@@ -177,7 +178,7 @@ class _RelationL1(torch.autograd.Function):
 
 def l2cocc_relation(student_features: Tensor, teacher_features: Tensor) -> Tensor:
     """L2COcc's relational feature similarity of one map: mean over the batch and the P^2 position pairs of
-    |cos_S(i, j) - cos_T(i, j)|, each model's cosines among its own P = prod(spatial) positions (channels may
+    ``|cos_S(i, j) - cos_T(i, j)|``, each model's cosines among its own P = prod(spatial) positions (channels may
     differ between the two). Exact, by tiles of the P x P matrices' difference: no P x P matrix is held."""
     if student_features.dim() < 3 or student_features.shape[0] != teacher_features.shape[0] or \
             student_features.shape[2:] != teacher_features.shape[2:]:

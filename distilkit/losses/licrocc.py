@@ -44,7 +44,8 @@ def _scene_weights(weights: Tensor | None, batch: int, like: Tensor) -> Tensor:
 def licrocc_kl(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor,
                scene_weights: Tensor | None = None) -> Tensor:
     """LiCROcc's PDD: the batch mean of w_b KL(p_T || p_S) averaged over sample b's voxels with a class label (not
-    0, not 255) and over the K classes. Logits (B, K, *spatial), labels (B, *spatial), ``scene_weights`` (B,)."""
+    0, not 255) and over the K classes. Logits ``(B, K, *spatial)``, labels ``(B, *spatial)``, ``scene_weights``
+    (B,)."""
     if student_logits.shape != teacher_logits.shape or labels.shape != student_logits.shape[:1] + \
             student_logits.shape[2:]:
         raise ValueError(f"licrocc_kl: student {tuple(student_logits.shape)}, teacher {tuple(teacher_logits.shape)} "
@@ -76,7 +77,7 @@ def licrocc_bev(student_maps: Sequence[Tensor], teacher_maps: Sequence[Tensor], 
 
 def licrocc_affinity(student_maps: Sequence[Tensor], teacher_maps: Sequence[Tensor],
                      size: tuple[int, int] | None = (32, 32), release_batch: bool = False) -> Tensor:
-    """LiCROcc's BRD: the sum over the maps of mean_{b,i,j} |cos_S(i, j) - cos_T(i, j)|, each model's cosines among
+    """LiCROcc's BRD: the sum over the maps of mean_{b,i,j} ``|cos_S(i, j) - cos_T(i, j)|``, each model's cosines among
     its own P cells of the map resized to ``size`` (bilinear, ``align_corners=False``; None: as they are, P = H W,
     computed in tiles without a P x P matrix). ``release_batch``: each map's mean divided by B again (the release).
     Maps (B, C, H, W); the two models' channels may differ."""

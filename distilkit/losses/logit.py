@@ -9,7 +9,7 @@ from torch import Tensor
 def kd(student_logits: Tensor, teacher_logits: Tensor, temperature: float = 1.0, mask: Tensor | None = None) -> Tensor:
     """Vanilla KD: T^2 * mean over positions of KL(softmax(t/T) || softmax(s/T)).
 
-    Logits are (B, K, *S) or (N, K), class dim 1; ``mask`` (B, *S) bool selects positions. The
+    Logits are ``(B, K, *S)`` or (N, K), class dim 1; ``mask`` ``(B, *S)`` bool selects positions. The
     reduction is the per-position mean (never ``batchmean``), so the value does not grow with the
     grid size. 0 if no position is selected.
     """

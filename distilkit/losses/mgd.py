@@ -15,11 +15,11 @@ def mgd(student: Tensor, teacher: Tensor, generator: Callable[[Tensor], Tensor],
     """MGD: mean (G(F_s ⊙ M) − F_t)², M ~ Bernoulli(1 − λ) per spatial position, shared by the channels.
 
     Args:
-        student: (B, C, *S) student features, already aligned to the teacher's channels and size.
-        teacher: (B, C, *S) teacher features.
-        generator: the learnable generator G (MGD: conv3-ReLU-conv3), mapping (B, C, *S) to itself.
+        student: ``(B, C, *S)`` student features, already aligned to the teacher's channels and size.
+        teacher: ``(B, C, *S)`` teacher features.
+        generator: the learnable generator G (MGD: conv3-ReLU-conv3), mapping ``(B, C, *S)`` to itself.
         mask_ratio: λ, the fraction of positions masked (0.65 for dense prediction in MGD).
-        keep: (B, 1, *S) the mask M (1 = kept); drawn from the global random stream when not given.
+        keep: ``(B, 1, *S)`` the mask M (1 = kept); drawn from the global random stream when not given.
     """
     if not 0.0 <= mask_ratio < 1.0:
         raise ValueError(f"mgd: mask_ratio must be in [0, 1), got {mask_ratio}")

@@ -34,8 +34,8 @@ FORMS = ("softmax", "raw")
 def monoocc_kl(student_features: Tensor, teacher_features: Tensor, mask: Tensor, form: Form = "softmax") -> Tensor:
     """MonoOcc's voxel-feature distillation: the batch mean of each sample's sum over its masked voxels v and the C
     channels of the pointwise KLDivLoss term, / (C n_b). ``raw`` (the release): exp(t) (t - s) on the features as
-    they are; ``softmax``: p_T (log p_T - log p_S), p the softmax over the channels. Features (B, C, *spatial),
-    ``mask`` (B, *spatial)."""
+    they are; ``softmax``: p_T (log p_T - log p_S), p the softmax over the channels. Features ``(B, C, *spatial)``,
+    ``mask`` ``(B, *spatial)``."""
     if form not in FORMS:
         raise ValueError(f"monoocc_kl: form must be softmax or raw, got {form!r}")
     if student_features.shape != teacher_features.shape or mask.shape != student_features.shape[:1] + \

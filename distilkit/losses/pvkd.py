@@ -64,7 +64,7 @@ def pvkd(student: Tensor, teacher: Tensor, groups: Tensor, student_logits: Tenso
 
     Args:
         student, teacher: (N, C) aligned voxel features; groups: (N,) supervoxel ids (:func:`supervoxel_ids`).
-        student_logits, teacher_logits: (B, K, *S) logits; ``mask`` (B, *S) bool selects the KD voxels.
+        student_logits, teacher_logits: ``(B, K, *S)`` logits; ``mask`` ``(B, *S)`` bool selects the KD voxels.
     """
     out = kd(student_logits, teacher_logits, temperature, mask)
     return output_weight * out + affinity_weight * pvkd_affinity(student, teacher, groups, chosen)

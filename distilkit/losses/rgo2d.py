@@ -68,9 +68,9 @@ def rgo2d_region(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor,
     """(global, local) RGO²D terms of one region.
 
     Args:
-        student_logits, teacher_logits: (B, K, *S) logits (temperature 1, as in the code).
-        labels: (B, *S) long scribble labels; only 1..K-1 are classes (0 empty, 254 unlabelled, 255 ignore).
-        mask: (B, *S) bool, the voxels of this region that are occupied in the dense geometry.
+        student_logits, teacher_logits: ``(B, K, *S)`` logits (temperature 1, as in the code).
+        labels: ``(B, *S)`` long scribble labels; only 1..K-1 are classes (0 empty, 254 unlabelled, 255 ignore).
+        mask: ``(B, *S)`` bool, the voxels of this region that are occupied in the dense geometry.
     """
     _check(student_logits, teacher_logits, labels, mask)
     zero = student_logits.sum() * 0.0
@@ -107,11 +107,11 @@ def range_regions(shape: Sequence[int], kind: str = "boxes", device: torch.devic
 def rgo2d(student_logits: Tensor, teacher_logits: Tensor, labels: Tensor, mask: Tensor,
           regions: str | Sequence[Tensor] = "boxes", region_weights: Sequence[float] = (0.06, 0.15, 0.20),
           inter: float = 2.625, intra: float = 0.375, ignore_index: int = 255, local: float = 1.0) -> Tensor:
-    """Scribble2Scene eq. 2-4 without the image-feature term: sum_r w_r (global_r + local * local_r) (``local`` = 1
+    """Scribble2Scene eq. 2-4 without the image-feature term: ``sum_r w_r (global_r + local * local_r)`` (``local`` = 1
     in the paper; 0 gives Table 6's global-only ablation, ``inter = intra = 0`` the local-only one).
 
     ``regions``: ``"boxes"`` (default, the authors' nested boxes), ``"rings"``, or a list of bool
-    masks of shape (*S) or (B, *S), one per weight. The occupied voxels of all regions are gathered
+    masks of shape ``(*S)`` or ``(B, *S)``, one per weight. The occupied voxels of all regions are gathered
     once per sample (so the backward pass scatters once into the grid); each region then works on
     its subset of those rows. Equal to ``sum_r w_r * sum(rgo2d_region(..., mask & region_r))``. Labels equal to
     ``ignore_index`` (the class table's) select no class.

@@ -24,10 +24,10 @@ def _check_logits_labels(logits: Tensor, labels: Tensor, fn: str) -> None:
 
 
 def cross_entropy(logits: Tensor, labels: Tensor, ignore_index: int = 255, weight: Tensor | None = None) -> Tensor:
-    """Mean CE over labelled positions. logits (B,K,*S), labels (B,*S) long; 0 if nothing is labelled.
+    """Mean CE over labelled positions. logits ``(B,K,*S)``, labels ``(B,*S)`` long; 0 if nothing is labelled.
 
     ``F.cross_entropy``'s value, reduced deterministically on CUDA (:func:`~distilkit.losses.ce.weighted_cross_entropy`:
-    PyTorch flags its 'mean' over (B, K, *S) logits, ``nll_loss2d_forward_out_cuda_template``)."""
+    PyTorch flags its 'mean' over ``(B, K, *S)`` logits, ``nll_loss2d_forward_out_cuda_template``)."""
     _check_logits_labels(logits, labels, "cross_entropy")
     valid = labels != ignore_index
     if not bool(valid.any()):
@@ -39,8 +39,8 @@ def lovasz_softmax(logits: Tensor, labels: Tensor, ignore_index: int = 255, clas
     """Lovász-softmax on softmax(logits) over the flattened batch.
 
     Args:
-        logits: (B, K, *S) raw scores (softmax is applied here, over dim 1).
-        labels: (B, *S) class ids, ``ignore_index`` dropped.
+        logits: ``(B, K, *S)`` raw scores (softmax is applied here, over dim 1).
+        labels: ``(B, *S)`` class ids, ``ignore_index`` dropped.
         classes: ``"present"`` averages over classes that occur in the labels; ``"all"`` over all K.
 
     All classes are handled at once: one column-wise sort of the (P, K) error matrix.

@@ -4,7 +4,7 @@
 Declared per objective in a recipe (``{name: pkt, connector: linear}``) or by an objective's
 ``DEFAULT_CONNECTOR`` (FitNets: its 1x1 regressor is the ``linear`` connector). Sized from the first
 batch, trained with the student, saved with its checkpoints. A registered connector is
-``build(student_channels, teacher_channels, spatial_dims) -> nn.Module`` acting on (B, C, *S) maps (``dims`` 2
+``build(student_channels, teacher_channels, spatial_dims) -> nn.Module`` acting on ``(B, C, *S)`` maps (``dims`` 2
 or 3) or on (N, C) rows (``dims`` 0: rows, and the features of sparse voxels). Built in: ``linear`` (also
 ``conv1x1``: a 1x1 convolution on maps, a linear layer on rows), ``mlp`` (two of them with a ReLU between, as wide
 as the wider side), ``conv3`` (a 3x3(x3) convolution on maps, for spatial context) and ``height_max`` /
