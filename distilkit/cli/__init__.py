@@ -1,4 +1,4 @@
-"""The ``distilkit`` command: run | sweep | report | compare | validate | list | schema | bench | eval | predict |
+"""The ``distilkit`` command: run | sweep | report | compare | validate | init | list | schema | bench | eval | predict |
 export | complete | data — one module per command group (the user's view of it: arguments, help, examples), each
 calling into the library.
 
@@ -12,11 +12,11 @@ import argparse
 import sys
 from typing import Sequence
 
-from distilkit.cli import bench, components, data, infer, reports, run, sweep, validate
+from distilkit.cli import bench, components, data, infer, init, reports, run, sweep, validate
 from distilkit.cli.bench import BENCH_NAMES
 
 # the command groups, in the order `distilkit --help` lists their commands
-GROUPS = (run, sweep, reports, validate, components, bench, infer, data)
+GROUPS = (run, sweep, reports, validate, init, components, bench, infer, data)
 
 # every command's examples (shown after its options; a test runs them against the parser)
 EXAMPLES: dict[str, list[str]] = {name: lines for group in GROUPS for name, lines in group.EXAMPLES.items()}

@@ -1,0 +1,150 @@
+"""``distilkit init``: a recipe for any teacher and student — the taps both models expose, the pairs that align, the
+objectives that fit each pair, written as a commented recipe that ``validate`` accepts (then checked as it would
+check it). With flags for scripts (``--yes``), numbered choices in a terminal."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from distilkit.cli.base import command, set_option
+
+EXAMPLES = {
+    "init": ["distilkit init --teacher js3cnet --student scpnet --yes -o pair.yaml",
+             "distilkit init --teacher scpnet --student voxformer --show",
+             "distilkit init --teacher scpnet --student scpnet --objectives kd,pkt --yes",
+             "distilkit init                                                    # asks, with numbered choices, in a terminal"],
+}
+
+
+def add(sub: Any) -> None:
+    p = command(sub, "init", "write a recipe for a teacher and a student: their taps, the pairs that align, the "
+                "objectives that fit", EXAMPLES["init"])
+    p.add_argument("--teacher", metavar="ADAPTER", help="the teacher's adapter (distilkit list adapters)")
+    p.add_argument("--student", metavar="ADAPTER", help="the student's adapter")
+    for role in ("teacher", "student"):
+        p.add_argument(f"--{role}-params", nargs="+", action="extend", default=[], metavar="K=V",
+                       help=f"the {role}'s model.params, each value read as YAML (size=paper, frames=2)")
+    p.add_argument("--dataset", help="the data (distilkit list datasets; default: the first that serves both models)")
+    p.add_argument("--data-params", nargs="+", action="extend", default=[], metavar="K=V",
+                   help="data.params, each value read as YAML (scale=4, 'camera={height: 24, width: 80}')")
+    p.add_argument("--objectives", help="comma-separated objectives, each on its best pair of taps (default: kd on "
+                   "the logits, then dskd on sparse features, or fitnets on volumes, or monoocc_image on images)")
+    p.add_argument("--stages", choices=("combined", "each"), default="combined",
+                   help="one student stage with every objective (default), or one per objective")
+    p.add_argument("--no-baseline", action="store_true", help="no student stage without distillation")
+    set_option(p, "override fields of the written recipe by dotted path, e.g. --set 'stages.*.train.steps=100'")
+    p.add_argument("--show", action="store_true", help="print the taps, pairs and objectives; write nothing")
+    p.add_argument("--static", action="store_true", help="run no model: channels from the cards only (equal-width "
+                   "objectives get a linear connector), and the written recipe's terms are not run")
+    p.add_argument("--no-check", action="store_true", help="write without validating")
+    p.add_argument("--yes", "-y", action="store_true", help="take the defaults: no questions")
+    p.add_argument("--interactive", action="store_true", help="ask even without a terminal (answers on stdin)")
+    p.add_argument("-o", "--output", type=Path, help="where to write (default: ./STUDENT_from_TEACHER.yaml)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing --output")
+    p.set_defaults(fn=init)
+
+
+def _pairs(items: list[str], flag: str) -> dict[str, Any]:
+    from distilkit.errors import DistilkitError
+    from distilkit.recipe import parse_yaml
+
+    out = {}
+    for item in items:
+        key, eq, text = item.partition("=")
+        if not eq or not key.strip():
+            raise DistilkitError(f"{flag}: {item!r}: expected K=V, e.g. frames=2")
+        out[key.strip()] = parse_yaml(text, f"{flag} {key.strip()}")
+    return out
+
+
+def init(args: argparse.Namespace) -> int:
+    from distilkit.console import make_console
+    from distilkit.pairing import plan
+
+    console = make_console()
+    ask = args.interactive or (not args.yes and not args.show and sys.stdin.isatty())
+    if not ask and not (args.teacher and args.student):
+        from distilkit.errors import DistilkitError
+
+        raise DistilkitError("distilkit init: give --teacher and --student (and --yes), or run it in a terminal")
+    if ask:
+        from distilkit.cli.init_prompts import ask_models
+
+        ask_models(args, console)
+    objectives = [o.strip() for o in args.objectives.split(",") if o.strip()] if args.objectives else None
+    with console.status("reading both models' taps (one forward each on a dry batch)" if not args.static else ""):
+        p = plan(args.teacher, args.student, teacher_params=_pairs(args.teacher_params, "--teacher-params"),
+                 student_params=_pairs(args.student_params, "--student-params"), dataset=args.dataset,
+                 data_params=_pairs(args.data_params, "--data-params"), objectives=objectives, static=args.static)
+    if args.static:
+        _static_connectors(p)
+    p.each, p.baseline = args.stages == "each", p.baseline and not args.no_baseline
+    from distilkit.cli.init_prompts import show
+
+    if args.show or ask:
+        show(p, console)
+    if args.show:
+        return 0
+    if ask:
+        from distilkit.cli.init_prompts import ask_choices
+
+        ask_choices(p, args, console)
+    return _write(p, args, console, retry=objectives is None)
+
+
+def _static_connectors(p: Any) -> None:
+    """Without a forward the widths of feature taps are unknown: equal-width objectives get a linear connector."""
+    for prop in p.chosen:
+        card = _card(prop.objective)
+        pair = prop.pairs.get("teacher")
+        if card.match().get("teacher") and card.match()["teacher"].channels == "equal" and pair is not None and \
+                pair.student.channels is None:
+            prop.connector, prop.note = "linear", "connector linear: widths unknown without a forward (--static)"
+
+
+def _card(name: str) -> Any:
+    from distilkit.registry import OBJECTIVES
+
+    return OBJECTIVES.card(name)
+
+
+def _write(p: Any, args: argparse.Namespace, console: Any, retry: bool) -> int:
+    from distilkit.errors import DistilkitError
+    from distilkit.files import atomic_write_text
+    from distilkit.pairing.confirm import confirm
+    from distilkit.pairing.write import recipe_dict, recipe_text
+    from distilkit.recipe import parse_overrides, set_path
+
+    path = args.output or Path(f"{p.name}.yaml")
+    if path.exists() and not args.force:
+        raise DistilkitError(f"{path} exists: give another -o, or --force to overwrite it")
+    argv = sys.argv[2:] if len(sys.argv) > 2 and sys.argv[1] == "init" else []
+    while True:
+        data = recipe_dict(p)
+        for key, value in (parse_overrides(args.set) if args.set else {}).items():
+            set_path(data, key, value, "distilkit init", f"--set {key}")
+        atomic_write_text(path, recipe_text(p, data, argv))
+        if args.no_check:
+            console.print(f"wrote {path} (not validated: --no-check)", highlight=False)
+            break
+        with console.status(f"validating {path}: the terms on a dry batch" if not args.static else ""):
+            problems = confirm(path, run_terms=not args.static)
+        failed = {int(f.rsplit("[", 1)[1].rstrip("]")) for f, _ in problems if ".distill[" in f}
+        if problems and retry and failed and len(failed) < len(p.chosen) and not p.each:
+            for field, problem in problems:  # a default that fails its first step is dropped, said so
+                console.print(f"[yellow]dropped[/] {field}: {problem}", highlight=False, soft_wrap=True)
+            p.chosen = [c for i, c in enumerate(p.chosen) if i not in failed]
+            retry = False
+            continue
+        if problems:
+            lines = "\n".join(f"  {f}: {msg}" if f else f"  {msg}" for f, msg in problems)
+            raise DistilkitError(f"wrote {path}, but it does not validate:\n{lines}")
+        console.print(f"wrote {path}: validated (the terms ran on a dry batch)" if not args.static else
+                      f"wrote {path}: resolved (--static: no term ran)", highlight=False)
+        break
+    console.print(f"next: distilkit validate {path}   # with the memory estimate\n      distilkit run {path}",
+                  highlight=False)
+    return 0

@@ -1,0 +1,193 @@
+"""``distilkit init``'s logic: a teacher and a student (adapter names and parameters) and a dataset become a plan —
+the taps both models expose (from their cards, then one forward on a dry batch), the pairs of taps that align, the
+objectives that fit each pair (from the objectives' cards), the chosen ones — and the plan a commented recipe that
+``validate`` accepts (:mod:`~distilkit.pairing.write`, :mod:`~distilkit.pairing.confirm`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from distilkit.errors import DistilkitError
+from distilkit.pairing.facts import ModelFacts, TapFact, card_facts, with_probe
+from distilkit.pairing.fit import DEFAULTS, Proposal, defaults, proposals
+from distilkit.pairing.rules import TapPair, tap_pairs
+
+
+class InitError(DistilkitError):
+    """What keeps ``distilkit init`` from writing a recipe, in lines."""
+
+
+@dataclass
+class Plan:
+    """Everything a written recipe comes from: the models (role -> (adapter, params)), the data, the auxiliary
+    stages (stage -> (adapter, params)) and each role's aux edges (input -> stage), the facts, pairs, every
+    objective's proposal and the chosen ones."""
+
+    name: str
+    dataset: str
+    data_params: dict[str, Any]
+    models: dict[str, tuple[str, dict[str, Any]]]
+    aux_stages: dict[str, tuple[str, dict[str, Any]]] = field(default_factory=dict)
+    aux: dict[str, dict[str, str]] = field(default_factory=dict)
+    facts: dict[str, ModelFacts] = field(default_factory=dict)
+    pairs: list[TapPair] = field(default_factory=list)
+    found: list[Proposal] = field(default_factory=list)
+    chosen: list[Proposal] = field(default_factory=list)
+    grid_text: str = ""
+    baseline: bool = True
+    each: bool = False
+    task_note: str = ""  # why the student's default task losses are left out (they read taps it does not return)
+
+
+def _lookup(registry: Any, name: str) -> None:
+    if name not in registry.names():
+        raise InitError(registry.unknown_message(name))
+
+
+def _data_params(dataset: str, given: dict[str, Any], cards: list[Any]) -> dict[str, Any]:
+    """The data parameters: the adapters' needs (``DATA_PARAMS``, e.g. a camera) under the user's."""
+    out: dict[str, Any] = {}
+    for card in cards:
+        out.update(card.DATA_PARAMS)
+    return {**out, **given}
+
+
+def _serves(dataset: str, params: dict[str, Any], models: dict[str, tuple[str, dict[str, Any]]]) -> str | None:
+    """Why the data cannot serve both models (None: it can), by their inputs (an aux input counts as served)."""
+    from distilkit.registry import ADAPTERS, DATASETS
+
+    entry = DATASETS.entry(dataset)
+    try:
+        info = entry.meta["info"](entry.meta["params"](**params))
+    except Exception as exc:  # a folder dataset without its root, a bad parameter
+        errors = getattr(exc, "errors", None)
+        if callable(errors):
+            need = sorted({".".join(map(str, e["loc"])) for e in errors() if e.get("type") == "missing"})
+            if need:
+                return f"{dataset} needs {', '.join(need)} (--data-params)"
+        return f"{dataset}: {exc}".splitlines()[0]
+    lacks = []
+    for role, (adapter, p) in models.items():
+        card = ADAPTERS.card(adapter)
+        need = card.inputs(card.Params(**p)) - info.fields - set(card.AUX_INPUTS)
+        if need:
+            lacks.append(f"{role} {adapter!r} reads {', '.join(sorted(need))}")
+    return f"{dataset} gives no {'; '.join(lacks)}" if lacks else None
+
+
+def pick_dataset(models: dict[str, tuple[str, dict[str, Any]]], given: dict[str, Any]) -> str:
+    """The first registered dataset that serves both models with its default parameters (and the adapters'
+    ``DATA_PARAMS``); an error listing why each does not."""
+    from distilkit.registry import ADAPTERS, DATASETS
+
+    cards = [ADAPTERS.card(a) for a, _ in models.values()]
+    reasons = []
+    for name in DATASETS.names():
+        why = _serves(name, _data_params(name, given, cards), models)
+        if why is None:
+            return name
+        reasons.append(why)
+    raise InitError("no registered dataset serves both models: " + "; ".join(reasons))
+
+
+def _aux_for(models: dict[str, tuple[str, dict[str, Any]]], info: Any) -> tuple[dict, dict]:
+    """The auxiliary stages the models' inputs need (an input the data lacks that ``AUX_INPUTS`` names: a stage of
+    that adapter named after the input) and each role's edges."""
+    from distilkit.registry import ADAPTERS
+
+    stages: dict[str, tuple[str, dict[str, Any]]] = {}
+    edges: dict[str, dict[str, str]] = {}
+    for role, (adapter, params) in models.items():
+        card = ADAPTERS.card(adapter)
+        for name in sorted(card.inputs(card.Params(**params)) - info.fields):
+            if name in card.AUX_INPUTS:
+                stages[name] = (card.AUX_INPUTS[name], {})
+                edges.setdefault(role, {})[name] = name
+    return stages, edges
+
+
+def _task_note(student: ModelFacts) -> str:
+    """Why the student's default task losses cannot train it with these parameters (they name taps the probed
+    forward did not return: a ScoreLiDAR student, ``generate_steps > 0``, returns samples, not a denoiser's
+    noise), or ""."""
+    absent = {t.tap for t in student.taps if not t.present}
+    broken = {loss["name"]: sorted(set(loss.get("taps", {}).values()) & absent)
+              for loss in student.card.DEFAULT_TASK_LOSSES}
+    broken = {name: taps for name, taps in broken.items() if taps}
+    if not broken:
+        return ""
+    return ("no task loss: " + "; ".join(f"{name} (the student's default) reads {', '.join(taps)}"
+                                         for name, taps in broken.items())
+            + ", which its forward does not return with these parameters")
+
+
+def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = None,
+         student_params: dict[str, Any] | None = None, dataset: str | None = None,
+         data_params: dict[str, Any] | None = None, objectives: list[str] | None = None, static: bool = False,
+         name: str | None = None) -> Plan:
+    """The plan for a ``teacher`` and a ``student`` adapter: facts (probed unless ``static``), pairs, proposals,
+    and the chosen objectives (``objectives``, each on its best pair, or the defaults of
+    :data:`~distilkit.pairing.fit.DEFAULTS` that fit). Raises :class:`InitError` naming what is wrong."""
+    from distilkit.errors import RecipeError
+    from distilkit.pairing.confirm import resolved
+    from distilkit.registry import ADAPTERS, DATASETS, OBJECTIVES, load_plugins
+
+    load_plugins()
+    for adapter in (teacher, student):
+        _lookup(ADAPTERS, adapter)
+    models = {"teacher": (teacher, dict(teacher_params or {})), "student": (student, dict(student_params or {}))}
+    given = dict(data_params or {})
+    if dataset is None:
+        dataset = pick_dataset(models, given)
+    _lookup(DATASETS, dataset)
+    for o in objectives or []:
+        _lookup(OBJECTIVES, o)
+    params = _data_params(dataset, given, [ADAPTERS.card(a) for a, _ in models.values()])
+    why = _serves(dataset, params, models)
+    if why is not None:
+        raise InitError(why)
+    out = Plan(name or f"{student}_from_{teacher}".replace("-", "_"), dataset, params, models)
+    entry = DATASETS.entry(dataset)
+    info = entry.meta["info"](entry.meta["params"](**params))
+    probe_recipe = {"schema_version": 1, "name": out.name, "seed": 0,
+                    "data": {"dataset": dataset, "params": params}, "stages": {}}
+    out.aux_stages, out.aux = _aux_for(models, info)
+    stages = {n: {"model": {"adapter": a, "params": p}} for n, (a, p) in out.aux_stages.items()}
+    for role, (adapter, p) in models.items():
+        stages[role] = {"model": {"adapter": adapter, "params": p},
+                        **({"aux": {f: {"from": s} for f, s in out.aux[role].items()}} if out.aux.get(role) else {})}
+    try:
+        res = resolved({**probe_recipe, "stages": stages})
+    except RecipeError as exc:
+        raise InitError("; ".join(f"{f}: {p}" if f else p for f, p in exc.problems)) from None
+    info = res.data_info
+    out.grid_text = "x".join(map(str, info.grid.shape)) + f" ({info.grid.voxel_size:g} m)" if info.grid else ""
+    for role in ("teacher", "student"):
+        out.facts[role] = card_facts(role, res.stages[role].student, info, models[role][1])
+    if not static:
+        from distilkit.pairing.probe import probe_taps
+
+        probed = probe_taps(res, {"teacher": "teacher", "student": "student"})
+        out.facts = {role: with_probe(f, probed[role]) for role, f in out.facts.items()}
+    out.task_note = _task_note(out.facts["student"])
+    if out.task_note:
+        out.baseline = False
+    out.pairs = tap_pairs(out.facts["student"], out.facts["teacher"])
+    out.found = proposals(out.pairs, out.facts["student"], out.facts["teacher"], info)
+    by_name = {p.objective: p for p in out.found}
+    if objectives:
+        refused = [f"{o}: {by_name[o].refused}" for o in objectives if not by_name[o].fits]
+        if refused:
+            raise InitError(f"{student} <- {teacher} on {dataset}: " + "; ".join(refused))
+        out.chosen = [by_name[o] for o in objectives]
+    else:
+        out.chosen = defaults(out.found)
+        if not out.chosen:
+            wanted = [n for group in DEFAULTS for n in group]
+            raise InitError(f"{student} <- {teacher} on {dataset}: no objective fits — "
+                            + "; ".join(f"{n}: {by_name[n].refused}" for n in wanted if n in by_name))
+    return out
+
+
+__all__ = ["InitError", "ModelFacts", "Plan", "Proposal", "TapFact", "TapPair", "pick_dataset", "plan"]

@@ -1,0 +1,270 @@
+"""`distilkit init` for every family pair of the built-in adapters (LiDAR <-> LiDAR, LiDAR <-> camera, a ground-truth
+voxel teacher, points -> points, and the pairs it must refuse) and a plug-in: what `--yes` writes (the objectives,
+their taps, the auxiliary stages), that the file validates, that one trains, `--show`, `--static`, the numbered
+questions on stdin, and the rules behind the choices on hand-made taps (no model)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from conftest import ROOT, TINY_DATA
+from distilkit.cli import main
+
+pytestmark = pytest.mark.xdist_group("init")  # one worker: torch and the data cached once for every row
+
+SCPNET = ["channels=4", "point_mlp=[8]", "seg_channels=4"]
+JS3CNET = ["seg_channels=4", "embed=4", "ssc_channels=4", "pvi_hidden=4", "knn=4"]
+LIDIFF = ["channels=8", "blocks=1", "sample_steps=2"]
+LIDAR_DATA = [f"{k}={v}" for k, v in TINY_DATA.items()] + ["num_train=1"]
+CAMERA_DATA = LIDAR_DATA + ["camera={height: 24, width: 80}"]
+SCENES_DATA = ["num_train=1", "num_val=1", "num_test=1", "scan_points=200", "scene_points=2000", "frames=3",
+               "beams=16", "azimuth_steps=256"]
+
+
+def init(*argv: str) -> tuple[int, str, str]:
+    """`distilkit init` in this process: an exception that escapes main() (a traceback) fails the test."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(["init", *argv])
+    return code, out.getvalue(), err.getvalue()
+
+
+def args(teacher: str, t_params: list[str], student: str, s_params: list[str], data: list[str]) -> list[str]:
+    out = ["--teacher", teacher, "--student", student, "--data-params", *data]
+    if t_params:
+        out += ["--teacher-params", *t_params]
+    if s_params:
+        out += ["--student-params", *s_params]
+    return out
+
+
+# row -> (teacher, its params, student, its params, data params, the distill stage's [(objective, taps)], stages)
+ROWS = {
+    "lidar-one-net": ("scpnet", SCPNET + ["frames=2"], "scpnet", SCPNET + ["frames=1"], LIDAR_DATA,
+                      [("kd", {"student": "logits", "teacher": "logits"}),
+                       ("dskd", {"student": "completion", "teacher": "completion"})], {"teacher", "student"}),
+    "js3cnet-to-scpnet": ("js3cnet", JS3CNET, "scpnet", SCPNET, LIDAR_DATA,
+                          [("kd", {"student": "logits", "teacher": "logits"}),
+                           ("dskd", {"student": "completion", "teacher": "completion"})], {"teacher", "student"}),
+    "scpnet-to-js3cnet": ("scpnet", SCPNET, "js3cnet", JS3CNET, LIDAR_DATA,
+                          [("kd", {"student": "logits", "teacher": "logits"}),
+                           ("dskd", {"student": "completion", "teacher": "completion"})], {"teacher", "student"}),
+    "lidar-to-camera": ("scpnet", SCPNET, "voxformer", [], CAMERA_DATA,
+                        [("kd", {"student": "logits", "teacher": "logits"}),
+                         ("dskd", {"student": "query_features", "teacher": "completion"})],
+                        {"proposal", "teacher", "student"}),
+    "camera-to-lidar": ("voxformer", ["geometry=ground-truth"], "scpnet", SCPNET, CAMERA_DATA,
+                        [("kd", {"student": "logits", "teacher": "logits"}),
+                         ("dskd", {"student": "completion", "teacher": "query_features"})], {"teacher", "student"}),
+    "camera-to-camera": ("voxformer", ["geometry=ground-truth"], "voxformer", ["geometry=ground-truth"],
+                         CAMERA_DATA, [("kd", {"student": "logits", "teacher": "logits"}),
+                                       ("dskd", {"student": "query_features", "teacher": "query_features"})],
+                         {"teacher", "student"}),
+    "ground-truth-voxels-to-lidar": ("dean-labeler", [], "scpnet", SCPNET, LIDAR_DATA,
+                                     [("kd", {"student": "logits", "teacher": "logits"}),
+                                      ("fitnets", {"student": "completion_dense", "teacher": "features"})],
+                                     {"teacher", "student"}),
+    "points-to-points": ("lidiff", LIDIFF, "lidiff", LIDIFF + ["generate_steps=1"], SCENES_DATA,
+                         [("vsd", {"student": "samples"})], {"teacher"}),
+}
+
+
+def distill_stage(recipe: dict) -> tuple[str, dict]:
+    [(name, stage)] = [(n, s) for n, s in recipe["stages"].items() if "distill" in s]
+    return name, stage
+
+
+@pytest.mark.parametrize("row", sorted(ROWS))
+def test_yes_writes_the_expected_recipe_and_it_validates(row, tmp_path) -> None:
+    teacher, tp, student, sp, data, want, stages = ROWS[row]
+    out = tmp_path / "pair.yaml"
+    code, stdout, err = init(*args(teacher, tp, student, sp, data), "--yes", "-o", str(out))
+    assert code == 0, err
+    assert "validated" in stdout
+    recipe = yaml.safe_load(out.read_text())
+    name, stage = distill_stage(recipe)
+    assert [(t["name"], t["taps"]) for t in stage["distill"]] == want
+    assert stage["teacher"] == {"from": "teacher"} and stage["model"]["adapter"] == student
+    assert {n for n in recipe["stages"] if n != name} == stages
+    assert recipe["stages"]["teacher"]["model"]["adapter"] == teacher
+    text = out.read_text()
+    assert text.startswith("# written by: distilkit init") and "# pairs" in text
+    for term in stage["distill"]:  # each term says which taps it pairs, or what it reads
+        line = next(line for line in text.splitlines() if f"name: {term['name']}," in line)
+        assert row == "points-to-points" or "  # " in line, line
+
+
+def test_the_camera_student_gets_its_proposal_stage_and_the_data_its_camera(tmp_path) -> None:
+    out = tmp_path / "pair.yaml"
+    assert init(*args("scpnet", SCPNET, "voxformer", [], LIDAR_DATA), "--yes", "-o", str(out))[0] == 0
+    recipe = yaml.safe_load(out.read_text())
+    assert recipe["data"]["params"]["camera"] == {}  # the adapter's DATA_PARAMS
+    assert recipe["stages"]["proposal"]["model"]["adapter"] == "voxformer-proposal"
+    for name in ("student", "student_kd_dskd"):
+        assert recipe["stages"][name]["aux"] == {"proposal": {"from": "proposal"}}
+
+
+def test_a_written_recipe_trains_and_validates_with_validate(tmp_path) -> None:
+    out = tmp_path / "pair.yaml"
+    assert init(*args("js3cnet", JS3CNET, "scpnet", SCPNET, LIDAR_DATA), "--yes", "-o", str(out),
+                "--set", "stages.*.train.steps=1", "stages.*.train.batch_size=1")[0] == 0
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["validate", str(out), "--no-memory"]) == 0
+        assert main(["run", str(out), "-q", "--output", str(tmp_path / "runs")]) == 0
+    summaries = sorted((tmp_path / "runs").rglob("summary.json"))
+    assert len(summaries) == 3 and all('"finished"' in p.read_text() for p in summaries)
+
+
+def test_a_student_without_its_default_task_loss_taps_gets_none_and_no_baseline(tmp_path) -> None:
+    out = tmp_path / "pair.yaml"
+    teacher, tp, student, sp, data, _, _ = ROWS["points-to-points"]
+    assert init(*args(teacher, tp, student, sp, data), "--yes", "-o", str(out))[0] == 0
+    recipe = yaml.safe_load(out.read_text())
+    assert recipe["stages"]["student_vsd"]["task_losses"] == [] and "student" not in recipe["stages"]
+    assert "no task loss: lidiff (the student's default) reads eps, eps_pred" in out.read_text()
+
+
+def test_pairs_it_must_refuse_exit_2_with_the_reasons(tmp_path) -> None:
+    out = tmp_path / "pair.yaml"
+    # a refinement network has no predict_noise for score distillation; the data gives no voxel labels for kd
+    code, _, err = init(*args("lidiff-refine", [], "lidiff", LIDIFF + ["generate_steps=1"], SCENES_DATA), "--yes",
+                        "-o", str(out))
+    assert code == 2 and "predict_noise()" in err and "'lidiff-refine' lacks" in err and not out.exists()
+    code, _, err = init(*args("lidiff-refine", [], "lidiff", LIDIFF + ["generate_steps=1"], SCENES_DATA), "--yes",
+                        "--objectives", "structural", "-o", str(out))
+    assert code == 0, err
+    recipe = yaml.safe_load(out.read_text())
+    assert recipe["stages"]["teacher"]["aux"] == {"coarse": {"from": "coarse"}}  # the refiner reads a completion
+    assert recipe["stages"]["coarse"]["model"]["adapter"] == "lidiff"
+    # no dataset gives both a scan/scene and LiDAR points
+    code, _, err = init("--teacher", "lidiff", "--student", "scpnet", "--yes", "-o", str(out), "--force")
+    assert code == 2 and "no registered dataset serves both models" in err
+    assert "synthetic-scenes gives no student 'scpnet' reads point_batch" in err and "Traceback" not in err
+
+
+def test_a_plug_in_student_is_paired_by_its_declared_taps(tmp_path, monkeypatch) -> None:
+    from distilkit.registry import ADAPTERS
+
+    before, imported = set(ADAPTERS.names()), "tiny_adapter" in sys.modules
+    monkeypatch.syspath_prepend(str(ROOT / "docs" / "examples" / "tiny_adapter"))
+    import tiny_adapter
+
+    tiny_adapter.register()
+    try:
+        out = tmp_path / "pair.yaml"
+        code, _, err = init(*args("scpnet", SCPNET, "tiny-ssc", [], LIDAR_DATA), "--yes", "-o", str(out))
+        assert code == 0, err
+        _, stage = distill_stage(yaml.safe_load(out.read_text()))
+        assert [(t["name"], t["taps"]) for t in stage["distill"]] == [
+            ("kd", {"student": "logits", "teacher": "logits"}), ("dskd", {"student": "features",
+                                                                          "teacher": "completion"})]
+    finally:
+        for name in set(ADAPTERS.names()) - before:
+            ADAPTERS.remove(name)
+        if not imported:
+            sys.modules.pop("tiny_adapter", None)
+
+
+def test_show_lists_taps_pairs_and_why_an_objective_does_not_fit(tmp_path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    code, out, _ = init(*args("scpnet", SCPNET, "voxformer", [], CAMERA_DATA), "--show")
+    assert code == 0 and not list(tmp_path.iterdir())  # writes nothing
+    text = " ".join(out.split())
+    assert "query_features" in text and "teacher finer x2" in text and "16 <- 4" in text  # probed widths
+    assert "◆ dskd" in text and "◆ kd" in text
+    assert "no student image_features tap aligns with a teacher image_features tap" in text
+
+
+def test_static_runs_no_model_and_gives_equal_width_terms_a_connector(tmp_path) -> None:
+    out = tmp_path / "pair.yaml"
+    code, stdout, err = init(*args("dean-labeler", [], "scpnet", SCPNET, LIDAR_DATA), "--static", "--yes",
+                             "--objectives", "kd,monoocc_kl", "-o", str(out))
+    assert code == 0, err
+    assert "--static: no term ran" in stdout
+    _, stage = distill_stage(yaml.safe_load(out.read_text()))
+    kd, mono = stage["distill"]
+    assert "connector" not in kd  # the logits' width is the classes': known without a forward
+    assert mono["connector"] == "linear" and mono["taps"] == {"student": "completion_dense", "teacher": "features"}
+    assert "channels: ?" not in out.read_text() and ", ? ch," in out.read_text()
+
+
+def test_the_numbered_questions_read_stdin(tmp_path, monkeypatch) -> None:
+    from distilkit.registry import ADAPTERS
+
+    out = tmp_path / "asked.yaml"
+    adapters = ADAPTERS.names()
+    answers = [str(adapters.index("scpnet") + 1), str(adapters.index("scpnet") + 1), "synthetic-lidar",
+               "", "each", "n", str(out)]
+    monkeypatch.setattr(sys, "stdin", io.StringIO("\n".join(answers) + "\n"))
+    code, _, err = init("--interactive", "--teacher-params", *SCPNET, "frames=2", "--student-params", *SCPNET,
+                        "--data-params", *LIDAR_DATA)
+    assert code == 0, err
+    recipe = yaml.safe_load(out.read_text())
+    assert set(recipe["stages"]) == {"teacher", "student_kd", "student_dskd"}  # one stage each, no baseline
+
+
+def test_mistakes_are_named(tmp_path) -> None:
+    out = tmp_path / "pair.yaml"
+    out.write_text("mine\n")
+    code, _, err = init(*args("scpnet", SCPNET, "scpnet", SCPNET, LIDAR_DATA), "--yes", "-o", str(out))
+    assert code == 2 and "exists" in err and "--force" in err and out.read_text() == "mine\n"
+    code, _, err = init("--teacher", "scpent", "--student", "scpnet", "--yes")
+    assert code == 2 and "did you mean 'scpnet'" in err
+    code, _, err = init(*args("scpnet", SCPNET, "scpnet", SCPNET, LIDAR_DATA), "--objectives", "vsd", "--yes",
+                        "-o", str(tmp_path / "x.yaml"))
+    assert code == 2 and "vsd: the data lacks condition" in err
+    code, _, err = init("--teacher", "scpnet", "--yes")
+    assert code == 2 and "give --teacher and --student" in err
+
+
+# the rules, on hand-made taps
+
+
+def _facts(role, taps):
+    from distilkit.pairing.facts import ModelFacts
+
+    return ModelFacts(role, "x", {}, None, frozenset(), taps)
+
+
+def test_tap_pairs_follow_the_kinds_rules() -> None:
+    from distilkit.pairing.facts import TapFact
+    from distilkit.pairing.rules import tap_pairs
+    from distilkit.structures import VoxelGrid
+
+    full = VoxelGrid((0.0, -25.6, -2.0), (128, 128, 16), 0.4)
+    half, odd = full.coarsen(2), VoxelGrid((0.0, -25.6, -2.0), (100, 100, 12), 0.512)
+    s = _facts("student", [TapFact("logits", "voxel_logits", full, channels=20),
+                           TapFact("feats", "sparse_features", full, channels=8),
+                           TapFact("image", "image_features", camera="cam0", channels=8, shape=(12, 40))])
+    t = _facts("teacher", [TapFact("logits", "voxel_logits", half, channels=20),  # logits on another grid: never
+                           TapFact("coarse", "sparse_features", half, channels=16),
+                           TapFact("odd", "sparse_features", odd, channels=16),  # no integer ratio: never
+                           TapFact("image", "image_features", camera="cam1", channels=8, shape=(12, 40))])
+    pairs = tap_pairs(s, t)
+    assert [(p.student.tap, p.teacher.tap, p.how) for p in pairs] == [("feats", "coarse", "teacher coarser x2")]
+
+
+def test_an_equal_width_rule_on_a_role_without_a_connector_refuses_other_widths() -> None:
+    from distilkit.data.datasets import synthetic_info
+    from distilkit.data.params import SyntheticParams
+    from distilkit.pairing.facts import TapFact
+    from distilkit.pairing.fit import defaults, proposals
+    from distilkit.pairing.rules import tap_pairs
+
+    info = synthetic_info(SyntheticParams(**TINY_DATA))
+    s = _facts("student", [TapFact("logits", "voxel_logits", info.grid, channels=20),
+                           TapFact("vol", "volume_features", info.grid, channels=8)])
+    t = _facts("teacher", [TapFact("logits", "voxel_logits", info.grid, channels=20),
+                           TapFact("vol", "volume_features", info.grid, channels=16)])
+    found = {p.objective: p for p in proposals(tap_pairs(s, t), s, t, info)}
+    assert found["monoocc_kl"].connector == "linear"  # the student role: a connector makes the widths equal
+    assert found["cleaners"].fits and "teacher_features" not in found["cleaners"].taps  # optional roles unfilled
+    assert found["nst"].connector is None and found["nst"].fits  # any widths
+    assert not found["pkt"].fits and "sparse_features" in found["pkt"].refused
+    assert [p.objective for p in defaults(list(found.values()))] == ["kd", "fitnets"]
