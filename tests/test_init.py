@@ -268,3 +268,37 @@ def test_an_equal_width_rule_on_a_role_without_a_connector_refuses_other_widths(
     assert found["nst"].connector is None and found["nst"].fits  # any widths
     assert not found["pkt"].fits and "sparse_features" in found["pkt"].refused
     assert [p.objective for p in defaults(list(found.values()))] == ["kd", "fitnets"]
+
+
+@pytest.mark.xdist_group("tiny_runs")  # the worker that trains conftest's tiny runs once
+def test_a_trained_teacher_is_read_from_its_run_folder(tmp_path, tmp_path_factory) -> None:
+    from _tiny_runs import tiny_runs
+
+    _, results = tiny_runs(tmp_path_factory)
+    teacher = results[0].run_dir
+    out = tmp_path / "pair.yaml"
+    code, _, err = init("--teacher", str(teacher), "--student", "scpnet", "--student-params", *SCPNET, "--yes",
+                        "-o", str(out))
+    assert code == 0, err
+    recipe = yaml.safe_load(out.read_text())
+    assert "teacher" not in recipe["stages"]  # trained already: no stage trains it again
+    _, stage = distill_stage(recipe)
+    ckpt = stage["teacher"]["checkpoint"]
+    assert Path(ckpt).is_file() and Path(ckpt).parent.parent == teacher
+    assert stage["teacher"]["model"]["adapter"] == "scpnet" and stage["teacher"]["model"]["params"]["channels"] == 4
+    assert recipe["data"]["dataset"] == "synthetic-lidar" and recipe["data"]["params"]["scale"] == 8  # its run's
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("row", sorted(ROWS))
+def test_every_written_recipe_trains(row, tmp_path) -> None:
+    """Each family pair's written recipe runs end to end at a step a stage (the default suite trains one)."""
+    teacher, tp, student, sp, data, _, _ = ROWS[row]
+    out = tmp_path / "pair.yaml"
+    assert init(*args(teacher, tp, student, sp, data), "--yes", "-o", str(out), "--set", "stages.*.train.steps=1",
+                "stages.*.train.batch_size=1")[0] == 0
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["run", str(out), "-q", "--output", str(tmp_path / "runs")]) == 0
+    recipe = yaml.safe_load(out.read_text())
+    summaries = sorted((tmp_path / "runs").rglob("summary.json"))
+    assert len(summaries) == len(recipe["stages"]) and all('"finished"' in p.read_text() for p in summaries)

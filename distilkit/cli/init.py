@@ -22,7 +22,8 @@ EXAMPLES = {
 def add(sub: Any) -> None:
     p = command(sub, "init", "write a recipe for a teacher and a student: their taps, the pairs that align, the "
                 "objectives that fit", EXAMPLES["init"])
-    p.add_argument("--teacher", metavar="ADAPTER", help="the teacher's adapter (distilkit list adapters)")
+    p.add_argument("--teacher", metavar="ADAPTER|RUN", help="the teacher's adapter (distilkit list adapters), or a "
+                   "trained teacher: a run folder or a checkpoint (its adapter, parameters and data are read from it)")
     p.add_argument("--student", metavar="ADAPTER", help="the student's adapter")
     for role in ("teacher", "student"):
         p.add_argument(f"--{role}-params", nargs="+", action="extend", default=[], metavar="K=V",
@@ -75,10 +76,23 @@ def init(args: argparse.Namespace) -> int:
 
         ask_models(args, console)
     objectives = [o.strip() for o in args.objectives.split(",") if o.strip()] if args.objectives else None
+    checkpoint, teacher_params = None, _pairs(args.teacher_params, "--teacher-params")
+    data_params = _pairs(args.data_params, "--data-params")
+    if _is_run(args.teacher):  # a trained teacher: its adapter, parameters and (as the default) its data
+        from distilkit.pairing import from_checkpoint
+
+        args.teacher, params, data, checkpoint = from_checkpoint(args.teacher)
+        teacher_params = {**params, **teacher_params}
+        if data and args.dataset in (None, data.get("dataset")):
+            args.dataset, data_params = data["dataset"], {**(data.get("params") or {}), **data_params}
+        elif data:
+            console.print(f"[yellow]note:[/] the teacher was trained on {data['dataset']}, not {args.dataset}",
+                          highlight=False)
     with console.status("reading both models' taps (one forward each on a dry batch)" if not args.static else ""):
-        p = plan(args.teacher, args.student, teacher_params=_pairs(args.teacher_params, "--teacher-params"),
+        p = plan(args.teacher, args.student, teacher_params=teacher_params,
                  student_params=_pairs(args.student_params, "--student-params"), dataset=args.dataset,
-                 data_params=_pairs(args.data_params, "--data-params"), objectives=objectives, static=args.static)
+                 data_params=data_params, objectives=objectives, static=args.static)
+    p.teacher_checkpoint = checkpoint
     if args.static:
         _static_connectors(p)
     p.each, p.baseline = args.stages == "each", p.baseline and not args.no_baseline
@@ -93,6 +107,14 @@ def init(args: argparse.Namespace) -> int:
 
         ask_choices(p, args, console)
     return _write(p, args, console, retry=objectives is None)
+
+
+def _is_run(teacher: str) -> bool:
+    """Whether ``--teacher`` names a run folder or checkpoint file rather than a registered adapter."""
+    from distilkit.registry import ADAPTERS, load_plugins
+
+    load_plugins()
+    return teacher not in ADAPTERS.names() and Path(teacher).exists()
 
 
 def _static_connectors(p: Any) -> None:

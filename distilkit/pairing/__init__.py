@@ -37,7 +37,22 @@ class Plan:
     grid_text: str = ""
     baseline: bool = True
     each: bool = False
+    teacher_checkpoint: str | None = None  # a trained teacher: no teacher stage, its checkpoint read by the students
     task_note: str = ""  # why the student's default task losses are left out (they read taps it does not return)
+
+
+def from_checkpoint(source: str) -> tuple[str, dict[str, Any], dict[str, Any], str]:
+    """(adapter, its parameters, the run's data — ``{}`` without a resolved recipe beside it —, the checkpoint
+    file) of a run folder or a distilkit checkpoint (read with ``weights_only=True``; the weights are not used)."""
+    from distilkit.engine.assemble.runs import checkpoint_path, run_config
+    from distilkit.weights import load_checkpoint
+
+    path = checkpoint_path(source, "any")
+    ckpt = load_checkpoint(path)
+    adapter = ckpt.get("adapter")
+    if not isinstance(adapter, str):
+        raise InitError(f"{path}: the checkpoint names no adapter")
+    return adapter, dict(ckpt.get("adapter_params") or {}), dict(run_config(path).get("data") or {}), str(path)
 
 
 def _lookup(registry: Any, name: str) -> None:

@@ -43,14 +43,18 @@ def recipe_dict(plan: Any) -> dict[str, Any]:
         return out
 
     t_adapter, s_adapter = plan.models["teacher"][0], plan.models["student"][0]
-    stages["teacher"] = stage("teacher", f"{t_adapter} teacher")
+    if plan.teacher_checkpoint is None:
+        stages["teacher"] = stage("teacher", f"{t_adapter} teacher")
+        edge: dict[str, Any] = {"from": "teacher"}
+    else:  # a trained teacher: read from its checkpoint by each student that distils
+        edge = {"checkpoint": plan.teacher_checkpoint, "model": _model(*plan.models["teacher"])}
     if plan.baseline:
         stages["student"] = stage("student", f"{s_adapter} student, no distillation (the baseline)")
     groups = [[p] for p in plan.chosen] if plan.each else [plan.chosen]
     for group in groups:
         names = "_".join(p.objective for p in group)
         s = stage("student", f"{s_adapter} student <- {t_adapter} ({', '.join(p.objective for p in group)})", True)
-        s["teacher"] = {"from": "teacher"}
+        s["teacher"] = dict(edge)
         if plan.task_note:
             s["task_losses"] = []
         s["distill"] = [_term(p) for p in group]
@@ -81,7 +85,9 @@ def term_comment(p: Proposal) -> str:
 def recipe_text(plan: Any, data: dict[str, Any], argv: list[str]) -> str:
     """``data`` (:func:`recipe_dict`) as YAML with a header (the command, the models, their taps, the pairs) and a
     comment on each term; loading it gives ``data`` back (checked)."""
-    lines = [f"# written by: distilkit init {shlex.join(argv)}".rstrip(),
+    lines = [f"# written by: distilkit init {shlex.join(argv)}".rstrip()] + (
+        [f"# the teacher: {plan.teacher_checkpoint} (trained; its weights are read when a student runs)"]
+        if plan.teacher_checkpoint else []) + [
              f"# teacher: {plan.models['teacher'][0]} · student: {plan.models['student'][0]} · data: {plan.dataset}"
              + (f", grid {plan.grid_text}" if plan.grid_text else ""),
              "# taps (model tap: kind, channels, size):"]
