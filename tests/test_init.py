@@ -302,3 +302,24 @@ def test_every_written_recipe_trains(row, tmp_path) -> None:
     recipe = yaml.safe_load(out.read_text())
     summaries = sorted((tmp_path / "runs").rglob("summary.json"))
     assert len(summaries) == len(recipe["stages"]) and all('"finished"' in p.read_text() for p in summaries)
+
+
+def test_birds_eye_terms_get_maps_init_makes_of_voxel_taps(tmp_path) -> None:
+    """LiCROcc's and the voxel-to-BEV terms read bird's-eye maps no built-in adapter declares: init makes them
+    (recipe taps collapsing a voxel tap by max) on the side that needs one, and the recipe validates."""
+    out = tmp_path / "pair.yaml"
+    code, _, err = init(*args("scpnet", SCPNET, "scpnet", SCPNET, LIDAR_DATA), "--yes", "-o", str(out),
+                        "--objectives", "licrocc_bev,licrocc_affinity,bev_from_voxels")
+    assert code == 0, err
+    _, stage = distill_stage(yaml.safe_load(out.read_text()))
+    made = {"bev_completion": {"of": "completion", "kind": "bev_features", "collapse": "max"}}
+    assert stage["model"]["taps"] == made and stage["teacher"]["taps"] == made
+    assert [t["taps"] for t in stage["distill"]] == [{"student": "bev_completion", "teacher": "bev_completion"}] * 2 \
+        + [{"student": "bev_completion", "teacher": "completion"}]  # voxel-to-BEV collapses the teacher's itself
+    # JS3C-Net's completion lives on a grid twice as coarse: maps compared cell by cell do not fit, resized ones do
+    code, text, _ = init(*args("js3cnet", JS3CNET, "scpnet", SCPNET, LIDAR_DATA), "--show")
+    text = " ".join(text.replace("│", " ").split())  # the tables' cells, in reading order
+    assert code == 0 and "bev_completion bev_completion bev_features teacher coarser x2" in text
+    assert "licrocc_bev 4 compares bev_features cell by cell" in text
+    assert "licrocc_affinity 40 student: bev_completion, teacher: bev_completion" in text
+    assert "bev_from_voxels 2 no student bev_features tap aligns with a teacher sparse_features tap" in text

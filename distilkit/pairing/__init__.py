@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from distilkit.errors import DistilkitError
-from distilkit.pairing.facts import ModelFacts, TapFact, card_facts, with_probe
+from distilkit.pairing.facts import ModelFacts, TapFact, card_facts, with_bev, with_probe
 from distilkit.pairing.fit import DEFAULTS, Proposal, defaults, proposals
 from distilkit.pairing.rules import TapPair, tap_pairs
 
@@ -185,6 +185,7 @@ def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = 
 
         probed = probe_taps(res, {"teacher": "teacher", "student": "student"})
         out.facts = {role: with_probe(f, probed[role]) for role, f in out.facts.items()}
+    out.facts = {role: with_bev(f) for role, f in out.facts.items()}
     out.task_note = _task_note(out.facts["student"])
     if out.task_note:
         out.baseline = False

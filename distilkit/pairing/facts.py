@@ -20,13 +20,14 @@ class TapFact:
     channels: int | None = None
     shape: tuple[int, ...] | None = None
     present: bool = True  # False: declared, but the probed forward did not return it with these parameters
+    of: str | None = None  # a bird's-eye map init makes of this voxel tap (a recipe tap: ``of``, ``collapse: max``)
 
     def size(self) -> str:
         """The grid (``32x32x4``), else the probed shape, else ``?`` (``not returned`` for an absent tap)."""
         if not self.present:
             return "not returned"
         if self.grid is not None:
-            return "x".join(map(str, self.grid.shape))
+            return "x".join(map(str, self.grid.shape[:2] if self.kind == "bev_features" else self.grid.shape))
         return "x".join(map(str, self.shape)) if self.shape else "?"
 
 
@@ -68,6 +69,19 @@ def card_facts(role: str, model: Any, info: Any, given: dict[str, Any]) -> Model
     return ModelFacts(role, model.adapter, dict(given), card, frozenset(card.CAPABILITIES), taps)
 
 
+BEV_OF = ("sparse_features", "volume_features")
+
+
+def with_bev(facts: ModelFacts) -> ModelFacts:
+    """``facts`` and, for each voxel feature tap on a known grid, the bird's-eye map a recipe tap makes of it
+    (``bev_<tap>``: the tap collapsed over height by max, as wide, on the grid's (X, Y) plane)."""
+    made = [TapFact(f"bev_{t.tap}", "bev_features", t.grid, channels=t.channels,
+                    shape=tuple(t.shape[:2]) if t.shape else None, of=t.tap)
+            for t in facts.taps if t.kind in BEV_OF and t.grid is not None and t.present]
+    names = {t.tap for t in facts.taps}
+    return dataclasses.replace(facts, taps=facts.taps + [t for t in made if t.tap not in names])
+
+
 def with_probe(facts: ModelFacts, probed: dict[str, tuple[int | None, tuple[int, ...] | None]]) -> ModelFacts:
     """``facts`` with each probed tap's channels and shape (``probed``: tap -> (channels, shape)); a declared tap
     the forward did not return is marked absent (an adapter may return some taps only with some parameters)."""
@@ -77,4 +91,4 @@ def with_probe(facts: ModelFacts, probed: dict[str, tuple[int | None, tuple[int,
     return dataclasses.replace(facts, taps=taps, probed=True)
 
 
-__all__ = ["ModelFacts", "TapFact", "card_facts", "with_probe"]
+__all__ = ["BEV_OF", "ModelFacts", "TapFact", "card_facts", "with_bev", "with_probe"]

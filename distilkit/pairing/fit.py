@@ -28,6 +28,7 @@ class Proposal:
     taps: dict[str, str] = field(default_factory=dict)
     connector: str | None = None
     pairs: dict[str, TapPair] = field(default_factory=dict)  # teacher role -> its pair
+    teacher_roles: frozenset[str] = frozenset()  # the roles whose taps are the teacher's
     note: str = ""
     refused: str = ""
 
@@ -38,6 +39,9 @@ class Proposal:
 
 def _match_problem(m: Any, pair: TapPair, info: Any) -> str | None:
     """Why ``pair`` breaks the teacher role's rule ``m`` (None: it keeps it)."""
+    if (m.spatial == "collapsed") != (pair.how == "collapsed"):
+        return ("reads a bird's-eye map against the voxels it collapses" if m.spatial == "collapsed" else
+                f"reads {pair.teacher.kind} on the student's kind of tap, not voxels collapsed")
     if m.spatial == "same" and not pair.same:
         return f"compares {pair.kind} cell by cell, and {pair.student.tap} and {pair.teacher.tap} are {pair.how}"
     if m.spatial == "aligned" and pair.kind != "sparse_features":
@@ -54,7 +58,7 @@ def _match_problem(m: Any, pair: TapPair, info: Any) -> str | None:
 def _connector(m: Any, role: str, pair: TapPair) -> tuple[str | None, str | None]:
     """(the connector the student role needs, or a problem) for the channel rule ``m``."""
     cs, ct = pair.student.channels, pair.teacher.channels
-    if m.channels != "equal" or (cs is not None and cs == ct):
+    if m.channels != "equal" or pair.how == "collapsed" or (cs is not None and cs == ct):
         return None, None
     if role != "student":
         return None, f"needs equal widths on {role}, where no connector projects ({cs} and {ct} channels)"
@@ -81,7 +85,7 @@ def _pair_for(card: Any, t_role: str, pairs: list[TapPair], info: Any) -> tuple[
 def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: ModelFacts, teacher: ModelFacts,
             info: Any) -> Proposal:
     """Objective ``name`` on its best taps of the pair, or the reason it does not fit."""
-    out = Proposal(name, weight)
+    out = Proposal(name, weight, teacher_roles=frozenset(card.TEACHER_ROLES))
     missing = [f"{role}: {card.BATCH_HINTS.get(role) or f'needs the batch field {card.default_field(role, info.fields)!r}'}"
                for role in card.BATCH if card.default_field(role, info.fields) not in info.fields]
     lacks_t = sorted(card.REQUIRES - teacher.capabilities)

@@ -30,6 +30,9 @@ class TapPair:
         return self.how == "same"
 
     def text(self) -> str:
+        if self.how == "collapsed":
+            return (f"{self.student.tap} <- {self.teacher.tap}: the teacher's voxels collapsed onto the student's "
+                    f"{self.student.size()} plane")
         cs, ct = self.student.channels, self.teacher.channels
         widths = f"{cs if cs is not None else '?'} <- {ct if ct is not None else '?'} ch"
         return (f"{self.student.tap} <- {self.teacher.tap}: {self.kind}, {self.student.size()} <- "
@@ -45,6 +48,11 @@ def _factors(how: tuple[str, tuple[int, ...]] | str) -> str | None:
 
 def align(s: TapFact, t: TapFact) -> str | None:
     """How tap ``t`` (the teacher's) aligns with ``s`` (the student's), or None where it cannot."""
+    if s.kind == PLANE and t.kind == "sparse_features":  # a map against voxels it collapses (voxel-to-BEV)
+        if s.grid is None or t.grid is None or t.of is not None:
+            return None
+        how = plane_factors(s.grid, t.grid)
+        return "collapsed" if not isinstance(how, str) and how[0] == "same" else None
     if s.kind != t.kind or s.kind not in KIND_ORDER:
         return None
     if s.kind == "image_features":
@@ -75,7 +83,8 @@ def tap_pairs(student: ModelFacts, teacher: ModelFacts) -> list[TapPair]:
                 out.append(TapPair(s, t, s.kind, how))
     order = {t.tap: i for i, t in enumerate(student.taps)}
     t_order = {t.tap: i for i, t in enumerate(teacher.taps)}
-    return sorted(out, key=lambda p: (KIND_ORDER.index(p.kind), not p.same, order[p.student.tap],
+    return sorted(out, key=lambda p: (KIND_ORDER.index(p.kind), p.how == "collapsed", not p.same,
+                                      order[p.student.tap],
                                       t_order[p.teacher.tap]))
 
 

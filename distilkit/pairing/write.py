@@ -55,6 +55,11 @@ def recipe_dict(plan: Any) -> dict[str, Any]:
         names = "_".join(p.objective for p in group)
         s = stage("student", f"{s_adapter} student <- {t_adapter} ({', '.join(p.objective for p in group)})", True)
         s["teacher"] = dict(edge)
+        made = _made_taps(plan, group)
+        if made["student"]:
+            s["model"]["taps"] = made["student"]
+        if made["teacher"]:
+            s["teacher"]["taps"] = made["teacher"]
         if plan.task_note:
             s["task_losses"] = []
         s["distill"] = [_term(p) for p in group]
@@ -62,6 +67,18 @@ def recipe_dict(plan: Any) -> dict[str, Any]:
     return {"schema_version": 1, "name": plan.name, "seed": 0,
             "data": {"dataset": plan.dataset, **({"params": plan.data_params} if plan.data_params else {})},
             "stages": stages}
+
+
+def _made_taps(plan: Any, group: list[Proposal]) -> dict[str, dict[str, Any]]:
+    """The recipe taps the terms read that init made (a bird's-eye map of a voxel tap), per side."""
+    out: dict[str, dict[str, Any]] = {"student": {}, "teacher": {}}
+    for p in group:
+        for role, tap in p.taps.items():
+            side = "teacher" if role in p.teacher_roles else "student"
+            of = plan.facts[side].tap(tap).of
+            if of is not None:
+                out[side][tap] = {"of": of, "kind": "bev_features", "collapse": "max"}
+    return out
 
 
 def _flow(value: Any) -> str:
