@@ -17,7 +17,8 @@ def show(p: Any, console: Any) -> None:
     for role in ("teacher", "student"):
         f = p.facts[role]
         for t in f.taps:
-            taps.add_row(f"{role} ({f.adapter})", t.tap, t.kind, str(t.channels if t.channels is not None else "?"),
+            kind = t.kind + (f" (made of {t.of})" if t.of else "")
+            taps.add_row(f"{role} ({f.adapter})", t.tap, kind, str(t.channels if t.channels is not None else "?"),
                          t.size())
     console.print(taps)
     pairs = Table(title="pairs that align (student <- teacher)")

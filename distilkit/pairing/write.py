@@ -108,12 +108,18 @@ def recipe_text(plan: Any, data: dict[str, Any], argv: list[str]) -> str:
              f"# teacher: {plan.models['teacher'][0]} · student: {plan.models['student'][0]} · data: {plan.dataset}"
              + (f", grid {plan.grid_text}" if plan.grid_text else ""),
              "# taps (model tap: kind, channels, size):"]
+    used = {(side, tap) for p in plan.chosen for role, tap in p.taps.items()
+            for side in ["teacher" if role in p.teacher_roles else "student"]}
     for facts in (plan.facts["teacher"], plan.facts["student"]):
-        for t in facts.taps:
-            ch = t.channels if t.channels is not None else "?"
-            lines.append(f"#   {facts.role} {t.tap}: {t.kind}, {ch} ch, {t.size()}")
-    lines.append("# pairs (student <- teacher):" if plan.pairs else "# pairs: none (no tap of one kind aligns)")
-    lines += [f"#   {p.text()}" for p in plan.pairs]
+        for t in facts.taps:  # the declared taps, and the maps init made that a term reads
+            if t.of is None or (facts.role, t.tap) in used:
+                ch = t.channels if t.channels is not None else "?"
+                made = f" (made: {t.of} collapsed over height by max)" if t.of else ""
+                lines.append(f"#   {facts.role} {t.tap}: {t.kind}, {ch} ch, {t.size()}{made}")
+    pairs = [p for p in plan.pairs if (p.student.of is None and p.teacher.of is None)
+             or {("student", p.student.tap), ("teacher", p.teacher.tap)} <= used]
+    lines.append("# pairs (student <- teacher):" if pairs else "# pairs: none (no tap of one kind aligns)")
+    lines += [f"#   {p.text()}" for p in pairs]
     lines += [f"# {WEIGHTS_NOTE}"] + ([f"# {plan.task_note} (and no baseline stage)"] if plan.task_note else [])
     lines.append("")
     body = [f"schema_version: {data['schema_version']}", f"name: {_flow(data['name'])}", f"seed: {data['seed']}",
