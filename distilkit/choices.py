@@ -1,7 +1,7 @@
 """Choices a component makes where the papers and their authors' released code differ, or where neither pins a
 detail: each registered component may list them as ``CHOICES``, and ``distilkit list objectives --markdown``
-(docs/objectives.md) gathers them from every registry into one table, so the documentation cannot drift from the
-code that makes the choice."""
+(docs/reference/objectives.md) gathers them from every registry into one table, so the documentation cannot drift
+from the code that makes the choice."""
 
 from __future__ import annotations
 

@@ -77,7 +77,7 @@ def _type(prop: dict[str, Any]) -> str:
 
 
 def recipe_reference_markdown() -> str:
-    """Every recipe section and field, with type, default and description (docs/recipe-reference.md)."""
+    """Every recipe section and field, with type, default and description (docs/reference/recipe.md)."""
     schema = Recipe.model_json_schema(by_alias=True)
     defs = schema.get("$defs", {})
     sections = [("Recipe", schema)] + sorted(defs.items())
@@ -181,7 +181,8 @@ def adapters_markdown() -> list[str]:
 
 
 def objectives_markdown() -> str:
-    """docs/objectives.md: every registered objective's paper, equation, shapes, taps, weight and parameters."""
+    """docs/reference/objectives.md: every registered objective's paper, equation, shapes, taps, weight and
+    parameters."""
     from distilkit.registry import OBJECTIVES
 
     out = ["# Objectives", "",
@@ -248,8 +249,8 @@ def _cell(text: str) -> str:
 
 
 def datasets_markdown() -> str:
-    """docs/datasets.md: every registered dataset's description, paper, batch fields and parameters (with those of
-    nested parameter blocks such as ``camera``)."""
+    """docs/reference/datasets.md: every registered dataset's description, paper, batch fields and parameters (with
+    those of nested parameter blocks such as ``camera``)."""
     from distilkit.registry import DATASETS
 
     out = ["# Datasets", "",

@@ -1,6 +1,7 @@
-"""The house's layering (docs/architecture.md): import-linter's contracts in pyproject.toml hold, they fail — naming the
-import chain — when an upward import is added, no module of distilkit or its adapters is part of an import circle,
-every top-level module of distilkit sits in a layer, and a module longer than 400 lines says why in its docstring."""
+"""The house's layering (docs/development/architecture.md): import-linter's contracts in pyproject.toml hold, they
+fail — naming the import chain — when an upward import is added, no module of distilkit or its adapters is part of an
+import circle, every top-level module of distilkit sits in a layer, and a module longer than 400 lines says why in
+its docstring."""
 
 from __future__ import annotations
 

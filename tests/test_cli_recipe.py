@@ -154,8 +154,8 @@ def test_schema_is_json_and_docs_are_in_sync(capsys) -> None:
     assert "stages" in schema["properties"] and schema["additionalProperties"] is False
     assert main(["schema", "--markdown"]) == 0
     generated = capsys.readouterr().out
-    assert (ROOT / "docs" / "recipe-reference.md").read_text() == generated, \
-        "docs/recipe-reference.md is stale: run `distilkit schema --markdown > docs/recipe-reference.md`"
+    assert (ROOT / "docs" / "reference" / "recipe.md").read_text() == generated, \
+        "docs/reference/recipe.md is stale: run `distilkit schema --markdown > docs/reference/recipe.md`"
 
 
 def test_help_and_import_do_not_import_torch() -> None:
@@ -286,5 +286,5 @@ def test_the_datasets_page_is_in_sync(capsys) -> None:
     assert main(["list", "datasets", "--markdown"]) == 0
     generated = capsys.readouterr().out
     assert "| `val` |" in generated and "FolderCameraParams" in generated and "\\| \"valid\"" in generated
-    assert (ROOT / "docs" / "datasets.md").read_text() == generated, \
-        "docs/datasets.md is stale: run `distilkit list datasets --markdown > docs/datasets.md`"
+    assert (ROOT / "docs" / "reference" / "datasets.md").read_text() == generated, \
+        "docs/reference/datasets.md is stale: run `distilkit list datasets --markdown > docs/reference/datasets.md`"

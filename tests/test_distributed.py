@@ -30,7 +30,7 @@ from distilkit.recipe import recipe_from_dict
 def camera_registered() -> Iterator[None]:
     """The camera-style toy of test_contracts (no BatchNorm; its CE is a mean over equally many voxels per sample)
     registered while the context is open, then removed again where this added it: other tests iterate over the
-    registries (``distilkit schema --markdown`` against docs/recipe-reference.md)."""
+    registries (``distilkit schema --markdown`` against docs/reference/recipe.md)."""
     import test_contracts as tc
     from distilkit.registry import ADAPTERS, DATASETS
 

@@ -11,8 +11,10 @@ and tests/test_objectives.py keep in sync with their generators) is run or check
 * ```` ```bash ````: each ``distilkit …`` command parses with the CLI's parser, each ``recipes/…`` path exists, each
   ``pip install ".[x]"`` extra is in pyproject.toml and each ``pytest -m`` marker is registered.
 
-A block right after ``<!-- no-test: why -->`` is skipped (a sketch that names what it does not define). Last, the site
-itself builds with Sphinx without a warning (.ci/run builds it too).
+A block right after ``<!-- no-test: why -->`` is skipped (a sketch that names what it does not define). README.md is
+short (under 200 lines), its table rows and ``±`` figures stand verbatim on a page of docs/, and every relative link of
+README.md and docs/**/*.md names a file. Last, the site itself builds with Sphinx without a warning (.ci/run builds it
+too).
 """
 
 from __future__ import annotations
@@ -38,11 +40,12 @@ except ModuleNotFoundError:  # Python 3.10
 
 from conftest import ROOT
 
-GENERATED = {"docs/objectives.md", "docs/recipe-reference.md", "docs/datasets.md"}  # written by distilkit itself
+GENERATED = {"docs/reference/objectives.md", "docs/reference/recipe.md",  # written by distilkit itself
+             "docs/reference/datasets.md"}
 PAGES = ["README.md", *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*.md")
                               if "_build" not in p.parts and str(p.relative_to(ROOT)) not in GENERATED)]
 # a page whose recipe names the plug-in its worked example registers -> that example's folder (module tiny_adapter)
-PLUGINS = {"docs/distill-your-own-model.md": ROOT / "docs" / "examples" / "tiny_adapter"}
+PLUGINS = {"docs/tutorials/your-own-model.md": ROOT / "docs" / "examples" / "tiny_adapter"}
 # where a sweep file's relative `recipe:` is read from: the folder of the shipped sweep files
 SWEEPS = ROOT / "recipes" / "sweeps"
 
@@ -343,6 +346,107 @@ def test_the_checks_find_a_broken_block_of_each_kind(tmp_path: Path, bash_contex
     assert commands("a && b | c; d  # e && f")[:4] == [["a"], ["b"], ["c"], ["d"]]
 
 
+# --- the short README and the links -----------------------------------------------------------------------------
+
+README_MAX_LINES = 200  # the README is a summary; the site holds the rest (design61 B6)
+LINK = re.compile(r"!?\[[^\]]*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")  # [text](target), ![alt](target)
+INLINE_CODE = re.compile(r"``.+?``|`[^`]+`", re.S)  # a code span may run over a line break
+NUMBER = r"[+−-]?\d(?:[\d,.]*\d)?"  # 1,114 or −0.15; a full stop after it ends a sentence
+PLUSMINUS = re.compile(rf"{NUMBER}\s*±\s*{NUMBER}")  # 38.98 ± 1.21, +2.48 ± 1.03
+INTERVAL = re.compile(rf"\[{NUMBER}, {NUMBER}\]")  # [+1.41, +3.56]
+LINK_PAGES = ["README.md", *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*.md")
+                                   if "_build" not in p.parts)]
+
+
+def prose(text: str) -> str:
+    """The text outside fenced blocks and code spans, where brackets and parentheses are code, not links."""
+    out, ticks = [], None
+    for line in text.splitlines():
+        m = FENCE.match(line)
+        if ticks is None and m:
+            ticks = m["ticks"]
+        elif ticks is not None:
+            if re.fullmatch(rf"\s*{ticks}`*\s*", line):
+                ticks = None
+        else:
+            out.append(line)
+    return INLINE_CODE.sub("", "\n".join(out))
+
+
+def broken_links(text: str, page: Path) -> list[str]:
+    """The relative links of a page that name no file (a folder is not a file); the anchor after ``#`` is left to
+    the site's build, which checks it (myst.xref_missing), and ``http:``/``mailto:`` links to the world."""
+    problems = []
+    for target in LINK.findall(prose(text)):
+        if target.startswith("#") or re.match(r"[A-Za-z][\w+.-]*:", target):
+            continue
+        if not (page.parent / target.split("#")[0]).is_file():
+            problems.append(f"{page.relative_to(ROOT) if page.is_relative_to(ROOT) else page}: ({target}) "
+                            "names no file")
+    return problems
+
+
+def figures(text: str) -> list[str]:
+    """What a reader compares between the README and the site: every table row and every ``±`` figure and interval."""
+    rows = [line.strip() for line in text.splitlines() if line.lstrip().startswith("|")]
+    return rows + PLUSMINUS.findall(text) + INTERVAL.findall(text)
+
+
+def figures_not_on_the_site(readme: str, site_pages: list[str]) -> list[str]:
+    return [f for f in figures(readme) if not any(f in page for page in site_pages)]
+
+
+def too_long(readme: str) -> str | None:
+    n = len(readme.splitlines())
+    return None if n < README_MAX_LINES else f"README.md has {n} lines: at most {README_MAX_LINES - 1}; move the " \
+                                             "rest to a page of docs/"
+
+
+def test_the_readme_is_short() -> None:
+    problem = too_long((ROOT / "README.md").read_text())
+    assert problem is None, problem
+
+
+@pytest.mark.parametrize("page", LINK_PAGES)
+def test_every_relative_link_names_a_file(page: str) -> None:
+    problems = broken_links((ROOT / page).read_text(), ROOT / page)
+    assert not problems, "\n".join(problems)
+
+
+def test_the_readmes_figures_are_the_sites() -> None:
+    """Every table row and every ``±`` figure or interval of README.md stands, verbatim, on a page of the site: the
+    README copies the site's figures and never has figures of its own."""
+    readme = (ROOT / "README.md").read_text()
+    assert any(line.startswith("|") for line in figures(readme)) and PLUSMINUS.search(readme)  # something to compare
+    site = [p.read_text() for p in (ROOT / "docs").rglob("*.md") if "_build" not in p.parts]
+    missing = figures_not_on_the_site(readme, site)
+    assert not missing, "in README.md but on no page of docs/:\n" + "\n".join(missing)
+
+
+def test_the_readme_checks_find_what_they_look_for(tmp_path: Path) -> None:
+    """Each check above can fail: a made-up page's broken links are found (a folder is no file; code is not a
+    link), a README of 200 lines is too long, and a figure that differs from the site's is named."""
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "page.md").write_text("# a page\n")
+    page = tmp_path / "README.md"
+    text = ("[fine](docs/page.md#a-page) [web](https://example.org) [here](#top) ![img](docs/missing.png)\n"
+            "[gone](docs/gone.md) [a folder](docs/) `[code](not/a/link.md)`\n"
+            "```python\nx = d[k](y)  # [code](not/a/link.md)\n```\n")
+    problems = broken_links(text, page)
+    assert len(problems) == 3, problems
+    assert all(any(f"({t})" in p for p in problems) for t in ("docs/missing.png", "docs/gone.md", "docs/"))
+
+    assert too_long("line\n" * (README_MAX_LINES - 1)) is None
+    assert "200 lines" in (too_long("line\n" * README_MAX_LINES) or "")
+
+    site = ["| method | Δ |\n|---|---|\n| DIST ×3 | +2.48 ± 1.03 |\n", "DIST: [+1.41, +3.56]"]
+    same = "| method | Δ |\n|---|---|\n| DIST ×3 | +2.48 ± 1.03 |\n\nIts interval [+1.41, +3.56]."
+    assert figures_not_on_the_site(same, site) == []
+    changed = same.replace("+2.48 ± 1.03 |", "+2.49 ± 1.03 |").replace("+3.56]", "+3.57]") + " Also 1.2 ± 0.3."
+    assert figures_not_on_the_site(changed, site) == ["| DIST ×3 | +2.49 ± 1.03 |", "+2.49 ± 1.03", "1.2 ± 0.3",
+                                                      "[+1.41, +3.57]"]
+
+
 # --- the site --------------------------------------------------------------------------------------------------
 
 def test_the_site_builds_without_a_warning(tmp_path: Path) -> None:
@@ -360,4 +464,4 @@ def test_the_site_builds_without_a_warning(tmp_path: Path) -> None:
     assert 'id="distilkit.losses.dskd"' in losses and 'id="distilkit.losses.kd"' in losses
     contracts = (site / "reference" / "api" / "contracts.html").read_text()
     assert 'id="distilkit.adapter.Adapter"' in contracts and 'id="distilkit.registry.NoParams"' in contracts
-    assert (site / "getting-started.html").is_file() and (site / "distill-your-own-model.html").is_file()
+    assert (site / "getting-started.html").is_file() and (site / "tutorials" / "your-own-model.html").is_file()

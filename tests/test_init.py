@@ -323,3 +323,23 @@ def test_birds_eye_terms_get_maps_init_makes_of_voxel_taps(tmp_path) -> None:
     assert "licrocc_bev 4 compares bev_features cell by cell" in text
     assert "licrocc_affinity 40 student: bev_completion, teacher: bev_completion" in text
     assert "bev_from_voxels 2 no student bev_features tap aligns with a teacher sparse_features tap" in text
+
+
+def test_the_tutorials_init_commands_run_in_miniature(tmp_path, monkeypatch) -> None:
+    """The walkthrough's `distilkit init` lines (docs/tutorials/lidar-pair.md), each as written plus small models
+    and data, write what the page shows."""
+    import re
+    import shlex
+
+    page = (ROOT / "docs" / "tutorials" / "lidar-pair.md").read_text()
+    lines = [line.strip() for block in re.findall(r"```bash\n(.*?)```", page, re.S) for line in block.splitlines()
+             if line.strip().startswith("distilkit init")]
+    assert len(lines) == 2  # --show, then --yes -o
+    monkeypatch.chdir(tmp_path)
+    small = ["--teacher-params", *JS3CNET, "--student-params", *SCPNET, "--data-params", *LIDAR_DATA]
+    for line in lines:
+        code, _, err = init(*shlex.split(line)[2:], *small)
+        assert code == 0, (line, err)
+    written = yaml.safe_load((tmp_path / "scpnet_from_js3cnet.yaml").read_text())
+    shown = yaml.safe_load(re.search(r"```yaml\n(  student_kd_dskd:.*?)```", page, re.S).group(1))
+    assert written["stages"]["student_kd_dskd"]["distill"] == shown["student_kd_dskd"]["distill"]

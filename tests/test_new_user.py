@@ -122,7 +122,7 @@ def test_set_with_a_wildcard_sets_every_stage_and_one_that_matches_nothing_is_na
     assert [t.weight for s in recipe.stages.values() for t in s.distill] == [2, 2]
     assert main(["validate", str(path), "--no-memory", "--set", "stages.*.nothing.*.x=1"]) == 2
     assert "matches nothing" in capsys.readouterr().err
-    reference = (ROOT / "docs" / "recipe-reference.md").read_text()
+    reference = (ROOT / "docs" / "reference" / "recipe.md").read_text()
     assert "--set 'stages.*.train.steps=4'" in reference
 
 
@@ -185,7 +185,7 @@ def test_every_subcommand_help_ends_with_examples_and_bench_lists_every_bench(ca
 
 
 def test_adapter_parameters_are_documented_where_a_user_looks(tmp_path, capsys) -> None:
-    reference = (ROOT / "docs" / "recipe-reference.md").read_text()
+    reference = (ROOT / "docs" / "reference" / "recipe.md").read_text()
     assert "### scpnet" in reference and "| `frames` |" in reference and "| `geometry` |" in reference
     assert "`proposal` only from an auxiliary model" in reference
     assert main(["list", "adapters"]) == 0

@@ -123,8 +123,9 @@ def test_objectives_doc_is_in_sync() -> None:
     from conftest import ROOT
     from distilkit.schema_doc import objectives_markdown
 
-    assert (ROOT / "docs" / "objectives.md").read_text() == objectives_markdown() + "\n", \
-        "docs/objectives.md is stale: run `distilkit list objectives --markdown > docs/objectives.md`"
+    assert (ROOT / "docs" / "reference" / "objectives.md").read_text() == objectives_markdown() + "\n", \
+        "docs/reference/objectives.md is stale: run " \
+        "`distilkit list objectives --markdown > docs/reference/objectives.md`"
 
 
 def test_validate_rejects_an_adapter_without_the_tap_kind(tmp_path) -> None:
@@ -227,7 +228,8 @@ def test_the_registered_connectors_project_maps_rows_and_sparse_voxels() -> None
 
 
 def test_the_choices_of_issue_26_are_stated_by_their_components() -> None:
-    """Where the papers and the released code differ, each component lists the choice (docs/objectives.md's table)."""
+    """Where the papers and the released code differ, each component lists the choice (docs/reference/objectives.md's
+    table)."""
     from distilkit.choices import component_choices
 
     stated = {(name, c.topic) for _, name, c in component_choices()}
@@ -238,5 +240,5 @@ def test_the_choices_of_issue_26_are_stated_by_their_components() -> None:
                  ("lidiff", "condition dropout"), ("lidiff-refine", "refinement training input"),
                  ("vsd", "auxiliary score network"), ("distillation_dpo", "the sign"), ("partial_ce", "class weights")]:
         assert want in stated, want
-    table = (ROOT / "docs" / "objectives.md").read_text()
+    table = (ROOT / "docs" / "reference" / "objectives.md").read_text()
     assert "| objective `distillation_dpo` | the sign |" in table

@@ -1,4 +1,4 @@
-"""The worked example of docs/distill-your-own-model.md, loaded through a real entry point."""
+"""The worked example of docs/tutorials/your-own-model.md, loaded through a real entry point."""
 
 from __future__ import annotations
 
@@ -28,6 +28,14 @@ def test_entry_point_plugin_runs_its_recipe(tmp_path, monkeypatch) -> None:
     assert "tiny-ssc" not in registry.ADAPTERS._entries
     registry.load_plugins(force=True)
     assert "tiny-ssc" in registry.ADAPTERS
+    try:
+        _run_the_examples_recipe(tmp_path)
+    finally:  # this process's registries as they were: a later test lists the adapters
+        registry.ADAPTERS.remove("tiny-ssc")
+        sys.modules.pop("tiny_adapter", None)
+
+
+def _run_the_examples_recipe(tmp_path) -> None:
     recipe = yaml.safe_load((EXAMPLE / "recipe.yaml").read_text())
     for stage in recipe["stages"].values():  # about loading a plugin: the CPU, not the recipe's auto (a GPU)
         stage.setdefault("train", {}).update(steps=1, device="cpu")
@@ -155,11 +163,11 @@ def test_a_plugin_registers_a_connector_and_a_schedule_and_a_recipe_uses_both(tm
 def _guide_blocks(kind: str) -> list[str]:
     import re
 
-    return re.findall(rf"```{kind}\n(.*?)```", (ROOT / "docs" / "distill-your-own-model.md").read_text(), re.S)
+    return re.findall(rf"```{kind}\n(.*?)```", (ROOT / "docs" / "tutorials" / "your-own-model.md").read_text(), re.S)
 
 
 def test_the_plugin_guide_runs_as_written(tmp_path, monkeypatch) -> None:
-    """docs/distill-your-own-model.md's §1-2 code blocks, written out as a module exactly as they stand, register an
+    """docs/tutorials/your-own-model.md's §1-2 code blocks, written out as a module exactly as they stand, register an
     adapter; the worked example's files are that same code (after a docstring) and §3's recipe — which
     test_entry_point_plugin_runs_its_recipe trains through an entry point (its stages finish), so it is not trained
     a second time here."""

@@ -79,7 +79,7 @@ def test_the_frame_counts_are_the_releases_with_the_readmes_beside_them() -> Non
 
     assert sscbench.RELEASE_FRAMES == {"train": 8483, "test": 2165}
     assert sscbench.README_FRAMES == {"train": 8487, "valid": 1812, "test": 2566}
-    for doc in (ROOT / "docs" / "datasets.md", ROOT / "README.md"):
+    for doc in (ROOT / "docs" / "reference" / "datasets.md", ROOT / "docs" / "how-to" / "real-data.md"):
         text = doc.read_text()
         assert "8,483" in text and "2,165" in text and "issue #23" in text, doc
 

@@ -12,7 +12,7 @@ from distilkit.cli.base import command
 EXAMPLES = {
     "list": ["distilkit list objectives", "distilkit list task_losses", "distilkit list objectives --markdown"],
     "schema": ["distilkit schema > recipe.schema.json                       # editor completion",
-               "distilkit schema --markdown > docs/recipe-reference.md"],
+               "distilkit schema --markdown > docs/reference/recipe.md"],
 }
 
 
@@ -25,7 +25,8 @@ def add(sub: Any) -> None:
                     help="one kind of component: adapters, objectives, task_losses (or 'task losses'), datasets, "
                          "metrics, optimizers, schedules, connectors, hooks, recorders (default: all)")
     ls.add_argument("--markdown", action="store_true",
-                    help="objectives or datasets as Markdown (docs/objectives.md, docs/datasets.md)")
+                    help="objectives or datasets as Markdown (docs/reference/objectives.md, "
+                         "docs/reference/datasets.md)")
     ls.set_defaults(fn=list_components)
     s = command(sub, "schema", "print the recipe JSON schema (for editor completion)", EXAMPLES["schema"])
     s.add_argument("--markdown", action="store_true", help="print the recipe reference as Markdown instead")
@@ -139,7 +140,7 @@ COLUMN = {"adapters": "taps (name: kind)", "objectives": "reads (tap kinds)", "t
 
 
 def params_cell(params: Any) -> str:
-    """An adapter's parameters with their defaults, one per line (docs/recipe-reference.md has their descriptions)."""
+    """An adapter's parameters with their defaults, one per line (docs/reference/recipe.md has their descriptions)."""
     import json
 
     out = []

@@ -14,5 +14,5 @@ reports — never a room above; ``pyproject.toml``'s import-linter contracts che
   trainer never uses it);
 * :mod:`~distilkit.engine.infer` — what is done with a finished run: ``predict``, ``complete``, ``export``.
 
-docs/architecture.md draws the whole house.
+docs/development/architecture.md draws the whole house.
 """

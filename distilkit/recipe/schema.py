@@ -337,7 +337,7 @@ class Recipe(_Strict):
     trackers: list[str | dict[str, dict[str, Any] | None]] = Field(
         default_factory=list, description="experiment trackers every stage logs to (registered hooks: tensorboard, "
                                           "wandb, mlflow, trackio, or a plugin's; each one's parameters: Trackers "
-                                          "in docs/recipe-reference.md), each once, as a name or {NAME: {param: "
+                                          "in docs/reference/recipe.md), each once, as a name or {NAME: {param: "
                                           "value}}, e.g. [tensorboard, {wandb: {project: kd, mode: offline}}]; on the "
                                           "command line --set 'trackers=[mlflow]'. Not part of any stage's identity")
 

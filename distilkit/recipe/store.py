@@ -12,7 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field
 class StoreSpec(BaseModel):
     """How the teacher's outputs are stored. The default layout is the exact one: every value of every tap the
     stage's terms read, in float32, so a student trained from the store equals the student trained with the live
-    teacher bit for bit. The other layouts are opt-in and lossy, each measured in the README: a narrower
+    teacher bit for bit. The other layouts are opt-in and lossy, each measured in docs/how-to/memory.md: a narrower
     ``precision``; only the ``voxels`` the terms' masks read (``validate`` refuses it for a term that reads more);
     the ``topk`` class scores of each voxel with the rest's probability mass (refused for a term that reads more than
     the teacher's softmax)."""

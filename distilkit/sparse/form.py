@@ -1,7 +1,8 @@
 """Which form the torch path of a sparse convolution computes in: ``table`` (:mod:`distilkit.sparse.table`: a
 neighbour table, one gather and one GEMM per chunk of rows) or ``loop`` (:mod:`distilkit.sparse.function`: a gather,
 a GEMM and a scatter-add per kernel offset), chosen by ``DISTILKIT_SPARSE_FORM`` (``auto``: the table on CUDA, where
-launches dominate, the loop on the CPU, where it is 3-4x faster: docs/gpu.md) or :func:`using_form`."""
+launches dominate, the loop on the CPU, where it is 3-4x faster: docs/how-to/gpus.md) or
+:func:`using_form`."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from typing import Iterator
 FORM_ENV = "DISTILKIT_SPARSE_FORM"
 FORMS = ("auto", "table", "loop")
 AUTO_FORM = {"cuda": "table"}  # device type -> the torch path's form under ``auto``; others: :data:`CPU_FORM`
-CPU_FORM = "loop"  # the faster form on the CPU (``distilkit bench sparse`` measures both: docs/gpu.md)
+CPU_FORM = "loop"  # the faster form on the CPU (``distilkit bench sparse`` measures both: docs/how-to/gpus.md)
 _forms: list[str] = []  # :func:`using_form`'s choices, innermost last
 
 

@@ -5,7 +5,7 @@ A run's intra-op threads (``torch.set_num_threads``) come from, first that is gi
 and torchrun's launcher set for their processes), Slurm's ``SLURM_CPUS_PER_TASK``, and last the CPUs of the
 process's affinity mask (``taskset``, a cgroup's cpuset). PyTorch's own default is every core it sees, which on a
 machine shared with one other busy process ran about 15x slower than one thread (OpenMP's threads spin-waiting for
-the core the other process holds; measured on 2 cores, README "Threads")."""
+the core the other process holds; measured on 2 cores, docs/how-to/reproducibility.md, "Threads")."""
 
 from __future__ import annotations
 

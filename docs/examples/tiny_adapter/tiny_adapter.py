@@ -1,5 +1,5 @@
-"""A worked example: a user's own SSC model plugged into distilkit as an adapter (docs/distill-your-own-model.md §1-2,
-whose code blocks are this file; a test keeps them the same).
+"""A worked example: a user's own SSC model plugged into distilkit as an adapter (docs/tutorials/your-own-model.md
+§1-2, whose code blocks are this file; a test keeps them the same).
 
 The model is deliberately small: points are max-pooled into voxels, a few 3-D convolutions
 complete the volume, and a 1x1x1 convolution gives class logits. The adapter tells distilkit
@@ -68,4 +68,4 @@ class TinySSC(Adapter):
 def register() -> None:
     """The entry point: ``[project.entry-points."distilkit.plugins"] tiny = "tiny_adapter:register"``."""
     ADAPTERS.add("tiny-ssc", TinySSC, description="a tiny user model (worked example)",
-                 paper="docs/distill-your-own-model.md", consumes=tuple(TinySSC.TAPS.values()))
+                 paper="docs/tutorials/your-own-model.md", consumes=tuple(TinySSC.TAPS.values()))
