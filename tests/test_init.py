@@ -127,6 +127,7 @@ def test_a_student_without_its_default_task_loss_taps_gets_none_and_no_baseline(
     assert init(*args(teacher, tp, student, sp, data), "--yes", "-o", str(out))[0] == 0
     recipe = yaml.safe_load(out.read_text())
     assert recipe["stages"]["student_vsd"]["task_losses"] == [] and "student" not in recipe["stages"]
+    assert recipe["stages"]["student_vsd"]["init"] == {"from": "teacher", "strict": False}  # ScoreLiDAR's start
     assert "no task loss: lidiff (the student's default) reads eps, eps_pred" in out.read_text()
 
 
@@ -145,7 +146,7 @@ def test_pairs_it_must_refuse_exit_2_with_the_reasons(tmp_path) -> None:
     # no dataset gives both a scan/scene and LiDAR points
     code, _, err = init("--teacher", "lidiff", "--student", "scpnet", "--yes", "-o", str(out), "--force")
     assert code == 2 and "no registered dataset serves both models" in err
-    assert "synthetic-scenes gives no student 'scpnet' reads point_batch" in err and "Traceback" not in err
+    assert "synthetic-scenes lacks what the student 'scpnet' reads point_batch" in err and "Traceback" not in err
 
 
 def test_a_plug_in_student_is_paired_by_its_declared_taps(tmp_path, monkeypatch) -> None:
@@ -178,7 +179,7 @@ def test_show_lists_taps_pairs_and_why_an_objective_does_not_fit(tmp_path, monke
     text = " ".join(out.split())
     assert "query_features" in text and "teacher finer x2" in text and "16 <- 4" in text  # probed widths
     assert "◆ dskd" in text and "◆ kd" in text
-    assert "no student image_features tap aligns with a teacher image_features tap" in text
+    assert "the teacher 'scpnet' has no image_features tap" in " ".join(text.replace("│", " ").split())
 
 
 def test_static_runs_no_model_and_gives_equal_width_terms_a_connector(tmp_path) -> None:
@@ -343,3 +344,124 @@ def test_the_tutorials_init_commands_run_in_miniature(tmp_path, monkeypatch) -> 
     written = yaml.safe_load((tmp_path / "scpnet_from_js3cnet.yaml").read_text())
     shown = yaml.safe_load(re.search(r"```yaml\n(  student_kd_dskd:.*?)```", page, re.S).group(1))
     assert written["stages"]["student_kd_dskd"]["distill"] == shown["student_kd_dskd"]["distill"]
+
+
+def _tiny_info():
+    from distilkit.data.datasets import synthetic_info
+    from distilkit.data.params import SyntheticParams
+
+    return synthetic_info(SyntheticParams(**TINY_DATA))
+
+
+def _found(s_taps, t_taps, info=None):
+    from distilkit.pairing.fit import proposals
+    from distilkit.pairing.rules import tap_pairs
+
+    info = info or _tiny_info()
+    s, t = _facts("student", s_taps), _facts("teacher", t_taps)
+    return {p.objective: p for p in proposals(tap_pairs(s, t), s, t, info)}
+
+
+def test_maps_masked_by_the_labels_must_be_the_labels_grid_or_coarser() -> None:
+    from distilkit.pairing.facts import TapFact
+    from distilkit.structures import VoxelGrid
+
+    info = _tiny_info()
+    g = info.grid
+    finer = VoxelGrid(g.origin, tuple(2 * n for n in g.shape), g.voxel_size / 2)
+    for grid, fits in ((g.coarsen(2), True), (g, True), (finer, False)):
+        found = _found([TapFact("v", "volume_features", grid, channels=8)],
+                       [TapFact("v", "volume_features", grid, channels=8)], info)
+        assert found["l2cocc_fsd"].fits == fits and found["monoocc_kl"].fits == fits, grid
+        if not fits:
+            assert "masks the maps by the labels pooled to their size" in found["monoocc_kl"].refused
+        assert found["l2cocc_relation"].fits  # cell by cell too, but masked by nothing
+
+
+def test_equal_widths_on_a_role_no_connector_projects_are_refused() -> None:
+    from distilkit.pairing.facts import TapFact
+
+    g = _tiny_info().grid
+    student = [TapFact("logits", "voxel_logits", g, channels=20), TapFact("f", "sparse_features", g, channels=8)]
+    found = _found(student, [TapFact("logits", "voxel_logits", g, channels=21),
+                             TapFact("f", "sparse_features", g, channels=16)])
+    assert found["pvkd"].refused == "needs equal widths on student_logits, where no connector projects (20 and 21 " \
+                                    "channels)" or "teacher_logits" in found["pvkd"].refused
+    assert not found["pvkd"].fits and found["dskd"].fits  # the sparse pair itself fits any widths
+    assert found["kd"].connector == "linear"  # on the student role a connector makes them equal
+
+
+def test_a_role_only_the_student_fills_prefers_the_cards_taps_and_falls_back_with_a_note() -> None:
+    import dataclasses
+
+    from distilkit.pairing.facts import TapFact
+
+    scenes = dataclasses.replace(_tiny_info(), fields=frozenset({"scan", "scan_lengths", "scene", "scene_lengths"}))
+    teacher = _facts("teacher", [])
+    teacher.capabilities = frozenset({"predict_noise"})
+    for taps, want, note in (((TapFact("eps_pred", "points"), TapFact("samples", "points")), "samples", ""),
+                             ((TapFact("refined", "points"),), "refined", "prefers samples")):
+        s = _facts("student", list(taps))
+        s.capabilities = frozenset({"generate"})
+        from distilkit.pairing.fit import proposals
+
+        found = {p.objective: p for p in proposals([], s, teacher, scenes)}
+        assert found["structural"].taps == {"student": want} and note in found["structural"].note
+    s = _facts("student", [TapFact("eps_pred", "points"), TapFact("samples", "points", present=False)])
+    s.capabilities = frozenset({"generate"})
+    found = {p.objective: p for p in proposals([], s, teacher, scenes)}
+    assert not found["vsd"].fits and "declares but does not return" in found["vsd"].refused
+
+
+def test_a_plug_in_objective_without_a_match_is_paired_by_kind_and_said_so() -> None:
+    from pydantic import BaseModel
+
+    from distilkit.cards.base import ObjectiveCard
+    from distilkit.pairing.facts import TapFact
+    from distilkit.pairing.fit import propose
+    from distilkit.pairing.rules import tap_pairs
+
+    class MyCard(ObjectiveCard):
+        Params = BaseModel
+        CONSUMES = {"student": "voxel_logits", "teacher": "voxel_logits"}
+
+    g = _tiny_info().grid
+    s, t = (_facts(r, [TapFact("logits", "voxel_logits", g, channels=20)]) for r in ("student", "teacher"))
+    p = propose("mine", MyCard, 1.0, tap_pairs(s, t), s, t, _tiny_info())
+    assert p.fits and p.taps == {"student": "logits", "teacher": "logits"} and "declares no match" in p.note
+
+
+def test_flags_shape_what_is_written(tmp_path) -> None:
+    out = tmp_path / "pair.yaml"
+    common = args("scpnet", SCPNET, "scpnet", SCPNET, LIDAR_DATA)
+    assert init(*common, "--yes", "-o", str(out), "--stages", "each", "--no-baseline", "--set", "threads=1")[0] == 0
+    recipe = yaml.safe_load(out.read_text())
+    assert set(recipe["stages"]) == {"teacher", "student_kd", "student_dskd"} and recipe["threads"] == 1
+    code, _, err = init(*common, "--yes", "-o", str(out))
+    assert code == 2 and "--force" in err
+    assert init(*common, "--yes", "-o", str(out), "--force", "--no-check")[0] == 0
+    assert set(yaml.safe_load(out.read_text())["stages"]) == {"teacher", "student", "student_kd_dskd"}
+    code, _, err = init(*common, "--yes", "-o", str(out), "--force",
+                        "--set", "stages.student_kd_dskd.distill.1.params.per_sample=abc")
+    assert code == 2 and "Traceback" not in err and "distill.1.params.per_sample" in err
+
+
+def test_bad_model_parameters_and_a_failing_forward_are_named(tmp_path, monkeypatch) -> None:
+    code, _, err = init("--teacher", "scpnet", "--student", "scpnet", "--teacher-params", "chanels=4", "--yes",
+                        "-o", str(tmp_path / "x.yaml"))
+    assert code == 2 and "--teacher-params for 'scpnet': chanels" in err and "Traceback" not in err
+    import distilkit.pairing.probe
+
+    def fails(*a, **k):
+        raise RuntimeError("the user's forward broke")
+
+    monkeypatch.setattr(distilkit.pairing.probe, "probe_taps", fails)
+    code, _, err = init(*args("scpnet", SCPNET, "scpnet", SCPNET, LIDAR_DATA), "--show")
+    assert code == 2 and "the user's forward broke" in err and "--static" in err
+
+
+def test_show_lists_every_objective_even_when_no_default_fits() -> None:
+    code, out, err = init(*args("lidiff-refine", [], "lidiff", LIDIFF + ["generate_steps=1"], SCENES_DATA), "--show")
+    text = " ".join(out.replace("│", " ").split())
+    assert code == 0, err
+    assert "structural 1 student: samples; needs no teacher" in text and "◆ " not in text.split("chosen)", 1)[1]

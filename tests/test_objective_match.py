@@ -145,3 +145,16 @@ def test_the_declared_label_grid_rule_holds(name, params, role) -> None:
             run(name, params, role, both=not_dividing)
     else:
         assert not m.on_labels  # a rule on the labels' grid only for maps compared cell by cell
+
+
+def test_tap_hints_name_taps_some_adapter_declares_with_the_roles_kind() -> None:
+    from distilkit.registry import ADAPTERS
+    from distilkit.taps import kind_fits
+
+    declared = {(tap, kind) for name in ADAPTERS.names() for tap, kind in ADAPTERS.card(name).TAPS.items()}
+    for name in OBJECTIVES.names():
+        card = OBJECTIVES.card(name)
+        for role, taps in card.TAP_HINTS.items():
+            assert role in card.CONSUMES, (name, role)
+            for tap in taps:
+                assert any(t == tap and kind_fits(k, card.CONSUMES[role]) for t, k in declared), (name, role, tap)

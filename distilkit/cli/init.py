@@ -5,6 +5,7 @@ check it). With flags for scripts (``--yes``), numbered choices in a terminal.""
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -63,14 +64,15 @@ def _pairs(items: list[str], flag: str) -> dict[str, Any]:
 
 def init(args: argparse.Namespace) -> int:
     from distilkit.console import make_console
+    from distilkit.errors import DistilkitError
     from distilkit.pairing import plan
 
     console = make_console()
     ask = args.interactive or (not args.yes and not args.show and sys.stdin.isatty())
     if not ask and not (args.teacher and args.student):
-        from distilkit.errors import DistilkitError
-
         raise DistilkitError("distilkit init: give --teacher and --student (and --yes), or run it in a terminal")
+    if args.output is not None and args.output.exists() and not args.force and not args.show:
+        raise DistilkitError(f"{args.output} exists: give another -o, or --force to overwrite it")
     if ask:
         from distilkit.cli.init_prompts import ask_models
 
@@ -81,20 +83,28 @@ def init(args: argparse.Namespace) -> int:
     if _is_run(args.teacher):  # a trained teacher: its adapter, parameters and (as the default) its data
         from distilkit.pairing import from_checkpoint
 
-        args.teacher, params, data, checkpoint = from_checkpoint(args.teacher)
-        teacher_params = {**params, **teacher_params}
+        if teacher_params:
+            raise DistilkitError("--teacher-params with a trained teacher: its parameters are its checkpoint's "
+                                 "(other ones would not fit its weights)")
+        args.teacher, teacher_params, data, checkpoint = from_checkpoint(args.teacher)
         if data and args.dataset in (None, data.get("dataset")):
             args.dataset, data_params = data["dataset"], {**(data.get("params") or {}), **data_params}
         elif data:
             console.print(f"[yellow]note:[/] the teacher was trained on {data['dataset']}, not {args.dataset}",
                           highlight=False)
+    elif "/" in args.teacher or args.teacher.endswith((".pt", ".pth")):
+        raise DistilkitError(f"--teacher {args.teacher}: no such run folder or checkpoint file")
     with console.status("reading both models' taps (one forward each on a dry batch)" if not args.static else ""):
         p = plan(args.teacher, args.student, teacher_params=teacher_params,
                  student_params=_pairs(args.student_params, "--student-params"), dataset=args.dataset,
-                 data_params=data_params, objectives=objectives, static=args.static)
+                 data_params=data_params, objectives=objectives, static=args.static,
+                 require=not (args.show or ask))
     p.teacher_checkpoint = checkpoint
     if args.static:
         _static_connectors(p)
+        if p.found and not p.task_note:
+            console.print("[yellow]note:[/] --static: the student's task losses are not checked against the taps "
+                          "its forward returns (validate the file before a long run)", highlight=False)
     p.each, p.baseline = args.stages == "each", p.baseline and not args.no_baseline
     from distilkit.cli.init_prompts import show
 
@@ -106,7 +116,9 @@ def init(args: argparse.Namespace) -> int:
         from distilkit.cli.init_prompts import ask_choices
 
         ask_choices(p, args, console)
-    return _write(p, args, console, retry=objectives is None)
+        if not p.chosen:
+            raise DistilkitError("no objective chosen: nothing to write")
+    return _write(p, args, console, retry=objectives is None and not ask)
 
 
 def _is_run(teacher: str) -> bool:
@@ -154,7 +166,7 @@ def _write(p: Any, args: argparse.Namespace, console: Any, retry: bool) -> int:
             break
         with console.status(f"validating {path}: the terms on a dry batch" if not args.static else ""):
             problems = confirm(path, run_terms=not args.static)
-        failed = {int(f.rsplit("[", 1)[1].rstrip("]")) for f, _ in problems if ".distill[" in f}
+        failed = {int(m.group(1)) for f, _ in problems for m in [re.search(r"\.distill\[(\d+)\]", f)] if m}
         if problems and retry and failed and len(failed) < len(p.chosen) and not p.each:
             for field, problem in problems:  # a default that fails its first step is dropped, said so
                 console.print(f"[yellow]dropped[/] {field}: {problem}", highlight=False, soft_wrap=True)
@@ -163,7 +175,8 @@ def _write(p: Any, args: argparse.Namespace, console: Any, retry: bool) -> int:
             continue
         if problems:
             lines = "\n".join(f"  {f}: {msg}" if f else f"  {msg}" for f, msg in problems)
-            raise DistilkitError(f"wrote {path}, but it does not validate:\n{lines}")
+            raise DistilkitError(f"wrote {path}, but it does not validate (fix it, or rerun with other choices and "
+                                 f"--force):\n{lines}")
         console.print(f"wrote {path}: validated (the terms ran on a dry batch)" if not args.static else
                       f"wrote {path}: resolved (--static: no term ran)", highlight=False)
         break

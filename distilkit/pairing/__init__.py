@@ -8,14 +8,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from distilkit.errors import DistilkitError
 from distilkit.pairing.facts import ModelFacts, TapFact, card_facts, with_bev, with_probe
 from distilkit.pairing.fit import DEFAULTS, Proposal, defaults, proposals
+from distilkit.pairing.inputs import (InitError, aux_stages, check_models, data_params_for, from_checkpoint, lookup,
+                                      pick_dataset, serves)
 from distilkit.pairing.rules import TapPair, tap_pairs
-
-
-class InitError(DistilkitError):
-    """What keeps ``distilkit init`` from writing a recipe, in lines."""
 
 
 @dataclass
@@ -41,87 +38,6 @@ class Plan:
     task_note: str = ""  # why the student's default task losses are left out (they read taps it does not return)
 
 
-def from_checkpoint(source: str) -> tuple[str, dict[str, Any], dict[str, Any], str]:
-    """(adapter, its parameters, the run's data — ``{}`` without a resolved recipe beside it —, the checkpoint
-    file) of a run folder or a distilkit checkpoint (read with ``weights_only=True``; the weights are not used)."""
-    from distilkit.engine.assemble.runs import checkpoint_path, run_config
-    from distilkit.weights import load_checkpoint
-
-    path = checkpoint_path(source, "any")
-    ckpt = load_checkpoint(path)
-    adapter = ckpt.get("adapter")
-    if not isinstance(adapter, str):
-        raise InitError(f"{path}: the checkpoint names no adapter")
-    return adapter, dict(ckpt.get("adapter_params") or {}), dict(run_config(path).get("data") or {}), str(path)
-
-
-def _lookup(registry: Any, name: str) -> None:
-    if name not in registry.names():
-        raise InitError(registry.unknown_message(name))
-
-
-def _data_params(dataset: str, given: dict[str, Any], cards: list[Any]) -> dict[str, Any]:
-    """The data parameters: the adapters' needs (``DATA_PARAMS``, e.g. a camera) under the user's."""
-    out: dict[str, Any] = {}
-    for card in cards:
-        out.update(card.DATA_PARAMS)
-    return {**out, **given}
-
-
-def _serves(dataset: str, params: dict[str, Any], models: dict[str, tuple[str, dict[str, Any]]]) -> str | None:
-    """Why the data cannot serve both models (None: it can), by their inputs (an aux input counts as served)."""
-    from distilkit.registry import ADAPTERS, DATASETS
-
-    entry = DATASETS.entry(dataset)
-    try:
-        info = entry.meta["info"](entry.meta["params"](**params))
-    except Exception as exc:  # a folder dataset without its root, a bad parameter
-        errors = getattr(exc, "errors", None)
-        if callable(errors):
-            need = sorted({".".join(map(str, e["loc"])) for e in errors() if e.get("type") == "missing"})
-            if need:
-                return f"{dataset} needs {', '.join(need)} (--data-params)"
-        return f"{dataset}: {exc}".splitlines()[0]
-    lacks = []
-    for role, (adapter, p) in models.items():
-        card = ADAPTERS.card(adapter)
-        need = card.inputs(card.Params(**p)) - info.fields - set(card.AUX_INPUTS)
-        if need:
-            lacks.append(f"{role} {adapter!r} reads {', '.join(sorted(need))}")
-    return f"{dataset} gives no {'; '.join(lacks)}" if lacks else None
-
-
-def pick_dataset(models: dict[str, tuple[str, dict[str, Any]]], given: dict[str, Any]) -> str:
-    """The first registered dataset that serves both models with its default parameters (and the adapters'
-    ``DATA_PARAMS``); an error listing why each does not."""
-    from distilkit.registry import ADAPTERS, DATASETS
-
-    cards = [ADAPTERS.card(a) for a, _ in models.values()]
-    reasons = []
-    for name in DATASETS.names():
-        why = _serves(name, _data_params(name, given, cards), models)
-        if why is None:
-            return name
-        reasons.append(why)
-    raise InitError("no registered dataset serves both models: " + "; ".join(reasons))
-
-
-def _aux_for(models: dict[str, tuple[str, dict[str, Any]]], info: Any) -> tuple[dict, dict]:
-    """The auxiliary stages the models' inputs need (an input the data lacks that ``AUX_INPUTS`` names: a stage of
-    that adapter named after the input) and each role's edges."""
-    from distilkit.registry import ADAPTERS
-
-    stages: dict[str, tuple[str, dict[str, Any]]] = {}
-    edges: dict[str, dict[str, str]] = {}
-    for role, (adapter, params) in models.items():
-        card = ADAPTERS.card(adapter)
-        for name in sorted(card.inputs(card.Params(**params)) - info.fields):
-            if name in card.AUX_INPUTS:
-                stages[name] = (card.AUX_INPUTS[name], {})
-                edges.setdefault(role, {})[name] = name
-    return stages, edges
-
-
 def _task_note(student: ModelFacts) -> str:
     """Why the student's default task losses cannot train it with these parameters (they name taps the probed
     forward did not return: a ScoreLiDAR student, ``generate_steps > 0``, returns samples, not a denoiser's
@@ -140,26 +56,28 @@ def _task_note(student: ModelFacts) -> str:
 def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = None,
          student_params: dict[str, Any] | None = None, dataset: str | None = None,
          data_params: dict[str, Any] | None = None, objectives: list[str] | None = None, static: bool = False,
-         name: str | None = None) -> Plan:
+         name: str | None = None, require: bool = True) -> Plan:
     """The plan for a ``teacher`` and a ``student`` adapter: facts (probed unless ``static``), pairs, proposals,
     and the chosen objectives (``objectives``, each on its best pair, or the defaults of
-    :data:`~distilkit.pairing.fit.DEFAULTS` that fit). Raises :class:`InitError` naming what is wrong."""
+    :data:`~distilkit.pairing.fit.DEFAULTS` that fit; ``require``: an error when none fits, else an empty
+    choice, for ``--show`` and the questions). Raises :class:`InitError` naming what is wrong."""
     from distilkit.errors import RecipeError
     from distilkit.pairing.confirm import resolved
     from distilkit.registry import ADAPTERS, DATASETS, OBJECTIVES, load_plugins
 
     load_plugins()
     for adapter in (teacher, student):
-        _lookup(ADAPTERS, adapter)
+        lookup(ADAPTERS, adapter)
     models = {"teacher": (teacher, dict(teacher_params or {})), "student": (student, dict(student_params or {}))}
+    check_models(models)
     given = dict(data_params or {})
     if dataset is None:
         dataset = pick_dataset(models, given)
-    _lookup(DATASETS, dataset)
+    lookup(DATASETS, dataset)
     for o in objectives or []:
-        _lookup(OBJECTIVES, o)
-    params = _data_params(dataset, given, [ADAPTERS.card(a) for a, _ in models.values()])
-    why = _serves(dataset, params, models)
+        lookup(OBJECTIVES, o)
+    params = data_params_for(dataset, given, [ADAPTERS.card(a) for a, _ in models.values()])
+    why = serves(dataset, params, models)
     if why is not None:
         raise InitError(why)
     out = Plan(name or f"{student}_from_{teacher}".replace("-", "_"), dataset, params, models)
@@ -167,7 +85,7 @@ def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = 
     info = entry.meta["info"](entry.meta["params"](**params))
     probe_recipe = {"schema_version": 1, "name": out.name, "seed": 0,
                     "data": {"dataset": dataset, "params": params}, "stages": {}}
-    out.aux_stages, out.aux = _aux_for(models, info)
+    out.aux_stages, out.aux = aux_stages(models, info)
     stages = {n: {"model": {"adapter": a, "params": p}} for n, (a, p) in out.aux_stages.items()}
     for role, (adapter, p) in models.items():
         stages[role] = {"model": {"adapter": adapter, "params": p},
@@ -183,7 +101,15 @@ def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = 
     if not static:
         from distilkit.pairing.probe import probe_taps
 
-        probed = probe_taps(res, {"teacher": "teacher", "student": "student"})
+        try:
+            probed = probe_taps(res, {"teacher": "teacher", "student": "student"})
+        except Exception as exc:  # a model whose forward fails on the dry batch: said, not a traceback
+            from distilkit.engine.train.oom import is_out_of_memory
+
+            if is_out_of_memory(exc):
+                raise
+            raise InitError(f"running the models once on a dry batch failed ({type(exc).__name__}: {exc}); "
+                            "--static reads their taps from the cards alone") from None
         out.facts = {role: with_probe(f, probed[role]) for role, f in out.facts.items()}
     out.facts = {role: with_bev(f) for role, f in out.facts.items()}
     out.task_note = _task_note(out.facts["student"])
@@ -199,7 +125,7 @@ def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = 
         out.chosen = [by_name[o] for o in objectives]
     else:
         out.chosen = defaults(out.found)
-        if not out.chosen:
+        if not out.chosen and require:
             wanted = [n for group in DEFAULTS for n in group]
             raise InitError(f"{student} <- {teacher} on {dataset}: no objective fits — "
                             + "; ".join(f"{n}: {by_name[n].refused}" for n in wanted if n in by_name))

@@ -11,7 +11,7 @@ from typing import Any
 from distilkit.cards.base import partner
 from distilkit.geometry.grids import grid_factors
 from distilkit.pairing.facts import ModelFacts
-from distilkit.pairing.rules import TapPair
+from distilkit.pairing.rules import PLANE, TapPair
 from distilkit.taps import kind_fits
 
 # what `--yes` chooses, in order: the first of each group that fits (a group of one: that objective if it fits)
@@ -65,13 +65,33 @@ def _connector(m: Any, role: str, pair: TapPair) -> tuple[str | None, str | None
     return "linear", None
 
 
-def _pair_for(card: Any, t_role: str, pairs: list[TapPair], info: Any) -> tuple[TapPair | None, str | None, str]:
-    """The best pair for teacher role ``t_role`` and its student partner: (pair, connector, problem)."""
-    s_role, m = partner(t_role), card.match()[t_role]
+def _params(card: Any) -> Any:
+    """The card's default parameters (None where it has no ``Params`` a plain call builds: a plug-in's)."""
+    try:
+        return card.Params()
+    except Exception:
+        return None
+
+
+def _pair_for(card: Any, t_role: str, pairs: list[TapPair], info: Any, teacher: ModelFacts
+              ) -> tuple[TapPair | None, str | None, str]:
+    """The best pair for teacher role ``t_role`` and its student partner: (pair, connector, problem). A role
+    without a declared match (a plug-in's) takes the best pair of its kinds: its first step decides."""
+    s_role, m = partner(t_role), card.match(_params(card)).get(t_role)
     wanted_s, wanted_t = card.CONSUMES[s_role], card.CONSUMES[t_role]
-    candidates = [p for p in pairs if kind_fits(p.student.kind, wanted_s) and kind_fits(p.teacher.kind, wanted_t)]
+
+    def made_ok(p: TapPair) -> bool:  # init's own bird's-eye maps serve the roles that read bird's-eye maps only
+        return (p.student.of is None or wanted_s == PLANE) and (p.teacher.of is None or wanted_t == PLANE)
+
+    candidates = [p for p in pairs if kind_fits(p.student.kind, wanted_s) and kind_fits(p.teacher.kind, wanted_t)
+                  and made_ok(p)]
     if not candidates:
-        return None, None, f"no student {wanted_s} tap aligns with a teacher {wanted_t} tap"
+        if not teacher.of_kind(wanted_t):
+            return None, None, f"the teacher {teacher.adapter!r} has no {wanted_t} tap"
+        return None, None, (f"no student {wanted_s} tap aligns with a teacher {wanted_t} tap (other kinds, grids "
+                            "or planes)")
+    if m is None:
+        return candidates[0], None, ""
     first = ""
     for p in candidates:
         problem = _match_problem(m, p, info)
@@ -82,14 +102,36 @@ def _pair_for(card: Any, t_role: str, pairs: list[TapPair], info: Any) -> tuple[
     return None, None, first
 
 
+def _own_tap(card: Any, role: str, kind: str, student: ModelFacts) -> tuple[str | None, str]:
+    """The student tap of a role only the student fills (a head's features, a sampler's points): the first tap the
+    card's ``TAP_HINTS`` prefers, else (none of them declared) the first of its kind, said in the note; (None, why)
+    where there is none, or a preferred tap is declared but not returned with these parameters."""
+    hinted = card.TAP_HINTS.get(role, ())
+    declared = [t for t in student.taps if kind_fits(t.kind, kind) and t.of is None]
+    present = [t.tap for t in declared if t.present]
+    preferred = [t for t in hinted if t in present]
+    if preferred:
+        return preferred[0], ""
+    absent = [t.tap for t in declared if not t.present and t.tap in hinted]
+    if absent:
+        return None, (f"{role} reads {', '.join(absent)}, which {student.adapter!r} declares but does not return "
+                      "with these parameters (e.g. a sampler's samples only in its few-step generator's training)")
+    if present:
+        return present[0], (f"{role}: {present[0]} (the objective prefers {', '.join(hinted)})" if hinted else "")
+    return None, f"{role} reads a student {kind} tap, and {student.adapter!r} has none"
+
+
 def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: ModelFacts, teacher: ModelFacts,
             info: Any) -> Proposal:
     """Objective ``name`` on its best taps of the pair, or the reason it does not fit."""
     out = Proposal(name, weight, teacher_roles=frozenset(card.TEACHER_ROLES))
-    missing = [f"{role}: {card.BATCH_HINTS.get(role) or f'needs the batch field {card.default_field(role, info.fields)!r}'}"
+    missing = [f"{role}: " + (card.BATCH_HINTS.get(role) or
+                              f"needs the batch field {card.default_field(role, info.fields)!r}")
                for role in card.BATCH if card.default_field(role, info.fields) not in info.fields]
+    params = _params(card)
     lacks_t = sorted(card.REQUIRES - teacher.capabilities)
-    lacks_s = sorted(card.student_requires(card.Params()) - student.capabilities)
+    lacks_s = sorted((card.student_requires(params) if params is not None else card.STUDENT_REQUIRES)
+                     - student.capabilities)
     if missing:
         out.refused = "the data lacks " + "; ".join(missing)
     elif lacks_t:
@@ -98,8 +140,11 @@ def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: 
         out.refused = f"calls the student's {', '.join(f'{m}()' for m in lacks_s)}, which {student.adapter!r} lacks"
     if out.refused:
         return out
+    notes = []
+    if card.TEACHER_ROLES and not card.match(params):
+        notes.append("its card declares no match: checked by its first step")
     for t_role in sorted(card.TEACHER_ROLES - card.OPTIONAL, key=lambda r: r != "teacher"):
-        pair, connector, problem = _pair_for(card, t_role, pairs, info)
+        pair, connector, problem = _pair_for(card, t_role, pairs, info, teacher)
         if pair is None:
             out.refused, out.taps = problem, {}
             return out
@@ -107,21 +152,18 @@ def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: 
         out.pairs[t_role] = pair
         if partner(t_role) == "student":
             out.connector = connector
-    for role, kind in card.CONSUMES.items():  # the student's own roles (a head's features, a sampler's points)
+    for role, kind in card.CONSUMES.items():
         if role in out.taps or role in card.OPTIONAL or role in card.TEACHER_ROLES:
             continue
-        hinted = card.TAP_HINTS.get(role)  # where the card names the taps a role reads, only those
-        taps = [f.tap for f in student.of_kind(kind) if hinted is None or f.tap in hinted]
-        if not taps:
-            absent = [t.tap for t in student.taps if not t.present and kind_fits(t.kind, kind)
-                      and (hinted is None or t.tap in hinted)]
-            why = (f"does not return {', '.join(absent)} with these parameters" if absent else
-                   f"has none{' of ' + ', '.join(hinted) if hinted else ''}")
-            out.refused, out.taps = f"{role} reads a student {kind} tap, and {student.adapter!r} {why}", {}
+        tap, note = _own_tap(card, role, kind, student)
+        if tap is None:
+            out.refused, out.taps = note, {}
             return out
-        out.taps[role] = taps[0]
+        out.taps[role] = tap
+        notes += [note] if note else []
     if not card.TEACHER_ROLES and not card.REQUIRES:
-        out.note = "needs no teacher (it compares the student with the data)"
+        notes.append("needs no teacher (it compares the student with the data)")
+    out.note = "; ".join(notes)
     return out
 
 

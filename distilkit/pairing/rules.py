@@ -17,8 +17,10 @@ PLANE = "bev_features"
 
 @dataclass(frozen=True)
 class TapPair:
-    """A student tap and a teacher tap of one kind; ``how`` they align: ``same`` (one grid or shape), ``coarser
-    f``/``finer f`` (the teacher's grid f times coarser or finer), ``resized`` (dense maps of other sizes)."""
+    """A student tap and a teacher tap of one kind; ``how`` they align: ``same`` (one grid or shape), ``teacher
+    coarser xF``/``teacher finer xF`` (the teacher's grid F times coarser or finer; ``x2x2x1`` per axis where the
+    factors differ), ``resized`` (image maps of other sizes), ``collapsed`` (a student's bird's-eye map against the
+    teacher's voxels on its plane)."""
 
     student: TapFact
     teacher: TapFact
@@ -27,9 +29,11 @@ class TapPair:
 
     @property
     def same(self) -> bool:
+        """Whether both taps are on one grid (or of one shape)."""
         return self.how == "same"
 
     def text(self) -> str:
+        """The pair in one line: taps, kind, sizes, how they align, channels."""
         if self.how == "collapsed":
             return (f"{self.student.tap} <- {self.teacher.tap}: the teacher's voxels collapsed onto the student's "
                     f"{self.student.size()} plane")

@@ -13,6 +13,8 @@ import yaml
 
 from distilkit.pairing.fit import Proposal
 
+# objectives that distil into a generator initialised as its teacher (ScoreLiDAR, Distillation-DPO)
+INIT_FROM_TEACHER = frozenset({"vsd", "distillation_dpo"})
 WEIGHTS_NOTE = ("weights are each objective's default, its paper's for its own setting, not tuned for this pair: "
                 "compare a few in a sweep (distilkit sweep, e.g. recipes/sweeps/dskd_weight.yaml)")
 
@@ -55,6 +57,9 @@ def recipe_dict(plan: Any) -> dict[str, Any]:
         names = "_".join(p.objective for p in group)
         s = stage("student", f"{s_adapter} student <- {t_adapter} ({', '.join(p.objective for p in group)})", True)
         s["teacher"] = dict(edge)
+        if plan.teacher_checkpoint is None and t_adapter == s_adapter and \
+                {p.objective for p in group} & INIT_FROM_TEACHER:
+            s["init"] = {"from": "teacher", "strict": False}  # a few-step generator starts as the teacher
         made = _made_taps(plan, group)
         if made["student"]:
             s["model"]["taps"] = made["student"]
@@ -83,7 +88,7 @@ def _made_taps(plan: Any, group: list[Proposal]) -> dict[str, dict[str, Any]]:
 
 def _flow(value: Any) -> str:
     """One value in YAML flow style on one line (strings as JSON, which YAML reads)."""
-    if isinstance(value, str):
+    if isinstance(value, (str, int, float, bool)) or value is None:  # a scalar: JSON, which YAML reads
         return json.dumps(value)
     return yaml.safe_dump(value, default_flow_style=True, sort_keys=False, width=1 << 30).strip()
 
@@ -92,7 +97,7 @@ def term_comment(p: Proposal) -> str:
     """Which taps a term pairs and how (``completion <- completion: sparse_features, 32x32x4 <- 16x16x2 (teacher
     coarser x2), 32 <- 64 ch``), its connector, and any note."""
     parts = [pair.text() for pair in p.pairs.values()]
-    if p.connector:
+    if p.connector and "connector" not in p.note:
         parts.append(f"connector {p.connector}: the student's channels projected to the teacher's")
     if p.note:
         parts.append(p.note)
@@ -122,10 +127,8 @@ def recipe_text(plan: Any, data: dict[str, Any], argv: list[str]) -> str:
     lines += [f"#   {p.text()}" for p in pairs]
     lines += [f"# {WEIGHTS_NOTE}"] + ([f"# {plan.task_note} (and no baseline stage)"] if plan.task_note else [])
     lines.append("")
-    body = [f"schema_version: {data['schema_version']}", f"name: {_flow(data['name'])}", f"seed: {data['seed']}",
-            "data:", f"  dataset: {_flow(data['data']['dataset'])}"]
-    if "params" in data["data"]:
-        body.append(f"  params: {_flow(data['data']['params'])}")
+    body = [f"{key}: {_flow(value)}" for key, value in data.items() if key not in ("data", "stages")]
+    body += ["data:"] + [f"  {key}: {_flow(value)}" for key, value in data["data"].items()]
     body += ["", "stages:"]
     comments = {p.objective: term_comment(p) for p in plan.chosen}
     for name, stage in data["stages"].items():
@@ -141,7 +144,9 @@ def recipe_text(plan: Any, data: dict[str, Any], argv: list[str]) -> str:
         body.append("")
     text = "\n".join(lines + body).rstrip() + "\n"
     if yaml.safe_load(text) != data:
-        raise AssertionError("distilkit init: the written YAML does not read back as the recipe")
+        from distilkit.pairing.inputs import InitError
+
+        raise InitError("the recipe's YAML does not read back as written (a bug: please report it with the command)")
     return text
 
 
