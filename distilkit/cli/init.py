@@ -101,7 +101,6 @@ def init(args: argparse.Namespace) -> int:
                  require=not (args.show or ask))
     p.teacher_checkpoint = checkpoint
     if args.static:
-        _static_connectors(p)
         if p.found and not p.task_note:
             console.print("[yellow]note:[/] --static: the student's task losses are not checked against the taps "
                           "its forward returns (validate the file before a long run)", highlight=False)
@@ -127,22 +126,6 @@ def _is_run(teacher: str) -> bool:
 
     load_plugins()
     return teacher not in ADAPTERS.names() and Path(teacher).exists()
-
-
-def _static_connectors(p: Any) -> None:
-    """Without a forward the widths of feature taps are unknown: equal-width objectives get a linear connector."""
-    for prop in p.chosen:
-        card = _card(prop.objective)
-        pair = prop.pairs.get("teacher")
-        if card.match().get("teacher") and card.match()["teacher"].channels == "equal" and pair is not None and \
-                pair.student.channels is None:
-            prop.connector, prop.note = "linear", "connector linear: widths unknown without a forward (--static)"
-
-
-def _card(name: str) -> Any:
-    from distilkit.registry import OBJECTIVES
-
-    return OBJECTIVES.card(name)
 
 
 def _write(p: Any, args: argparse.Namespace, console: Any, retry: bool) -> int:

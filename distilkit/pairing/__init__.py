@@ -77,12 +77,10 @@ def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = 
     for o in objectives or []:
         lookup(OBJECTIVES, o)
     params = data_params_for(dataset, given, [ADAPTERS.card(a) for a, _ in models.values()])
-    why = serves(dataset, params, models)
+    why, info = serves(dataset, params, models)
     if why is not None:
         raise InitError(why)
     out = Plan(name or f"{student}_from_{teacher}".replace("-", "_"), dataset, params, models)
-    entry = DATASETS.entry(dataset)
-    info = entry.meta["info"](entry.meta["params"](**params))
     probe_recipe = {"schema_version": 1, "name": out.name, "seed": 0,
                     "data": {"dataset": dataset, "params": params}, "stages": {}}
     out.aux_stages, out.aux = aux_stages(models, info)

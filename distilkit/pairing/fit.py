@@ -73,11 +73,12 @@ def _params(card: Any) -> Any:
         return None
 
 
-def _pair_for(card: Any, t_role: str, pairs: list[TapPair], info: Any, teacher: ModelFacts
+def _pair_for(card: Any, params: Any, t_role: str, pairs: list[TapPair], info: Any, teacher: ModelFacts
               ) -> tuple[TapPair | None, str | None, str]:
-    """The best pair for teacher role ``t_role`` and its student partner: (pair, connector, problem). A role
-    without a declared match (a plug-in's) takes the best pair of its kinds: its first step decides."""
-    s_role, m = partner(t_role), card.match(_params(card)).get(t_role)
+    """The best pair for teacher role ``t_role`` and its student partner under the card's ``params``: (pair,
+    connector, problem). A role without a declared match (a plug-in's) takes the best pair of its kinds: its first
+    step decides."""
+    s_role, m = partner(t_role), card.match(params).get(t_role)
     wanted_s, wanted_t = card.CONSUMES[s_role], card.CONSUMES[t_role]
 
     def made_ok(p: TapPair) -> bool:  # init's own bird's-eye maps serve the roles that read bird's-eye maps only
@@ -144,7 +145,7 @@ def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: 
     if card.TEACHER_ROLES and not card.match(params):
         notes.append("its card declares no match: checked by its first step")
     for t_role in sorted(card.TEACHER_ROLES - card.OPTIONAL, key=lambda r: r != "teacher"):
-        pair, connector, problem = _pair_for(card, t_role, pairs, info, teacher)
+        pair, connector, problem = _pair_for(card, params, t_role, pairs, info, teacher)
         if pair is None:
             out.refused, out.taps = problem, {}
             return out
@@ -152,6 +153,8 @@ def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: 
         out.pairs[t_role] = pair
         if partner(t_role) == "student":
             out.connector = connector
+            if connector and pair.student.channels is None:  # --static: no forward told the widths
+                notes.append(f"connector {connector}: widths unknown without a forward (--static)")
     for role, kind in card.CONSUMES.items():
         if role in out.taps or role in card.OPTIONAL or role in card.TEACHER_ROLES:
             continue

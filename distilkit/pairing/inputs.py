@@ -42,8 +42,10 @@ def data_params_for(dataset: str, given: dict[str, Any], cards: list[Any]) -> di
     return {**out, **given}
 
 
-def serves(dataset: str, params: dict[str, Any], models: dict[str, tuple[str, dict[str, Any]]]) -> str | None:
-    """Why the data cannot serve both models (None: it can), by their inputs (an aux input counts as served)."""
+def serves(dataset: str, params: dict[str, Any], models: dict[str, tuple[str, dict[str, Any]]]
+           ) -> tuple[str | None, Any]:
+    """(why the data cannot serve both models, or None where it can; the data's info, or None where its parameters
+    are wrong), by the models' inputs (an aux input counts as served)."""
     from distilkit.registry import ADAPTERS, DATASETS
 
     entry = DATASETS.entry(dataset)
@@ -54,15 +56,15 @@ def serves(dataset: str, params: dict[str, Any], models: dict[str, tuple[str, di
         if callable(errors):
             need = sorted({".".join(map(str, e["loc"])) for e in errors() if e.get("type") == "missing"})
             if need:
-                return f"{dataset} needs {', '.join(need)} (--data-params)"
-        return f"{dataset}: {_problems(exc)}"
+                return f"{dataset} needs {', '.join(need)} (--data-params)", None
+        return f"{dataset}: {_problems(exc)}", None
     lacks = []
     for role, (adapter, p) in models.items():
         card = ADAPTERS.card(adapter)
         need = card.inputs(card.Params(**p)) - info.fields - set(card.AUX_INPUTS)
         if need:
             lacks.append(f"the {role} {adapter!r} reads {', '.join(sorted(need))}")
-    return f"{dataset} lacks what {'; '.join(lacks)}" if lacks else None
+    return (f"{dataset} lacks what {'; '.join(lacks)}" if lacks else None), info
 
 
 def pick_dataset(models: dict[str, tuple[str, dict[str, Any]]], given: dict[str, Any]) -> str:
@@ -73,7 +75,7 @@ def pick_dataset(models: dict[str, tuple[str, dict[str, Any]]], given: dict[str,
     cards = [ADAPTERS.card(a) for a, _ in models.values()]
     reasons = []
     for name in DATASETS.names():
-        why = serves(name, data_params_for(name, given, cards), models)
+        why, _ = serves(name, data_params_for(name, given, cards), models)
         if why is None:
             return name
         reasons.append(why)
