@@ -13,6 +13,7 @@ from pathlib import Path
 _ROOT = Path(__file__).resolve().parent.parent
 if str(_ROOT) not in sys.path:  # the checkout's package, installed or not
     sys.path.insert(0, str(_ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _cli.py: the parser reference/cli.md documents
 
 import distilkit  # noqa: E402  (after the path: the project's name and version come from the package)
 
@@ -25,11 +26,16 @@ extensions = [
     "sphinx.ext.autodoc",
     "sphinx.ext.napoleon",
     "sphinx.ext.viewcode",
+    "sphinxarg.ext",  # sphinx-argparse: reference/cli.md, every command read from distilkit.cli.build_parser
 ]
 source_suffix = {".md": "markdown", ".rst": "restructuredtext"}
 root_doc = "index"
 # _build: a local build's output; examples/: the worked plug-in's files, linked from the guide, not pages
 exclude_patterns = ["_build", "examples/**"]
+
+# no typographic quotes or dashes: `--jobs 2` and 'stages.*.train.steps=4' in the command-line reference (and any
+# prose) must paste into a shell as they are shown
+smartquotes = False
 
 # MyST: the GitHub-style `#section` links the pages use resolve for headings down to ###
 myst_heading_anchors = 3

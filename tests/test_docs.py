@@ -21,12 +21,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import html
 import io
 import json
 import re
 import shlex
 import subprocess
 import sys
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -453,7 +455,7 @@ def test_the_site_builds_without_a_warning(tmp_path: Path) -> None:
     """``python -m sphinx -b html -W --keep-going docs SITE``, as .ci/run builds it: a warning (a broken link or
     anchor, a docstring that is not reST, a module the API pages cannot import) fails; the API pages hold the
     documented functions."""
-    for module in ("sphinx", "myst_parser", "furo"):
+    for module in ("sphinx", "myst_parser", "furo", "sphinxarg"):
         pytest.importorskip(module, reason='the docs extra: pip install -e ".[docs]"')
     site = tmp_path / "site"
     done = subprocess.run([sys.executable, "-m", "sphinx", "-b", "html", "-W", "--keep-going", "-q", "-E",
@@ -465,3 +467,35 @@ def test_the_site_builds_without_a_warning(tmp_path: Path) -> None:
     contracts = (site / "reference" / "api" / "contracts.html").read_text()
     assert 'id="distilkit.adapter.Adapter"' in contracts and 'id="distilkit.registry.NoParams"' in contracts
     assert (site / "getting-started.html").is_file() and (site / "tutorials" / "your-own-model.html").is_file()
+    cli = (site / "reference" / "cli.html").read_text()
+    from distilkit.cli import build_parser
+
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert [c for c in commands if f'id="distilkit-{c}"' not in cli] == []
+    # the examples are a literal block, one line each, with plain quotes and dashes (they paste into a shell)
+    assert "distilkit run recipes/quickstart.yaml --set 'stages.*.train.steps=4'" in html.unescape(
+        re.sub(r"<[^>]+>", "", cli))
+
+
+def test_the_cli_page_shows_each_commands_text_after_its_options_as_written() -> None:
+    """docs/_cli.py: the parser of reference/cli.md is distilkit's, every epilog made a literal block whose lines
+    are the terminal's."""
+    sys.path.insert(0, str(ROOT / "docs"))
+    try:
+        import _cli
+    finally:
+        sys.path.remove(str(ROOT / "docs"))
+    from distilkit.cli import build_parser
+
+    def epilogs(parser: argparse.ArgumentParser) -> dict[str, str]:
+        subs = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        out = {parser.prog: parser.epilog or ""}
+        for child in (subs.choices.values() if subs else []):
+            out.update(epilogs(child))
+        return out
+
+    ours, theirs = epilogs(build_parser()), epilogs(_cli.parser())
+    assert ours.keys() == theirs.keys() and "distilkit data rectify" in ours
+    for prog, text in ours.items():
+        if text:
+            assert theirs[prog].startswith("::\n\n") and textwrap.dedent(theirs[prog][4:]) == textwrap.dedent(text)

@@ -52,8 +52,8 @@ def add(sub: Any) -> None:
     b.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
     b.add_argument("--only", nargs="+", metavar="PATTERN",
                    help="run only the cases whose objective or size matches one of these (case-insensitive, anywhere "
-                        "in the row's first two cells; * for anything between), those of the first pattern first: "
-                        "--only 'recipe*bf16' 'SCPNet student'")
+                        "in the row's first two cells; `*` for anything between), those of the first pattern first: "
+                        "`--only 'recipe*bf16' 'SCPNet student'`")
     b.add_argument("--time-limit", type=float, metavar="SECONDS",
                    help="start no case after this many seconds (a case that times many steps also stops); those left "
                         "are named under the table")

@@ -31,8 +31,8 @@ def add(sub: Any) -> None:
                               EXAMPLES["eval"])
     _folder_split(ev, "the SemanticKITTI folder (holds sequences/NN/voxels/; sscbench-kitti360: the KITTI-360 "
                       "folder)", "valid", "08")
-    ev.add_argument("--predictions", required=True, help="the folder holding sequences/NN/predictions/*.label "
-                                                         "(sscbench-kitti360: <drive>/FFFFFF_1_1.npy)")
+    ev.add_argument("--predictions", required=True, help="the folder holding `sequences/NN/predictions/*.label` "
+                                                         "(sscbench-kitti360: `<drive>/FFFFFF_1_1.npy`)")
     ev.add_argument("--out", default=None, help="where to write the scores (default: PREDICTIONS/scores.txt)")
     ev.add_argument("--classes", default="semantickitti",
                     choices=["semantickitti", "semanticposs", "sscbench-kitti360"],
@@ -40,8 +40,8 @@ def add(sub: Any) -> None:
                          "sscbench-kitti360: its folder layout, 19 classes, valid 06, test 09, predictions "
                          "PREDICTIONS/<drive>/FFFFFF_1_1.npy or .label)")
     ev.add_argument("--targets", default=None, choices=["voxels", "preprocess"],
-                    help="sscbench-kitti360's target files: voxels/*.label + .invalid (default) or "
-                         "preprocess/labels/*_1_1.npy")
+                    help="sscbench-kitti360's target files: `voxels/*.label` + `.invalid` (default) or "
+                         "`preprocess/labels/*_1_1.npy`")
     ev.set_defaults(fn=evaluate)
     pr = command(sub, "predict", "write a trained SSC run's predictions of a folder in its benchmark's "
                                  "format (SemanticKITTI: sequences/NN/predictions/NNNNNN.label; "

@@ -37,7 +37,7 @@ def add(sub: Any) -> None:
     p.add_argument("--stages", choices=("combined", "each"), default="combined",
                    help="one student stage with every objective (default), or one per objective")
     p.add_argument("--no-baseline", action="store_true", help="no student stage without distillation")
-    set_option(p, "override fields of the written recipe by dotted path, e.g. --set 'stages.*.train.steps=100'")
+    set_option(p, "override fields of the written recipe by dotted path, e.g. `--set 'stages.*.train.steps=100'`")
     p.add_argument("--show", action="store_true", help="print the taps, pairs and objectives; write nothing")
     p.add_argument("--static", action="store_true", help="run no model: channels from the cards only (equal-width "
                    "objectives get a linear connector), and the written recipe's terms are not run")
