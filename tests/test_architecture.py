@@ -34,7 +34,23 @@ def lint(root: Path) -> subprocess.CompletedProcess[str]:
 def test_the_import_contracts_hold() -> None:
     done = lint(ROOT)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert "0 broken" in done.stdout and "6 kept" in done.stdout, done.stdout
+    contracts = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    assert "0 broken" in done.stdout and f"{len(contracts)} kept" in done.stdout, done.stdout
+
+
+def test_pairing_uses_only_its_lower_rooms(tmp_path: Path) -> None:
+    """The pairing contract: what a model offers (``facts``) may not read which objective fits (``fit``)."""
+    for name in PACKAGES:
+        shutil.copytree(ROOT / name, tmp_path / name, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT / "pyproject.toml", tmp_path)
+    facts = tmp_path / "distilkit" / "pairing" / "facts.py"
+    facts.write_text(facts.read_text().replace("from __future__ import annotations\n",
+                                               "from __future__ import annotations\n\nimport distilkit.pairing.fit\n",
+                                               1))
+    done = lint(tmp_path)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "pairing" in done.stdout and "BROKEN" in done.stdout
+    assert "distilkit.pairing.facts is not allowed to import distilkit.pairing.fit" in done.stdout
 
 
 def test_an_upward_import_breaks_the_layers_with_its_chain_named(tmp_path: Path) -> None:
