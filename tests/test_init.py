@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import re
 import sys
 from pathlib import Path
 
@@ -208,6 +209,25 @@ def test_the_numbered_questions_read_stdin(tmp_path, monkeypatch) -> None:
     assert code == 0, err
     recipe = yaml.safe_load(out.read_text())
     assert set(recipe["stages"]) == {"teacher", "student_kd", "student_dskd"}  # one stage each, no baseline
+
+
+def test_the_data_question_numbers_only_the_datasets_that_serve_both(tmp_path, monkeypatch) -> None:
+    """A dataset that cannot serve the pair is listed dimmed with its reason, not numbered: `1` is the first that
+    can (the tiny parameters leave only the synthetic streets; a folder dataset needs its root)."""
+    from distilkit.registry import ADAPTERS
+
+    out = tmp_path / "asked.yaml"
+    scpnet = str(ADAPTERS.names().index("scpnet") + 1)
+    monkeypatch.setattr(sys, "stdin", io.StringIO("\n".join([scpnet, scpnet, "1", "", "combined", "n", str(out)])
+                                                  + "\n"))
+    code, stdout, err = init("--interactive", "--teacher-params", *SCPNET, "frames=2", "--student-params", *SCPNET,
+                             "--data-params", *LIDAR_DATA)
+    assert code == 0, err
+    offered = re.search(r"data: 0\) the first that serves both(.*)", stdout)
+    assert offered and offered.group(1).split("  ")[1:] == ["1) synthetic-lidar"], stdout
+    assert "not offered: semantickitti needs root (--data-params)" in stdout
+    assert "not offered: synthetic-scenes: scale: Extra inputs" in stdout  # the tiny LiDAR parameters are not its
+    assert yaml.safe_load(out.read_text())["data"]["dataset"] == "synthetic-lidar"
 
 
 def test_mistakes_are_named(tmp_path) -> None:

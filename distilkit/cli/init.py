@@ -76,7 +76,7 @@ def init(args: argparse.Namespace) -> int:
     if ask:
         from distilkit.cli.init_prompts import ask_models
 
-        ask_models(args, console)
+        ask_models(args, console, lambda teacher, student: _dataset_reasons(teacher, student, args))
     objectives = [o.strip() for o in args.objectives.split(",") if o.strip()] if args.objectives else None
     checkpoint, teacher_params = None, _pairs(args.teacher_params, "--teacher-params")
     data_params = _pairs(args.data_params, "--data-params")
@@ -118,6 +118,20 @@ def init(args: argparse.Namespace) -> int:
         if not p.chosen:
             raise DistilkitError("no objective chosen: nothing to write")
     return _write(p, args, console, retry=objectives is None and not ask)
+
+
+def _dataset_reasons(teacher: str, student: str, args: argparse.Namespace) -> dict[str, str | None] | None:
+    """Each dataset and why it cannot serve both models (:func:`~distilkit.pairing.dataset_reasons`); None where a
+    model is not a registered adapter (a trained teacher's run brings its own data; a typo is the plan's to name)."""
+    from distilkit.pairing import check_models, dataset_reasons
+    from distilkit.registry import ADAPTERS
+
+    if teacher not in ADAPTERS.names() or student not in ADAPTERS.names():
+        return None
+    models = {"teacher": (teacher, _pairs(args.teacher_params, "--teacher-params")),
+              "student": (student, _pairs(args.student_params, "--student-params"))}
+    check_models(models)
+    return dataset_reasons(models, _pairs(args.data_params, "--data-params"))
 
 
 def _is_run(teacher: str) -> bool:

@@ -4,7 +4,7 @@ terminal (rich's prompts read through ``input()``, so a test answers on stdin)."
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import Any, Callable
 
 
 def show(p: Any, console: Any) -> None:
@@ -42,8 +42,11 @@ def show(p: Any, console: Any) -> None:
     console.print(found)
 
 
-def ask_models(args: argparse.Namespace, console: Any) -> None:
-    """The teacher, the student and the data, where the flags do not give them: numbered lists."""
+def ask_models(args: argparse.Namespace, console: Any,
+               reasons: Callable[[str, str], dict[str, str | None] | None] | None = None) -> None:
+    """The teacher, the student and the data, where the flags do not give them: numbered lists. ``reasons(teacher,
+    student)``: each dataset and why it cannot serve both (None: it can); only those that can are numbered, the
+    others are listed dimmed with their reason (no ``reasons``, or None from it: every dataset is numbered)."""
     from rich.prompt import Prompt
 
     from distilkit.registry import ADAPTERS, DATASETS, load_plugins
@@ -58,9 +61,14 @@ def ask_models(args: argparse.Namespace, console: Any) -> None:
         answer = Prompt.ask(f"{role} (number or name)", console=console)
         setattr(args, role, _pick(answer, adapters))
     if args.dataset is None:
-        names = DATASETS.names()
+        why = (reasons(args.teacher, args.student) if reasons else None) or {n: None for n in DATASETS.names()}
+        names = [n for n, w in why.items() if w is None]
+        if not names:
+            return  # none serves both: the plan says why each does not
         console.print("[bold]data[/]: 0) the first that serves both  " +
                       "  ".join(f"{i}) {n}" for i, n in enumerate(names, 1)), highlight=False)
+        for w in (w for w in why.values() if w):
+            console.print(f"  [dim]not offered: {w}[/]", highlight=False)
         answer = Prompt.ask("data (number or name)", default="0", console=console)
         args.dataset = None if answer.strip() in ("", "0") else _pick(answer, names)
 

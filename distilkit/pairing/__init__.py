@@ -10,8 +10,8 @@ from typing import Any
 
 from distilkit.pairing.facts import ModelFacts, TapFact, card_facts, with_bev, with_probe
 from distilkit.pairing.fit import DEFAULTS, Proposal, defaults, proposals
-from distilkit.pairing.inputs import (InitError, aux_stages, check_models, data_params_for, from_checkpoint, lookup,
-                                      pick_dataset, serves)
+from distilkit.pairing.inputs import (InitError, aux_stages, check_models, data_params_for, dataset_reasons,
+                                      from_checkpoint, lookup, pick_dataset, serves)
 from distilkit.pairing.rules import TapPair, tap_pairs
 
 
@@ -130,4 +130,5 @@ def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = 
     return out
 
 
-__all__ = ["InitError", "ModelFacts", "Plan", "Proposal", "TapFact", "TapPair", "pick_dataset", "plan"]
+__all__ = ["InitError", "ModelFacts", "Plan", "Proposal", "TapFact", "TapPair", "dataset_reasons", "pick_dataset",
+           "plan"]

@@ -67,19 +67,23 @@ def serves(dataset: str, params: dict[str, Any], models: dict[str, tuple[str, di
     return (f"{dataset} lacks what {'; '.join(lacks)}" if lacks else None), info
 
 
-def pick_dataset(models: dict[str, tuple[str, dict[str, Any]]], given: dict[str, Any]) -> str:
-    """The first registered dataset that serves both models with its default parameters (and the adapters'
-    ``DATA_PARAMS``); an error listing why each does not."""
+def dataset_reasons(models: dict[str, tuple[str, dict[str, Any]]], given: dict[str, Any]) -> dict[str, str | None]:
+    """Every registered dataset, in the registry's order, and why it cannot serve both models with its default
+    parameters (and the adapters' ``DATA_PARAMS``, under ``given``); None where it can."""
     from distilkit.registry import ADAPTERS, DATASETS
 
     cards = [ADAPTERS.card(a) for a, _ in models.values()]
-    reasons = []
-    for name in DATASETS.names():
-        why, _ = serves(name, data_params_for(name, given, cards), models)
+    return {name: serves(name, data_params_for(name, given, cards), models)[0] for name in DATASETS.names()}
+
+
+def pick_dataset(models: dict[str, tuple[str, dict[str, Any]]], given: dict[str, Any]) -> str:
+    """The first registered dataset that serves both models (:func:`dataset_reasons`); an error listing why each
+    does not."""
+    reasons = dataset_reasons(models, given)
+    for name, why in reasons.items():
         if why is None:
             return name
-        reasons.append(why)
-    raise InitError("no registered dataset serves both models: " + "; ".join(reasons))
+    raise InitError("no registered dataset serves both models: " + "; ".join(w for w in reasons.values() if w))
 
 
 def aux_stages(models: dict[str, tuple[str, dict[str, Any]]], info: Any) -> tuple[dict, dict]:
@@ -120,5 +124,5 @@ def check_models(models: dict[str, tuple[str, dict[str, Any]]]) -> None:
         raise InitError("; ".join(problems))
 
 
-__all__ = ["InitError", "aux_stages", "check_models", "data_params_for", "from_checkpoint", "lookup", "pick_dataset",
-           "serves"]
+__all__ = ["InitError", "aux_stages", "check_models", "data_params_for", "dataset_reasons", "from_checkpoint", "lookup",
+           "pick_dataset", "serves"]
