@@ -230,6 +230,47 @@ def test_the_data_question_numbers_only_the_datasets_that_serve_both(tmp_path, m
     assert yaml.safe_load(out.read_text())["data"]["dataset"] == "synthetic-lidar"
 
 
+def test_taps_put_an_objective_on_the_pair_named(tmp_path) -> None:
+    """`--taps`: FitNets on the camera students' bird's-eye maps of their query features (which init makes, and
+    offers to the terms that read bird's-eye maps only, unless named) instead of its best pair (the image maps), the
+    pair checked by the same rules; a pair it cannot read, a role it lacks and a malformed item are one-line
+    errors."""
+    camera = ("voxformer", ["geometry=ground-truth"], "voxformer", ["geometry=ground-truth"], CAMERA_DATA)
+    out = tmp_path / "forced.yaml"
+    code, _, err = init(*args(*camera), "--taps", "fitnets.student=bev_query_features",
+                        "fitnets.teacher=bev_query_features", "--yes", "-o", str(out))
+    assert code == 0, err
+    _, stage = distill_stage(yaml.safe_load(out.read_text()))
+    assert [(t["name"], t["taps"]) for t in stage["distill"]] == \
+        [("fitnets", {"student": "bev_query_features", "teacher": "bev_query_features"})]
+    assert stage["model"]["taps"]["bev_query_features"]["of"] == "query_features"  # the map init makes
+    code, _, err = init(*args(*camera), "--objectives", "kd", "--taps", "fitnets.student=bev_query_features",
+                        "fitnets.teacher=bev_query_features", "--yes",
+                        "-o", str(tmp_path / "both.yaml"))
+    assert code == 0, err
+    _, stage = distill_stage(yaml.safe_load((tmp_path / "both.yaml").read_text()))
+    assert [t["name"] for t in stage["distill"]] == ["kd", "fitnets"]
+    assert stage["distill"][1]["taps"] == {"student": "bev_query_features", "teacher": "bev_query_features"}
+    code, _, err = init(*args(*camera), "--taps", "fitnets.teacher=bev_query_features", "--yes",
+                        "-o", str(tmp_path / "x.yaml"))  # the student's made map is not named: not offered
+    assert code == 2 and "fitnets: --taps: no pair it reads is on teacher bev_query_features" in err
+    code, _, err = init(*args(*camera), "--taps", "fitnets.student=logits", "fitnets.teacher=image_features",
+                        "--yes", "-o", str(tmp_path / "x.yaml"))
+    assert code == 2 and "fitnets: --taps: no pair it reads is on student logits, teacher image_features" in err
+    lidar = args("scpnet", SCPNET, "scpnet", SCPNET, LIDAR_DATA)
+    code, _, err = init(*lidar, "--taps", "hassc_hvm.features=completion_dense", "--yes", "-o", str(tmp_path / "h.yaml"))
+    assert code == 0, err  # a role only the student fills, named
+    _, stage = distill_stage(yaml.safe_load((tmp_path / "h.yaml").read_text()))
+    assert stage["distill"][0]["taps"]["features"] == "completion_dense"
+    code, _, err = init(*lidar, "--taps", "hassc_hvm.features=logits", "--yes", "-o", str(tmp_path / "x.yaml"))
+    assert code == 2 and "--taps: features reads a student volume_features tap, and 'logits' is not one" in err
+    code, _, err = init(*args(*camera), "--taps", "fitnets.foo=logits", "--yes", "-o", str(tmp_path / "x.yaml"))
+    assert code == 2 and "fitnets reads no role 'foo' (its roles: student, teacher)" in err
+    code, _, err = init(*args(*camera), "--taps", "fitnets=logits", "--yes", "-o", str(tmp_path / "x.yaml"))
+    assert code == 2 and "expected OBJECTIVE.ROLE=TAP" in err
+    assert not (tmp_path / "x.yaml").exists()
+
+
 def test_mistakes_are_named(tmp_path) -> None:
     out = tmp_path / "pair.yaml"
     out.write_text("mine\n")

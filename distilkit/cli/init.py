@@ -16,6 +16,8 @@ EXAMPLES = {
     "init": ["distilkit init --teacher js3cnet --student scpnet --yes -o pair.yaml",
              "distilkit init --teacher scpnet --student voxformer --show",
              "distilkit init --teacher scpnet --student scpnet --objectives kd,pkt --yes",
+             "distilkit init --teacher voxformer --student voxformer --taps mgd.student=bev_query_features "
+             "mgd.teacher=bev_query_features --yes",
              "distilkit init                                                    # asks, with numbered choices, in a terminal"],
 }
 
@@ -34,6 +36,10 @@ def add(sub: Any) -> None:
                    help="data.params, each value read as YAML (scale=4, 'camera={height: 24, width: 80}')")
     p.add_argument("--objectives", help="comma-separated objectives, each on its best pair of taps (default: kd on "
                    "the logits, then dskd on sparse features, or fitnets on volumes, or monoocc_image on images)")
+    p.add_argument("--taps", nargs="+", action="extend", default=[], metavar="OBJECTIVE.ROLE=TAP",
+                   help="the taps an objective reads, instead of its best pair (the objective is chosen, beside "
+                        "--objectives): e.g. `--taps fitnets.student=image_features fitnets.teacher=image_features`; "
+                        "`--show` lists the taps and the pairs that align")
     p.add_argument("--stages", choices=("combined", "each"), default="combined",
                    help="one student stage with every objective (default), or one per objective")
     p.add_argument("--no-baseline", action="store_true", help="no student stage without distillation")
@@ -97,7 +103,7 @@ def init(args: argparse.Namespace) -> int:
     with console.status("reading both models' taps (one forward each on a dry batch)" if not args.static else ""):
         p = plan(args.teacher, args.student, teacher_params=teacher_params,
                  student_params=_pairs(args.student_params, "--student-params"), dataset=args.dataset,
-                 data_params=data_params, objectives=objectives, static=args.static,
+                 data_params=data_params, objectives=objectives, static=args.static, taps=_forced(args.taps),
                  require=not (args.show or ask))
     p.teacher_checkpoint = checkpoint
     if args.static:
@@ -117,7 +123,21 @@ def init(args: argparse.Namespace) -> int:
         ask_choices(p, args, console)
         if not p.chosen:
             raise DistilkitError("no objective chosen: nothing to write")
-    return _write(p, args, console, retry=objectives is None and not ask)
+    return _write(p, args, console, retry=objectives is None and not args.taps and not ask)
+
+
+def _forced(items: list[str]) -> dict[str, dict[str, str]]:
+    """``--taps OBJECTIVE.ROLE=TAP ...`` as objective -> role -> tap."""
+    from distilkit.errors import DistilkitError
+
+    out: dict[str, dict[str, str]] = {}
+    for item in items:
+        key, eq, tap = item.partition("=")
+        objective, dot, role = key.strip().partition(".")
+        if not (eq and dot and objective and role and tap.strip()):
+            raise DistilkitError(f"--taps: {item!r}: expected OBJECTIVE.ROLE=TAP, e.g. fitnets.student=image_features")
+        out.setdefault(objective, {})[role.strip()] = tap.strip()
+    return out
 
 
 def _dataset_reasons(teacher: str, student: str, args: argparse.Namespace) -> dict[str, str | None] | None:

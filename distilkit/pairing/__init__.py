@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from distilkit.pairing.facts import ModelFacts, TapFact, card_facts, with_bev, with_probe
-from distilkit.pairing.fit import DEFAULTS, Proposal, defaults, proposals
+from distilkit.pairing.fit import DEFAULTS, Proposal, check_forced, defaults, proposals
 from distilkit.pairing.inputs import (InitError, aux_stages, check_models, data_params_for, dataset_reasons,
                                       from_checkpoint, lookup, pick_dataset, serves)
 from distilkit.pairing.rules import TapPair, tap_pairs
@@ -56,11 +56,12 @@ def _task_note(student: ModelFacts) -> str:
 def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = None,
          student_params: dict[str, Any] | None = None, dataset: str | None = None,
          data_params: dict[str, Any] | None = None, objectives: list[str] | None = None, static: bool = False,
-         name: str | None = None, require: bool = True) -> Plan:
+         name: str | None = None, require: bool = True, taps: dict[str, dict[str, str]] | None = None) -> Plan:
     """The plan for a ``teacher`` and a ``student`` adapter: facts (probed unless ``static``), pairs, proposals,
     and the chosen objectives (``objectives``, each on its best pair, or the defaults of
     :data:`~distilkit.pairing.fit.DEFAULTS` that fit; ``require``: an error when none fits, else an empty
-    choice, for ``--show`` and the questions). Raises :class:`InitError` naming what is wrong."""
+    choice, for ``--show`` and the questions). ``taps`` (objective -> role -> tap, ``--taps``): those objectives on
+    those taps, chosen beside ``objectives`` (or alone). Raises :class:`InitError` naming what is wrong."""
     from distilkit.errors import RecipeError
     from distilkit.pairing.confirm import resolved
     from distilkit.registry import ADAPTERS, DATASETS, OBJECTIVES, load_plugins
@@ -74,8 +75,14 @@ def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = 
     if dataset is None:
         dataset = pick_dataset(models, given)
     lookup(DATASETS, dataset)
-    for o in objectives or []:
+    taps = dict(taps or {})
+    for o in [*(objectives or []), *taps]:
         lookup(OBJECTIVES, o)
+    problems = check_forced(taps)
+    if problems:
+        raise InitError("; ".join(problems))
+    if taps:
+        objectives = [*(objectives or []), *(o for o in taps if o not in (objectives or []))]
     params = data_params_for(dataset, given, [ADAPTERS.card(a) for a, _ in models.values()])
     why, info = serves(dataset, params, models)
     if why is not None:
@@ -114,7 +121,7 @@ def plan(teacher: str, student: str, *, teacher_params: dict[str, Any] | None = 
     if out.task_note:
         out.baseline = False
     out.pairs = tap_pairs(out.facts["student"], out.facts["teacher"])
-    out.found = proposals(out.pairs, out.facts["student"], out.facts["teacher"], info)
+    out.found = proposals(out.pairs, out.facts["student"], out.facts["teacher"], info, taps)
     by_name = {p.objective: p for p in out.found}
     if objectives:
         refused = [f"{o}: {by_name[o].refused}" for o in objectives if not by_name[o].fits]

@@ -73,19 +73,31 @@ def _params(card: Any) -> Any:
         return None
 
 
-def _pair_for(card: Any, params: Any, t_role: str, pairs: list[TapPair], info: Any, teacher: ModelFacts
-              ) -> tuple[TapPair | None, str | None, str]:
+def _pair_for(card: Any, params: Any, t_role: str, pairs: list[TapPair], info: Any, teacher: ModelFacts,
+              forced: dict[str, str] | None = None) -> tuple[TapPair | None, str | None, str]:
     """The best pair for teacher role ``t_role`` and its student partner under the card's ``params``: (pair,
-    connector, problem). A role without a declared match (a plug-in's) takes the best pair of its kinds: its first
-    step decides."""
+    connector, problem); ``forced`` (role -> tap, ``--taps``): only pairs on those taps. A role without a declared
+    match (a plug-in's) takes the best pair of its kinds: its first step decides."""
     s_role, m = partner(t_role), card.match(params).get(t_role)
     wanted_s, wanted_t = card.CONSUMES[s_role], card.CONSUMES[t_role]
+    forced = {r: t for r, t in (forced or {}).items() if r in (s_role, t_role)}
 
     def made_ok(p: TapPair) -> bool:  # init's own bird's-eye maps serve the roles that read bird's-eye maps only
-        return (p.student.of is None or wanted_s == PLANE) and (p.teacher.of is None or wanted_t == PLANE)
+        return ((p.student.of is None or wanted_s == PLANE or forced.get(s_role) == p.student.tap)  # or --taps
+                and (p.teacher.of is None or wanted_t == PLANE or forced.get(t_role) == p.teacher.tap))
+
+    def as_forced(p: TapPair) -> bool:
+        return forced.get(s_role, p.student.tap) == p.student.tap and forced.get(t_role, p.teacher.tap) == p.teacher.tap
 
     candidates = [p for p in pairs if kind_fits(p.student.kind, wanted_s) and kind_fits(p.teacher.kind, wanted_t)
                   and made_ok(p)]
+    if forced:
+        named = ", ".join(f"{r} {t}" for r, t in forced.items())
+        kept = [p for p in candidates if as_forced(p)]
+        if not kept:
+            return None, None, (f"--taps: no pair it reads is on {named} (it reads a student {wanted_s} tap aligned "
+                                f"with a teacher {wanted_t} tap; `--show` lists the pairs)")
+        candidates = kept
     if not candidates:
         if not teacher.of_kind(wanted_t):
             return None, None, f"the teacher {teacher.adapter!r} has no {wanted_t} tap"
@@ -103,13 +115,18 @@ def _pair_for(card: Any, params: Any, t_role: str, pairs: list[TapPair], info: A
     return None, None, first
 
 
-def _own_tap(card: Any, role: str, kind: str, student: ModelFacts) -> tuple[str | None, str]:
-    """The student tap of a role only the student fills (a head's features, a sampler's points): the first tap the
-    card's ``TAP_HINTS`` prefers, else (none of them declared) the first of its kind, said in the note; (None, why)
-    where there is none, or a preferred tap is declared but not returned with these parameters."""
+def _own_tap(card: Any, role: str, kind: str, student: ModelFacts, forced: str | None = None
+             ) -> tuple[str | None, str]:
+    """The student tap of a role only the student fills (a head's features, a sampler's points): ``forced``
+    (``--taps``) where it is a returned tap of that kind, else the first tap the card's ``TAP_HINTS`` prefers, else
+    (none of them declared) the first of its kind, said in the note; (None, why) where there is none, or a
+    preferred tap is declared but not returned with these parameters."""
     hinted = card.TAP_HINTS.get(role, ())
     declared = [t for t in student.taps if kind_fits(t.kind, kind) and t.of is None]
     present = [t.tap for t in declared if t.present]
+    if forced is not None:
+        return (forced, "") if forced in present else (None, f"--taps: {role} reads a student {kind} tap, and "
+                                                            f"{forced!r} is not one {student.adapter!r} returns")
     preferred = [t for t in hinted if t in present]
     if preferred:
         return preferred[0], ""
@@ -123,8 +140,9 @@ def _own_tap(card: Any, role: str, kind: str, student: ModelFacts) -> tuple[str 
 
 
 def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: ModelFacts, teacher: ModelFacts,
-            info: Any) -> Proposal:
-    """Objective ``name`` on its best taps of the pair, or the reason it does not fit."""
+            info: Any, forced: dict[str, str] | None = None) -> Proposal:
+    """Objective ``name`` on its best taps of the pair (``forced``, role -> tap: on those), or the reason it does
+    not fit."""
     out = Proposal(name, weight, teacher_roles=frozenset(card.TEACHER_ROLES))
     missing = [f"{role}: " + (card.BATCH_HINTS.get(role) or
                               f"needs the batch field {card.default_field(role, info.fields)!r}")
@@ -145,7 +163,7 @@ def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: 
     if card.TEACHER_ROLES and not card.match(params):
         notes.append("its card declares no match: checked by its first step")
     for t_role in sorted(card.TEACHER_ROLES - card.OPTIONAL, key=lambda r: r != "teacher"):
-        pair, connector, problem = _pair_for(card, params, t_role, pairs, info, teacher)
+        pair, connector, problem = _pair_for(card, params, t_role, pairs, info, teacher, forced)
         if pair is None:
             out.refused, out.taps = problem, {}
             return out
@@ -158,7 +176,7 @@ def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: 
     for role, kind in card.CONSUMES.items():
         if role in out.taps or role in card.OPTIONAL or role in card.TEACHER_ROLES:
             continue
-        tap, note = _own_tap(card, role, kind, student)
+        tap, note = _own_tap(card, role, kind, student, (forced or {}).get(role))
         if tap is None:
             out.refused, out.taps = note, {}
             return out
@@ -170,12 +188,27 @@ def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: 
     return out
 
 
-def proposals(pairs: list[TapPair], student: ModelFacts, teacher: ModelFacts, info: Any) -> list[Proposal]:
-    """Every registered objective's proposal for this pair, in the registry's order."""
+def proposals(pairs: list[TapPair], student: ModelFacts, teacher: ModelFacts, info: Any,
+              forced: dict[str, dict[str, str]] | None = None) -> list[Proposal]:
+    """Every registered objective's proposal for this pair, in the registry's order (``forced``: objective ->
+    role -> tap, from ``--taps``)."""
     from distilkit.registry import OBJECTIVES
 
+    forced = forced or {}
     return [propose(n, OBJECTIVES.card(n), float(OBJECTIVES.entry(n).meta["default_weight"]), pairs, student,
-                    teacher, info) for n in OBJECTIVES.names()]
+                    teacher, info, forced.get(n)) for n in OBJECTIVES.names()]
+
+
+def check_forced(forced: dict[str, dict[str, str]]) -> list[str]:
+    """The problems of ``--taps`` (objective -> role -> tap): a role the objective does not read."""
+    from distilkit.registry import OBJECTIVES
+
+    out = []
+    for name, roles in forced.items():
+        consumes = OBJECTIVES.card(name).CONSUMES
+        out += [f"--taps {name}.{r}: {name} reads no role {r!r} (its roles: {', '.join(consumes)})"
+                for r in roles if r not in consumes]
+    return out
 
 
 def defaults(found: list[Proposal]) -> list[Proposal]:
@@ -184,4 +217,4 @@ def defaults(found: list[Proposal]) -> list[Proposal]:
     return [by_name[g] for group in DEFAULTS for g in [next((n for n in group if n in by_name), None)] if g]
 
 
-__all__ = ["DEFAULTS", "Proposal", "defaults", "proposals", "propose"]
+__all__ = ["DEFAULTS", "Proposal", "check_forced", "defaults", "proposals", "propose"]
