@@ -121,15 +121,33 @@ def test_a_launcher_name_in_the_sweep_file_says_where_the_launcher_is_chosen(tmp
     assert not (tmp_path / "runs").exists()
 
 
-def test_jobs_run_in_parallel_processes(tmp_path: Path) -> None:
-    """`--jobs 2`: the runs go to `distilkit run` processes, each with its log. Over 3 s: the child processes (each
-    starts Python and torch, trains, writes its report) are its point."""
+def test_jobs_run_in_parallel_processes(tmp_path: Path, capsys) -> None:
+    """`--jobs 2`: the runs go to `distilkit run` processes, each with its log; the output, not a terminal here (a
+    file, a Slurm log), gets one line a finished run. Over 3 s: the child processes (each starts Python and torch,
+    trains, writes its report) are its point."""
     path = write_sweep(tmp_path, seeds=[0])
     out = tmp_path / "runs"
-    assert main(["sweep", str(path), "-o", str(out), "-q", "--jobs", "2"]) == 0
+    assert main(["sweep", str(path), "-o", str(out), "--jobs", "2"]) == 0
     assert len(summaries(out / "sw")) == 3
     logs = sorted(p.name for p in (out / "sw" / "logs").iterdir())
     assert logs == ["dskd-seed0.log", "none-seed0.log", "teacher-seed0.log"]
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("[")]
+    assert [ln.split(": finished in ")[0] for ln in lines] == \
+        ["[1/3] teacher (upstream of variant dskd), seed 0", "[2/3] none, seed 0", "[3/3] dskd, seed 0"], lines
+    assert "2 left, about" in lines[0] and "all 3 done in" in lines[2]
+
+
+def test_run_lines_say_what_is_left_at_the_pace_so_far() -> None:
+    from distilkit.sweep.processes import RunLines
+
+    lines = RunLines(4, console=None, enabled=False)
+    lines.start -= 600  # two runs in 10 minutes (two jobs): 5 minutes a run, wall clock
+    assert lines.done("kd, seed 0", 590) == "[1/4] kd, seed 0: finished in 10 min; 3 left, about 30 min more at this pace"
+    assert lines.done("dist, seed 0", 3, failed=True) == \
+        "[2/4] dist, seed 0: failed in 3 s; 2 left, about 10 min more at this pace"
+    lines.start -= 3 * 3600
+    lines.done("x", 1)
+    assert lines.done("y", 1) == "[4/4] y: finished in 1 s; all 4 done in 3 h 10 min"
 
 
 @pytest.mark.parametrize("change, message", [

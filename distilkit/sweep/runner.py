@@ -8,7 +8,6 @@ the same upstream stage take turns on its lock, so it is trained once.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import shlex
 import subprocess
@@ -17,7 +16,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import yaml
 
@@ -28,6 +27,7 @@ from distilkit.engine.train.cpus import usable_cpus
 from distilkit.engine.train.pipeline import Pipeline
 from distilkit.errors import DistilkitError, RecipeError
 from distilkit.files import atomic_write_text
+from distilkit.sweep.processes import Children, RunLines
 from distilkit.sweep.spec import Sweep, load_sweep
 from distilkit.sweep.tasks import Task, variants_phrase
 
@@ -141,7 +141,8 @@ class SweepRun:
         return failures
 
     def _in_processes(self, todo: list[Task], jobs: int) -> list[str]:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                   TimeRemainingColumn)
 
         cpus = usable_cpus()
         threads = max(1, cpus // jobs)
@@ -158,27 +159,33 @@ class SweepRun:
         failures: list[str] = []
         children = Children()
 
-        def one(task: Task) -> None:
+        def one(task: Task) -> float:
             log = logs / f"{'+'.join(task.stages)}-seed{task.seed}.log"
+            start = time.monotonic()
             with open(log, "w", encoding="utf-8") as out:
                 code = children.run([sys.executable, "-m", "distilkit", *task.argv(self.output), "--quiet"],
                                     stdout=out, stderr=subprocess.STDOUT, env=env)
             if code is not None and code != 0 and not children.stopping:
                 tail = log.read_text(encoding="utf-8", errors="replace").strip().splitlines()[-1:] or ["(no output)"]
                 failures.append(f"{task.title}: exit status {code}: {tail[0]} (log: {log})")
+            return time.monotonic() - start
 
         upstream = [t for t in todo if t.stages != (t.variant,)]
         variants = [t for t in todo if t.stages == (t.variant,)]
+        lines = RunLines(len(todo), self.console, enabled=not self.quiet and not self.console.is_terminal)
         with children.forwarding_sigterm(), \
                 Progress(TextColumn(f"[cyan]sweep[/] {self.sweep.name} ({jobs} jobs × {threads} threads)"),
-                         BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=self.console,
-                         disable=self.quiet) as progress:
+                         BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("left"),
+                         TimeRemainingColumn(), console=self.console, disable=self.quiet) as progress:
             bar = progress.add_task("runs", total=len(todo))
             with ThreadPoolExecutor(max_workers=jobs) as pool:
                 try:
                     for phase in (upstream, variants):  # the shared teachers first, so no job waits on another
-                        for task, _ in zip(phase, pool.map(one, phase)):
+                        for task, seconds in zip(phase, pool.map(one, phase)):
                             progress.advance(bar)
+                            if not children.stopping:
+                                lines.done(task.title, seconds, failed=any(f.startswith(f"{task.title}:")
+                                                                           for f in failures))
                 except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the runs stop after their step, checkpoints kept
                     children.stop()
                     raise
@@ -241,65 +248,6 @@ class SweepRun:
 
         return write_results(self.root, self.sweep.name, records, self.sweep.baseline, self.order(), console,
                              missing, notes or [])
-
-
-class Children:
-    """The ``distilkit run`` processes a sweep started: none is started once stopping began, and :meth:`stop` asks
-    every live one to stop (SIGTERM: it finishes its step, writes ``last.pt`` and exits) and waits for them."""
-
-    def __init__(self) -> None:
-        import threading
-
-        self.lock = threading.Lock()
-        self.live: set[subprocess.Popen] = set()
-        self.stopping = False
-
-    def run(self, argv: list[str], **kwargs: Any) -> int | None:
-        """The exit status of ``argv`` run to its end (None: not started, the sweep is stopping)."""
-        with self.lock:
-            if self.stopping:
-                return None
-            proc = subprocess.Popen(argv, **kwargs)
-            self.live.add(proc)
-        try:
-            return proc.wait()
-        finally:
-            with self.lock:
-                self.live.discard(proc)
-
-    def stop(self, timeout: float = 600.0) -> None:
-        import signal
-
-        with self.lock:
-            self.stopping = True
-            live = list(self.live)
-        for proc in live:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGTERM)
-        for proc in live:
-            try:
-                proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-
-    @contextlib.contextmanager
-    def forwarding_sigterm(self) -> Iterator[None]:
-        """SIGTERM to the sweep stops its runs as Ctrl-C does (in the main thread: KeyboardInterrupt)."""
-        import signal
-        import threading
-
-        if threading.current_thread() is not threading.main_thread():
-            yield
-            return
-
-        def on_term(signum: int, frame: Any) -> None:
-            raise KeyboardInterrupt
-
-        previous = signal.signal(signal.SIGTERM, on_term)
-        try:
-            yield
-        finally:
-            signal.signal(signal.SIGTERM, previous)
 
 
 def run_sweep(path: str | Path, output: str | Path = "runs", seeds: list[int] | None = None, jobs: int = 1,
