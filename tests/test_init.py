@@ -253,10 +253,24 @@ def test_taps_put_an_objective_on_the_pair_named(tmp_path) -> None:
     assert stage["distill"][1]["taps"] == {"student": "bev_query_features", "teacher": "bev_query_features"}
     code, _, err = init(*args(*camera), "--taps", "fitnets.teacher=bev_query_features", "--yes",
                         "-o", str(tmp_path / "x.yaml"))  # the student's made map is not named: not offered
-    assert code == 2 and "fitnets: --taps: no pair it reads is on teacher bev_query_features" in err
+    assert code == 2 and "fitnets: --taps: teacher=bev_query_features is a bird's-eye map init makes: name the " \
+        "student side's tap too" in err
+    code, _, err = init(*args(*camera), "--taps", "cleaners.student_features=image_features",
+                        "cleaners.teacher_features=image_features", "--yes", "-o", str(tmp_path / "opt.yaml"))
+    assert code == 0, err  # optional roles, read because they are named
+    _, stage = distill_stage(yaml.safe_load((tmp_path / "opt.yaml").read_text()))
+    assert stage["distill"][0]["taps"] == {"student": "logits", "teacher": "logits",
+                                           "student_features": "image_features", "teacher_features": "image_features"}
+    code, _, err = init(*args(*camera), "--taps", "fitnets.student=image_feature", "--yes",
+                        "-o", str(tmp_path / "x.yaml"))
+    assert code == 2 and "--taps: student=image_feature: no tap of the student that aligns" in err
+    assert "image_features" in err  # the taps it could have named
+    code, _, err = init(*args(*camera), "--taps", "rgo2d.labels=voxel_target", "--yes", "-o", str(tmp_path / "x.yaml"))
+    assert code == 2 and "--taps rgo2d.labels: labels is a field of the batch, not a model's tap" in err
     code, _, err = init(*args(*camera), "--taps", "fitnets.student=logits", "fitnets.teacher=image_features",
                         "--yes", "-o", str(tmp_path / "x.yaml"))
-    assert code == 2 and "fitnets: --taps: no pair it reads is on student logits, teacher image_features" in err
+    assert code == 2 and "fitnets: --taps: student=logits: a voxel_logits tap, and student reads a feature_map tap" \
+        in err
     lidar = args("scpnet", SCPNET, "scpnet", SCPNET, LIDAR_DATA)
     code, _, err = init(*lidar, "--taps", "hassc_hvm.features=completion_dense", "--yes", "-o", str(tmp_path / "h.yaml"))
     assert code == 0, err  # a role only the student fills, named

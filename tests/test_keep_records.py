@@ -23,18 +23,19 @@ def keep():
 
 
 def _run(root: Path, name: str, status: str = "finished", upstream: dict[str, str] | None = None,
-         best: bool = True) -> Path:
+         best: bool = True, extra: str = "") -> Path:
     run = root / name
     (run / "checkpoints").mkdir(parents=True)
     (run / "summary.json").write_text(json.dumps({"status": status, "stage": name}))
     ups = "".join(f"  {k}: {v}\n" for k, v in (upstream or {}).items())
     (run / "recipe.resolved.yaml").write_text(
-        "name: q\nstages:\n  upstream:\n    nested: not-this\n" + (f"upstream:\n{ups}" if ups else "upstream: {}\n")
-        + "files: {}\n")
+        "name: q\nstages:\n  upstream:\n    nested: not-this\n" + extra
+        + (f"upstream:\n{ups}" if ups else "upstream: {}\n") + "files: {}\n")
     (run / "scene_counts.npz").write_bytes(b"counts " + name.encode())
     (run / "metrics.jsonl").write_text("{}\n")
     if best:
         (run / "checkpoints" / "best.pt").write_bytes(b"weights " + name.encode())
+        (run / "checkpoints" / "last.pt").write_bytes(b"state " + name.encode())
     return run
 
 
@@ -44,16 +45,30 @@ def test_keeps_finished_runs_and_the_upstream_weights(tmp_path: Path, keep, caps
     _run(sweep, "kd_4-111", upstream={"teacher": "abc"})
     _run(sweep, "none-222")
     _run(sweep, "dist_3-333", status="running", upstream={"teacher": "abc"})
-    assert keep.upstream_names(sweep) == {"teacher-abc"}
+    assert keep.upstream_hashes(sweep) == ({"abc"}, False)
     assert keep.main([str(sweep), "--to", str(tmp_path / "results")]) == 0
     kept = tmp_path / "results" / "qm"
     assert sorted(p.name for p in kept.iterdir()) == ["kd_4-111", "none-222", "teacher-abc"]
     assert (kept / "teacher-abc" / "checkpoints" / "best.pt").read_bytes() == b"weights teacher-abc"
     assert not (kept / "kd_4-111" / "checkpoints").exists()  # a variant's weights stay behind
+    assert not (kept / "teacher-abc" / "checkpoints" / "last.pt").exists()  # no edge reads it
     assert not (kept / "none-222" / "metrics.jsonl").exists()
     for f in keep.FILES:
         assert (kept / "kd_4-111" / f).read_bytes() == (sweep / "kd_4-111" / f).read_bytes()
     assert "copied 3 new" in capsys.readouterr().out
+
+
+def test_an_upstream_run_is_found_by_its_identity_whatever_its_stage_and_edge(tmp_path: Path, keep) -> None:
+    """The edge (``init:``) and the stage (``big_teacher``) differ in name, the hash is all digits (YAML quotes it),
+    and an edge reads the last checkpoint: both of its checkpoints are kept."""
+    sweep = tmp_path / "runs" / "qm"
+    _run(sweep, "big_teacher-0123456789")
+    _run(sweep, "student-222", upstream={"init": "'0123456789'"}, extra="  init:\n    which: last\n")
+    assert keep.upstream_hashes(sweep) == ({"0123456789"}, True)
+    assert keep.main([str(sweep), "--to", str(tmp_path / "results")]) == 0
+    kept = tmp_path / "results" / "qm" / "big_teacher-0123456789" / "checkpoints"
+    assert sorted(p.name for p in kept.iterdir()) == ["best.pt", "last.pt"]
+    assert not (tmp_path / "results" / "qm" / "student-222" / "checkpoints").exists()
 
 
 def test_check_reports_a_changed_record_and_copies_nothing(tmp_path: Path, keep, capsys) -> None:

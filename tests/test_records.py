@@ -5,6 +5,7 @@ leaves its record stale, and this fails), made with one thread a run (the sweeps
 
 from __future__ import annotations
 
+import csv
 import json
 import shutil
 from pathlib import Path
@@ -55,8 +56,11 @@ def test_a_table_re_collects_from_the_records_alone(folder: Path, tmp_path: Path
     code = main(["sweep", str(ROOT / "recipes" / "sweeps" / f"{folder.name}.yaml"), "--output", str(tmp_path),
                  "--collect", "--quiet"])
     assert code == 0
-    table = (tmp_path / folder.name / "results.md").read_text()
-    variants = [p.name.split("-")[0] for p in folder.iterdir() if p.is_dir()]
-    assert "no distillation" in table and len(variants) > 1
-    assert sorted(p.name for p in (tmp_path / folder.name).iterdir() if p.is_dir()) == \
-        sorted(p.name for p in folder.iterdir() if p.is_dir())  # collecting trained nothing
+    with open(tmp_path / folder.name / "results.csv", newline="", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    kept = sorted(p.name for p in folder.iterdir() if p.is_dir())
+    assert sorted(Path(r["run_dir"]).name for r in rows) == kept  # one row a record, none left out
+    for r in rows:
+        summary = json.loads((folder / Path(r["run_dir"]).name / "summary.json").read_text())
+        assert int(r["seed"]) == summary["seed"] and float(r["best_miou"]) == round(summary["test"]["best"]["miou"], 6)
+    assert sorted(p.name for p in (tmp_path / folder.name).iterdir() if p.is_dir()) == kept  # nothing trained

@@ -132,9 +132,26 @@ def test_jobs_run_in_parallel_processes(tmp_path: Path, capsys) -> None:
     logs = sorted(p.name for p in (out / "sw" / "logs").iterdir())
     assert logs == ["dskd-seed0.log", "none-seed0.log", "teacher-seed0.log"]
     lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("[")]
-    assert [ln.split(": finished in ")[0] for ln in lines] == \
-        ["[1/3] teacher (upstream of variant dskd), seed 0", "[2/3] none, seed 0", "[3/3] dskd, seed 0"], lines
+    assert lines[0].startswith("[1/3] teacher (upstream of variant dskd), seed 0: finished in "), lines
+    assert sorted(ln.split(": finished in ")[0][6:] for ln in lines[1:]) == ["dskd, seed 0", "none, seed 0"], lines
+    assert [ln[:5] for ln in lines] == ["[1/3]", "[2/3]", "[3/3]"]  # counted in the order the runs end
     assert "2 left, about" in lines[0] and "all 3 done in" in lines[2]
+
+
+def test_a_failed_run_is_said_in_its_line_and_the_others_go_on(tmp_path: Path, capsys) -> None:
+    """A run whose loss overflows (KD x 1e39 in float32: an infinite loss, a clear error) fails; its line says
+    so, the sweep still runs and tables the rest, and exits with status 2 naming it."""
+    path = write_sweep(tmp_path, seeds=[0], variants={"none": {"distill": []},
+                                                      "bad": {"distill": [{"name": "kd", "weight": 1e39}]}})
+    out = tmp_path / "runs"
+    code = main(["sweep", str(path), "-o", str(out), "--jobs", "2"])
+    captured = capsys.readouterr()
+    printed = captured.out
+    lines = [ln for ln in printed.splitlines() if ln.startswith("[")]
+    assert code == 2 and len(lines) == 3, printed
+    assert "bad, seed 0: exit status" in captured.out + captured.err
+    assert [ln for ln in lines if "bad, seed 0: failed in" in ln] and [ln for ln in lines if "none, seed 0: finished" in ln]
+    assert (out / "sw" / "results.md").is_file()
 
 
 def test_run_lines_say_what_is_left_at_the_pace_so_far() -> None:

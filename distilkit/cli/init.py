@@ -37,8 +37,9 @@ def add(sub: Any) -> None:
     p.add_argument("--objectives", help="comma-separated objectives, each on its best pair of taps (default: kd on "
                    "the logits, then dskd on sparse features, or fitnets on volumes, or monoocc_image on images)")
     p.add_argument("--taps", nargs="+", action="extend", default=[], metavar="OBJECTIVE.ROLE=TAP",
-                   help="the taps an objective reads, instead of its best pair (the objective is chosen, beside "
-                        "--objectives): e.g. `--taps fitnets.student=image_features fitnets.teacher=image_features`; "
+                   help="the taps an objective reads, instead of its best pair: e.g. `--taps "
+                        "fitnets.student=image_features fitnets.teacher=image_features`. The objectives named are "
+                        "chosen beside --objectives; without --objectives they are the only ones (no defaults). "
                         "`--show` lists the taps and the pairs that align")
     p.add_argument("--stages", choices=("combined", "each"), default="combined",
                    help="one student stage with every objective (default), or one per objective")
@@ -133,10 +134,12 @@ def _forced(items: list[str]) -> dict[str, dict[str, str]]:
     out: dict[str, dict[str, str]] = {}
     for item in items:
         key, eq, tap = item.partition("=")
-        objective, dot, role = key.strip().partition(".")
+        objective, dot, role = (part.strip() for part in key.partition("."))
         if not (eq and dot and objective and role and tap.strip()):
             raise DistilkitError(f"--taps: {item!r}: expected OBJECTIVE.ROLE=TAP, e.g. fitnets.student=image_features")
-        out.setdefault(objective, {})[role.strip()] = tap.strip()
+        if role in out.get(objective, {}):
+            raise DistilkitError(f"--taps: {objective}.{role} given twice ({out[objective][role]} and {tap.strip()})")
+        out.setdefault(objective, {})[role] = tap.strip()
     return out
 
 

@@ -47,6 +47,7 @@ def ask_models(args: argparse.Namespace, console: Any,
     """The teacher, the student and the data, where the flags do not give them: numbered lists. ``reasons(teacher,
     student)``: each dataset and why it cannot serve both (None: it can); only those that can are numbered, the
     others are listed dimmed with their reason (no ``reasons``, or None from it: every dataset is numbered)."""
+    from rich.markup import escape
     from rich.prompt import Prompt
 
     from distilkit.registry import ADAPTERS, DATASETS, load_plugins
@@ -68,7 +69,7 @@ def ask_models(args: argparse.Namespace, console: Any,
         console.print("[bold]data[/]: 0) the first that serves both  " +
                       "  ".join(f"{i}) {n}" for i, n in enumerate(names, 1)), highlight=False)
         for w in (w for w in why.values() if w):
-            console.print(f"  [dim]not offered: {w}[/]", highlight=False)
+            console.print(f"  [dim]not offered: {escape(w)}[/]", highlight=False)
         answer = Prompt.ask("data (number or name)", default="0", console=console)
         args.dataset = None if answer.strip() in ("", "0") else _pick(answer, names)
 

@@ -92,11 +92,9 @@ def _pair_for(card: Any, params: Any, t_role: str, pairs: list[TapPair], info: A
     candidates = [p for p in pairs if kind_fits(p.student.kind, wanted_s) and kind_fits(p.teacher.kind, wanted_t)
                   and made_ok(p)]
     if forced:
-        named = ", ".join(f"{r} {t}" for r, t in forced.items())
         kept = [p for p in candidates if as_forced(p)]
         if not kept:
-            return None, None, (f"--taps: no pair it reads is on {named} (it reads a student {wanted_s} tap aligned "
-                                f"with a teacher {wanted_t} tap; `--show` lists the pairs)")
+            return None, None, _forced_problem(forced, s_role, t_role, wanted_s, wanted_t, pairs)
         candidates = kept
     if not candidates:
         if not teacher.of_kind(wanted_t):
@@ -113,6 +111,29 @@ def _pair_for(card: Any, params: Any, t_role: str, pairs: list[TapPair], info: A
             return p, connector, ""
         first = first or (problem or width or "")
     return None, None, first
+
+
+def _forced_problem(forced: dict[str, str], s_role: str, t_role: str, wanted_s: str, wanted_t: str,
+                   pairs: list[TapPair]) -> str:
+    """Why the taps ``--taps`` names make no pair the roles read: a name that is no tap of its model (its taps
+    listed), a tap of another kind, or two taps that do not align."""
+    taps = {"student": {p.student.tap: p.student for p in pairs}, "teacher": {p.teacher.tap: p.teacher for p in pairs}}
+    for role, model, kind in ((s_role, "student", wanted_s), (t_role, "teacher", wanted_t)):
+        tap = forced.get(role)
+        if tap is None:
+            continue
+        if tap not in taps[model]:
+            return (f"--taps: {role}={tap}: no tap of the {model} that aligns with any of the other's (the "
+                    f"{model}'s in pairs: {', '.join(sorted(taps[model])) or 'none'}; `--show` lists them)")
+        fact = taps[model][tap]
+        if not kind_fits(fact.kind, kind):
+            return f"--taps: {role}={tap}: a {fact.kind} tap, and {role} reads a {kind} tap"
+        if fact.of is not None and kind != PLANE and forced.get(partner(role)) is None:
+            return (f"--taps: {role}={tap} is a bird's-eye map init makes: name the {partner(role)} side's tap too "
+                    "(init offers its maps to other terms only when both are named)")
+    named = ", ".join(f"{r}={t}" for r, t in forced.items())
+    return (f"--taps: {named}: no pair it reads (a student {wanted_s} tap aligned with a teacher {wanted_t} tap; "
+            "`--show` lists the pairs)")
 
 
 def _own_tap(card: Any, role: str, kind: str, student: ModelFacts, forced: str | None = None
@@ -162,7 +183,9 @@ def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: 
     notes = []
     if card.TEACHER_ROLES and not card.match(params):
         notes.append("its card declares no match: checked by its first step")
-    for t_role in sorted(card.TEACHER_ROLES - card.OPTIONAL, key=lambda r: r != "teacher"):
+    named = set(forced or {})  # --taps: an optional role named (or its partner) is read too
+    wanted = {r for r in card.TEACHER_ROLES if r not in card.OPTIONAL or {r, partner(r)} & named}
+    for t_role in sorted(wanted, key=lambda r: r != "teacher"):
         pair, connector, problem = _pair_for(card, params, t_role, pairs, info, teacher, forced)
         if pair is None:
             out.refused, out.taps = problem, {}
@@ -171,10 +194,10 @@ def propose(name: str, card: Any, weight: float, pairs: list[TapPair], student: 
         out.pairs[t_role] = pair
         if partner(t_role) == "student":
             out.connector = connector
-            if connector and pair.student.channels is None:  # --static: no forward told the widths
+            if connector and pair.student.channels is None and not student.probed:  # --static: no widths
                 notes.append(f"connector {connector}: widths unknown without a forward (--static)")
     for role, kind in card.CONSUMES.items():
-        if role in out.taps or role in card.OPTIONAL or role in card.TEACHER_ROLES:
+        if role in out.taps or (role in card.OPTIONAL and role not in named) or role in card.TEACHER_ROLES:
             continue
         tap, note = _own_tap(card, role, kind, student, (forced or {}).get(role))
         if tap is None:
@@ -205,9 +228,13 @@ def check_forced(forced: dict[str, dict[str, str]]) -> list[str]:
 
     out = []
     for name, roles in forced.items():
-        consumes = OBJECTIVES.card(name).CONSUMES
-        out += [f"--taps {name}.{r}: {name} reads no role {r!r} (its roles: {', '.join(consumes)})"
-                for r in roles if r not in consumes]
+        card = OBJECTIVES.card(name)
+        for r in roles:
+            if r in card.BATCH:
+                out.append(f"--taps {name}.{r}: {r} is a field of the batch, not a model's tap: name the field in "
+                           f"the written recipe's term (taps: {{{r}: FIELD}})")
+            elif r not in card.CONSUMES:
+                out.append(f"--taps {name}.{r}: {name} reads no role {r!r} (its roles: {', '.join(card.CONSUMES)})")
     return out
 
 

@@ -13,7 +13,7 @@ import shlex
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -159,16 +159,18 @@ class SweepRun:
         failures: list[str] = []
         children = Children()
 
-        def one(task: Task) -> float:
+        def one(task: Task) -> tuple[float, bool]:
+            """The run's wall-clock seconds, and whether it failed."""
             log = logs / f"{'+'.join(task.stages)}-seed{task.seed}.log"
             start = time.monotonic()
             with open(log, "w", encoding="utf-8") as out:
                 code = children.run([sys.executable, "-m", "distilkit", *task.argv(self.output), "--quiet"],
                                     stdout=out, stderr=subprocess.STDOUT, env=env)
-            if code is not None and code != 0 and not children.stopping:
+            failed = code is not None and code != 0 and not children.stopping
+            if failed:
                 tail = log.read_text(encoding="utf-8", errors="replace").strip().splitlines()[-1:] or ["(no output)"]
                 failures.append(f"{task.title}: exit status {code}: {tail[0]} (log: {log})")
-            return time.monotonic() - start
+            return time.monotonic() - start, failed
 
         upstream = [t for t in todo if t.stages != (t.variant,)]
         variants = [t for t in todo if t.stages == (t.variant,)]
@@ -176,16 +178,18 @@ class SweepRun:
         with children.forwarding_sigterm(), \
                 Progress(TextColumn(f"[cyan]sweep[/] {self.sweep.name} ({jobs} jobs × {threads} threads)"),
                          BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("left"),
-                         TimeRemainingColumn(), console=self.console, disable=self.quiet) as progress:
+                         TimeRemainingColumn(), console=self.console, disable=self.quiet,
+                         speed_estimate_period=7 * 24 * 3600) as progress:  # the pace of the whole sweep
             bar = progress.add_task("runs", total=len(todo))
             with ThreadPoolExecutor(max_workers=jobs) as pool:
                 try:
                     for phase in (upstream, variants):  # the shared teachers first, so no job waits on another
-                        for task, seconds in zip(phase, pool.map(one, phase)):
+                        futures = {pool.submit(one, task): task for task in phase}
+                        for future in as_completed(futures):  # in the order they end
+                            seconds, failed = future.result()
                             progress.advance(bar)
                             if not children.stopping:
-                                lines.done(task.title, seconds, failed=any(f.startswith(f"{task.title}:")
-                                                                           for f in failures))
+                                lines.done(futures[future].title, seconds, failed)
                 except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the runs stop after their step, checkpoints kept
                     children.stop()
                     raise
