@@ -266,7 +266,7 @@ def test_the_hassc_sweep_keeps_its_own_ema_teacher_and_the_l2cocc_sweep_the_lida
 def test_the_paper_tables_are_the_same_runs_as_the_readme_comparison(name: str, tmp_path: Path) -> None:
     """Their comments say so: each variant has the identity (configuration hash) of the README's variant with the
     same objectives, at every seed, so the numbers are the README's."""
-    readme = SweepRun(ROOT / "recipes" / "sweeps" / "quickstart_methods.yaml", tmp_path, quiet=True)
+    readme = SweepRun(ROOT / "recipes" / "sweeps" / "quickstart_methods_stored.yaml", tmp_path, quiet=True)
     table = SweepRun(ROOT / "recipes" / "sweeps" / f"{name}.yaml", tmp_path, quiet=True)
 
     def objectives(sweep: SweepRun, variant: str) -> tuple:  # the terms, and the control teacher of a control row
