@@ -1,6 +1,6 @@
 """The adapter contract: how distilkit sees a teacher or student model.
 
-An adapter is an ``nn.Module`` registered in :data:`distilkit.registry.ADAPTERS`. It declares
+An adapter is an ``nn.Module`` registered in ``distilkit.registry.ADAPTERS``. It declares
 
 * ``Params``: a pydantic model of its constructor parameters (validated when a recipe loads);
 * ``INPUTS``: the batch inputs ``forward`` reads (checked against the dataset's fields by ``validate``;

@@ -143,6 +143,10 @@ class Registry(Generic[T]):
         override: bool = False,
         **meta: Any,
     ) -> T:
+        """Register ``obj`` (the component itself, already imported: a plug-in's way) as ``name``, with the
+        one-line ``description`` ``distilkit list`` shows, the ``paper`` it comes from, the tap kinds it
+        ``consumes`` and any ``meta`` (an objective's ``default_weight``); ``override`` replaces an entry of that
+        name. Returns ``obj``, so that it can decorate a class (:meth:`register`)."""
         self._put(Entry(name, obj, description.strip(), paper, tuple(consumes), dict(meta)), override)
         return obj
 

@@ -1,6 +1,6 @@
 """Tap kinds: the named outputs an adapter's forward returns and objectives, task losses and metrics consume.
 
-Each kind is registered with a check of its value (:data:`TAP_KINDS`); the trainer checks every declared
+Each kind is registered with a check of its value (``TAP_KINDS``); the trainer checks every declared
 tap of the student and the teacher on the first batch, so a wrong shape is one clear error up front.
 
 | kind              | value                                                                     |
@@ -88,6 +88,9 @@ TAP_KINDS: dict[str, TapKind] = {}
 
 def register_tap_kind(name: str, check: Callable[[Any], str | None], description: str,
                       parent: str | None = None) -> TapKind:
+    """Register a tap kind ``name``: ``check`` says what is wrong with a value of it (None: nothing), the trainer
+    calling it on every declared tap's first value; ``parent``: the kind it specialises (a term that reads the
+    parent reads it too). A plug-in registers its own kinds at import."""
     if name in TAP_KINDS:
         raise ValueError(f"tap kind {name!r} is already registered")
     if parent is not None and parent not in TAP_KINDS:

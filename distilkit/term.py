@@ -10,11 +10,11 @@ A term declares its **roles** and where each comes from:
   reached through :attr:`Term.context`.
 
 The trainer resolves every role before calling :meth:`Term.compute` with a dict role -> value, so a term
-never reads model outputs or the batch by name. The lifecycle, for every term: :meth:`prepare` (training
-split statistics), :meth:`setup` (first batch, to size own layers), :meth:`bind`, then per step
-:meth:`compute` and, after the student's optimizer step, :meth:`update`. A term's parameters train with
-the student unless :meth:`own_optimizer` returns an optimizer (own learning rate and clipping, stepped in
-:meth:`update`, checkpointed with the stage).
+never reads model outputs or the batch by name. The lifecycle, for every term: :meth:`Term.prepare` (training
+split statistics), :meth:`Term.setup` (first batch, to size own layers), :meth:`Term.bind`, then per step
+:meth:`Term.compute` and, after the student's optimizer step, :meth:`Term.update`. A term's parameters train with
+the student unless :meth:`Term.own_optimizer` returns an optimizer (own learning rate and clipping, stepped in
+:meth:`Term.update`, checkpointed with the stage).
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ class Term(TermCard, nn.Module, ABC):
     def __init__(self, params: BaseModel) -> None:
         super().__init__()
         self.params = params
+        #: what the trainer binds (:meth:`bind`): the data's facts, the teacher's adapter, the device
         self.context: TermContext | None = None
 
     def batch_roles(self, batch: Batch) -> dict[str, Any]:
@@ -69,6 +70,7 @@ class Term(TermCard, nn.Module, ABC):
         """Build shape-dependent layers from one batch's role values (default: nothing to build)."""
 
     def bind(self, context: TermContext) -> None:
+        """Keep the trainer's ``context`` (:attr:`context`), once, before the first step."""
         self.context = context
 
     @property
@@ -79,7 +81,7 @@ class Term(TermCard, nn.Module, ABC):
 
     @property
     def ignore_index(self) -> int:
-        """The label never used in losses: the data's class table's (SemanticKITTI's 255 before binding)."""
+        """The label the losses never use (the data's class table's; SemanticKITTI's 255 before binding)."""
         info = self.context.info if self.context is not None else None
         return info.classes.ignore_index if info is not None else IGNORE_INDEX
 

@@ -1,7 +1,7 @@
 """The contracts' declarations, torch-free: what an adapter, a term (task loss or distillation objective) and a
 metric declare about themselves. :class:`distilkit.adapter.Adapter`, :class:`distilkit.term.Term` and
 :class:`distilkit.metrics.base.Metric` add the computing part; a built-in component's card subclasses one of these
-and its implementation subclasses the card (see :mod:`distilkit.cards`)."""
+and its implementation subclasses the card (see ``distilkit.cards``)."""
 
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ A hook may implement any of ``before_train``, ``before_step``, ``after_step``, `
 ``after_train``, ``after_publish`` and ``after_abort``; each receives the :class:`Loop` (never the trainer's
 internals). The stage's own hooks run first, in this order, after every step: logging, progress, evaluation on the
 validation split (choosing ``best.pt``) and checkpointing (``last.pt``); then the recipe's registered hooks
-(``train.hooks``, e.g. ``tensorboard``) and its trackers (``trackers``: :mod:`distilkit.engine.train.trackers`).
+(``train.hooks``, e.g. ``tensorboard``) and its trackers (``trackers``: ``distilkit.engine.train.trackers``).
 Plugins register hooks in ``HOOKS`` like any component: ``HOOKS.add(name, factory(params, loop_info), params=...)``.
 """
 

@@ -33,7 +33,7 @@ COLLAPSES = ("max", "mean")
 
 
 def collapse_height(value: Any, how: Collapse = "max", batch: int | None = None) -> Tensor:
-    """(B, C, X, Y): ``value`` — (B, C, X, Y, Z) features or :class:`SparseVoxels` (coords batch, x, y, z) —
+    """(B, C, X, Y): ``value`` — (B, C, X, Y, Z) features or :class:`~distilkit.taps.SparseVoxels` (coords batch, x, y, z) —
     reduced over Z per channel by ``how`` (sparse: over each column's active voxels; a column without one is 0).
     ``batch``: the batch size of sparse voxels (default: the largest batch index + 1)."""
     if how not in COLLAPSES:

@@ -122,11 +122,11 @@ def dskd(student: Tensor, teacher: Tensor) -> Tensor:
     Args:
         student: (N, C_s) voxel features of the student.
         teacher: (N, C_t) teacher features of the *same* N voxels (row i describes the
-            same voxel in both; see :func:`distilkit.geometry.align_sparse`). C_s may differ
+            same voxel in both; see ``distilkit.geometry.align_sparse``). C_s may differ
             from C_t, since only cosine similarities between rows are compared.
 
     Returns:
-        Scalar: the mean over all N^2 voxel pairs of (cos_S(i,j) - cos_T(i,j))^2.
+        The mean over all N^2 voxel pairs of (cos_S(i,j) - cos_T(i,j))^2.
         0 for N = 0. Differentiable with respect to both inputs.
     """
     if student.dim() != 2 or teacher.dim() != 2:

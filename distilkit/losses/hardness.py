@@ -88,7 +88,7 @@ def voxel_sample(volume: Tensor, coords: Tensor, mode: str = "bilinear", determi
     trilinear, or ``nearest``).
 
     ``deterministic`` (default: off the CPU under deterministic algorithms,
-    :func:`~distilkit.losses.ce.deterministic_form_needed`): the same values read with ``gather`` from the 8 corners
+    ``deterministic_form_needed``): the same values read with ``gather`` from the 8 corners
     (``bilinear``) or the nearest voxel, instead of ``F.grid_sample``, whose CUDA backward PyTorch flags
     (``grid_sampler_3d_backward_cuda does not have a deterministic implementation``); ``gather``'s backward is
     deterministic under that setting. The same as ``grid_sample`` up to the rounding of its weights (float64: 1e-15)."""

@@ -33,7 +33,7 @@ def resize_bilinear(x: Tensor, size: tuple[int, int], deterministic: bool | None
     """(B, H, W) from (B, h, w): ``F.interpolate(x[:, None], size, mode="bilinear", align_corners=False)[:, 0]``.
 
     ``deterministic`` (default: off the CPU under deterministic algorithms,
-    :func:`~distilkit.losses.ce.deterministic_form_needed`): as two products with interpolation matrices,
+    ``deterministic_form_needed``): as two products with interpolation matrices,
     A_H x A_Wᵀ (H × h and W × w), instead of PyTorch's kernel, whose CUDA backward PyTorch flags
     (``upsample_bilinear2d_backward_out_cuda does not have a deterministic implementation``). The same up to the
     rounding of the weights (float64: 1e-15); the products in float32 at least, outside autocast, the result in
@@ -50,7 +50,7 @@ def resize_bilinear(x: Tensor, size: tuple[int, int], deterministic: bool | None
 def depth_l1(pred: Tensor, target: Tensor, sky_depth: float | None = None) -> Tensor:
     """Mean absolute depth error (metres) over the pixels with a true depth (``target > 0``), and those without
     (sky) as ``sky_depth`` when given; ``pred`` (B, h, w) is resized bilinearly to the target's (B, H, W) first
-    (:func:`resize_bilinear`: deterministically on CUDA). 0 (with a gradient) where no pixel counts."""
+    (``resize_bilinear``: deterministically on CUDA). 0 (with a gradient) where no pixel counts."""
     if pred.dim() != 3 or target.dim() != 3 or pred.shape[0] != target.shape[0]:
         raise ValueError(f"depth_l1: expects (B, h, w) predictions and (B, H, W) depths, got {tuple(pred.shape)} and "
                          f"{tuple(target.shape)}")
@@ -65,8 +65,8 @@ def depth_l1(pred: Tensor, target: Tensor, sky_depth: float | None = None) -> Te
 def occupancy_ce(logits: Tensor, target: Tensor, alpha: float = 0.54, ignore_index: int = IGNORE_INDEX) -> Tensor:
     """VoxFormer's ``BCE_ssc_loss``: two-class CE with class weights (1 - alpha, alpha), normalised by the weights
     (``reduction='mean'``), on empty / occupied scores (B, 2, X', Y', Z') against the occupancy of the label grid
-    (B, X, Y, Z) pooled to the scores' resolution (:func:`~distilkit.geometry.voxel.pool_occupancy`). Reduced
-    deterministically on CUDA (:func:`~distilkit.losses.ce.weighted_cross_entropy`: PyTorch flags the fused 'mean',
+    (B, X, Y, Z) pooled to the scores' resolution (``distilkit.geometry.voxel.pool_occupancy``). Reduced
+    deterministically on CUDA (:func:`~distilkit.losses.weighted_cross_entropy`: PyTorch flags the fused 'mean',
     ``nll_loss2d_forward_out_cuda_template``)."""
     if logits.dim() != 5 or logits.shape[1] != 2 or target.dim() != 4:
         raise ValueError(f"occupancy_ce: expects (B, 2, X, Y, Z) scores and (B, X, Y, Z) labels, got "

@@ -26,7 +26,7 @@ def _check_logits_labels(logits: Tensor, labels: Tensor, fn: str) -> None:
 def cross_entropy(logits: Tensor, labels: Tensor, ignore_index: int = 255, weight: Tensor | None = None) -> Tensor:
     """Mean CE over labelled positions. logits ``(B,K,*S)``, labels ``(B,*S)`` long; 0 if nothing is labelled.
 
-    ``F.cross_entropy``'s value, reduced deterministically on CUDA (:func:`~distilkit.losses.ce.weighted_cross_entropy`:
+    ``F.cross_entropy``'s value, reduced deterministically on CUDA (:func:`~distilkit.losses.weighted_cross_entropy`:
     PyTorch flags its 'mean' over ``(B, K, *S)`` logits, ``nll_loss2d_forward_out_cuda_template``)."""
     _check_logits_labels(logits, labels, "cross_entropy")
     valid = labels != ignore_index

@@ -47,7 +47,7 @@ class Metric(MetricCard, ABC):
 
     @classmethod
     def preview(cls, prediction: Any, batch: Batch, info: DataInfo) -> dict[str, Any] | None:
-        """A bird's-eye view of the batch's first sample for the run report (:mod:`distilkit.report.plots`):
+        """A bird's-eye view of the batch's first sample for the run report (``distilkit.report.plots``):
         ``input``, ``prediction`` and ``target`` panels, each a (H, W) class-id image (-1 = nothing there) or an
         (N, 3) point array, and ``extent`` (x0, x1, y0, y1) in metres. None: this metric shows no preview."""
         return None

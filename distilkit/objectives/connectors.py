@@ -9,7 +9,7 @@ or 3) or on (N, C) rows (``dims`` 0: rows, and the features of sparse voxels). B
 ``conv1x1``: a 1x1 convolution on maps, a linear layer on rows), ``mlp`` (two of them with a ReLU between, as wide
 as the wider side), ``conv3`` (a 3x3(x3) convolution on maps, for spatial context) and ``height_max`` /
 ``height_mean`` (voxel features collapsed over height onto the bird's-eye plane, then ``linear``: a 3-D student
-against a BEV teacher), declared in :mod:`distilkit.cards.connectors`.
+against a BEV teacher), declared in ``distilkit.cards.connectors``.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def _conv3(cs: int, ct: int, dims: int) -> nn.Module:
 
 class HeightCollapse(nn.Module):
     """A volume or sparse voxels collapsed over height onto the (X, Y) plane (max or mean per channel,
-    :func:`~distilkit.losses.bev.collapse_height`), then a 1x1 convolution to the other side's channels: a 3-D
+    :func:`~distilkit.losses.collapse_height`), then a 1x1 convolution to the other side's channels: a 3-D
     student's features against a bird's-eye teacher map. Takes the tap's whole value."""
 
     whole = True  # the Connector hands it the value itself (sparse voxels: not only their features)

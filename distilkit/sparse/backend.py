@@ -1,7 +1,7 @@
 """Which implementation computes a sparse convolution, chosen per call: ``DISTILKIT_SPARSE=auto|torch|spconv|
 spconv-triton`` (``auto`` when unset), or :func:`using` in code, which wins over the variable.
 
-* ``torch`` — :mod:`distilkit.sparse.function`: gather, GEMM and scatter-add in PyTorch, forward and backward on
+* ``torch`` — ``distilkit.sparse.function``: gather, GEMM and scatter-add in PyTorch, forward and backward on
   any device, the same bits in every process.
 * ``spconv`` — spconv 2.x's ``indice_conv`` (its gather-GEMM-scatter, ``ConvAlgo.Native``) on distilkit's own
   neighbour maps. Forward and backward on CUDA (a ``spconv-cu1xx`` build); spconv's CPU build (``pip install
@@ -18,7 +18,7 @@ spconv-triton`` (``auto`` when unset), or :func:`using` in code, which wins over
   ``auto`` that tried it, the test of one fp32 and one bf16 step of the SCPNet, JS3C-Net and LiDiff paper networks
   ran past its 74 s limit, each).
 
-What each library computes is stated in :data:`CAPABILITIES` (device, dtypes, autocast, gradients), read from
+What each library computes is stated in ``CAPABILITIES`` (device, dtypes, autocast, gradients), read from
 spconv 2.3.8's source (the GEMM kernel lists in ``spconv/core.py``: float32 and float16 only; its tuner stops with
 "can't find suitable algorithm" for any other dtype, ``csrc/sparse/convops.py``) and spconv-Triton 1.0.0's wheel
 (the same dtypes as spconv's, float16 accumulated in float16 for short reductions as spconv does). A call a library cannot take runs on the torch path under
@@ -119,7 +119,7 @@ _ran: list[set[str]] = []  # :func:`record`'s open collections
 
 @contextlib.contextmanager
 def using(name: str) -> Iterator[None]:
-    """Run the convolutions inside the block on backend ``name`` (one of :data:`CHOICES`), whatever the variable."""
+    """Run the convolutions inside the block on backend ``name`` (one of ``CHOICES``), whatever the variable."""
     if name not in CHOICES:
         raise SparseBackendError(f"sparse backend {name!r}: choose one of {', '.join(CHOICES)}")
     _override.append(name)
@@ -220,7 +220,7 @@ def _deterministic() -> bool:
 
 def choose(device_type: str, call: Call | None = None) -> str:
     """The backend that computes ``call`` (a float32 call on ``device_type`` when not given) now: under ``auto`` the
-    first of :data:`AUTO_LIBRARIES` that can take it (on CUDA, and not while PyTorch's deterministic algorithms are
+    first of ``AUTO_LIBRARIES`` that can take it (on CUDA, and not while PyTorch's deterministic algorithms are
     on), else torch;
     an explicit backend that cannot take it is an error naming the reason."""
     call = call or Call(device_type, torch.float32)
