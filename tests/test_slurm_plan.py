@@ -295,7 +295,7 @@ def test_launcher_problems_are_one_line(tmp_path, slurm_bin, capsys) -> None:
     for argv, why in ((["--launcher", "slurm", "--time", "2 hours"], "--time '2 hours': give minutes, H:MM:SS or "
                                                                        "D-HH:MM:SS"),
                       (["--launcher", "slurm", "--slurm", "account"], "--slurm 'account': give KEY=VALUE"),
-                      (["--status"], "no Slurm jobs recorded for sweep sw")):
+                      (["--launcher", "slurm", "--status"], "no Slurm jobs recorded for sweep sw")):
         assert main(["sweep", str(path), "-o", out, *argv]) == 2
         err = capsys.readouterr().err
         assert why in err and len(err.strip().splitlines()) == 1, err

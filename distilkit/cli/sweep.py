@@ -40,6 +40,10 @@ def add(sub: Any) -> None:
                    "cluster scheduler, or with --launcher slurm the jobs, arrays, afterok dependencies and sbatch "
                    "scripts a submission would queue (nothing written); `distilkit sweep` afterwards collects")
     w.add_argument("--collect", action="store_true", help="train nothing: the table of the runs finished so far")
+    w.add_argument("--status", action="store_true", help="run nothing: where the sweep stands. Run here: every run "
+                   "done, running, stopped (a checkpoint, no process) or waiting, as a grid of variants x seeds, and "
+                   "when the rest should end at the pace so far (ask from another terminal while it runs). Queued "
+                   "on Slurm: one line per submitted run, pending, running, done or failed, its job id and log")
     w.add_argument("--quiet", "-q", action="store_true", help="no progress bars or per-run lines; the final table is "
                    "still printed")
     s = w.add_argument_group("on a Slurm cluster (pip install 'distilkit[slurm]'; the sweep file's launcher: block "
@@ -55,8 +59,6 @@ def add(sub: Any) -> None:
     s.add_argument("--slurm", nargs="+", action="extend", default=None, metavar="KEY=VALUE",
                    help="any other sbatch option, e.g. --slurm account=mylab qos=high constraint=a100")
     s.add_argument("--array-parallelism", type=int, default=None, metavar="N", help="runs of one array at a time")
-    s.add_argument("--status", action="store_true", help="one line per submitted run: pending, running, done or "
-                   "failed, its job id and log (a failed job's last log line)")
     s.add_argument("--wait", action="store_true", help="after submitting (or alone), show progress until every job "
                    "has ended, then collect the table")
     w.set_defaults(fn=sweep)

@@ -81,15 +81,15 @@ class RunLines:
         self.count += 1
         left = self.total - self.count
         elapsed = time.monotonic() - self.start
-        line = (f"[{self.count}/{self.total}] {title}: {'failed' if failed else 'finished'} in {_span(seconds)}; "
-                + (f"{left} left, about {_span(elapsed / self.count * left)} more at this pace" if left else
-                   f"all {self.total} done in {_span(elapsed)}"))
+        line = (f"[{self.count}/{self.total}] {title}: {'failed' if failed else 'finished'} in {span(seconds)}; "
+                + (f"{left} left, about {span(elapsed / self.count * left)} more at this pace" if left else
+                   f"all {self.total} done in {span(elapsed)}"))
         if self.enabled:
             self.console.print(line, highlight=False, markup=False)
         return line
 
 
-def _span(seconds: float) -> str:
+def span(seconds: float) -> str:
     """``95 s``, ``12 min``, ``3 h 20 min``."""
     if seconds < 100:
         return f"{seconds:.0f} s"
@@ -97,4 +97,4 @@ def _span(seconds: float) -> str:
     return f"{minutes} min" if minutes < 60 else f"{minutes // 60} h {minutes % 60:02d} min"
 
 
-__all__ = ["Children", "RunLines"]
+__all__ = ["Children", "RunLines", "span"]

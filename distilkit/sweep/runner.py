@@ -274,6 +274,11 @@ def run_sweep(path: str | Path, output: str | Path = "runs", seeds: list[int] | 
         else:
             _local_plan(sweep, path, output)
         return None
+    if status and launcher == "local" and not (sweep.root / "slurm" / "jobs.json").is_file():
+        from distilkit.sweep.local_status import show
+
+        show(sweep)  # a sweep run here: read from its folder
+        return None
     if status or wait or launcher == "slurm":
         return _on_slurm(sweep, path, launcher, cluster or {}, status, wait, quiet)
     started = time.monotonic()
