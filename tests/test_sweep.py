@@ -308,3 +308,16 @@ def test_upstream_rows_get_no_difference_and_one_scored_by_another_metric_is_a_n
     assert by["labeler"]["main"] == [0.5]
     assert notes == ["Upstream *proposal* (seed 0) is scored by its own metric, not in the table: test IoU 66.00, "
                      "precision 80.00 (best validation IoU 66.00)."]
+
+
+def test_the_runs_left_out_are_said_by_variant_and_seed_range() -> None:
+    """A sweep under way misses hundreds of runs: said as groups of variants missing the same seeds."""
+    from distilkit.sweep.tasks import missing_text, seeds_text
+
+    assert [seeds_text(s) for s in ([3], [1, 2, 3, 4, 5], [0, 2, 3, 4, 7], [0, 1], [5, 4, 5])] == \
+        ["seed 3", "seeds 1–5", "seeds 0, 2–4, 7", "seeds 0, 1", "seeds 4, 5"]
+    every = ["none", "kd", "dist"]
+    assert missing_text([(v, s) for v in every for s in (1, 2)], every) == ["every variant (seeds 1, 2)"]
+    assert missing_text([("dist", 0), ("kd", 1), ("none", 1), ("dist", 1)], every) == \
+        ["none, kd (seed 1)", "dist (seeds 0, 1)"]
+    assert missing_text([], every) == []

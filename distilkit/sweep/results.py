@@ -128,7 +128,7 @@ def write_results(root: Path, name: str, records: list[RunRecord], baseline: str
     results.md's notes, printed too)."""
     rows, own_metric = sweep_rows(records, baseline, order)
     atomic_write_text(root / "results.csv", results_csv(records))
-    notes = [f"Runs not finished (not in the table): {', '.join(missing)}." if missing else "", *own_metric,
+    notes = [f"Runs not finished (not in the table): {'; '.join(missing)}." if missing else "", *own_metric,
              *(extra or []), "One line per run, with every score and its folder: results.csv."]
     path = write_seeds_report(root, rows, baseline, console, stem="results", title=f"sweep {name}",
                               first="variant", notes=[n for n in notes if n])

@@ -29,7 +29,7 @@ from distilkit.errors import DistilkitError, RecipeError
 from distilkit.files import atomic_write_text
 from distilkit.sweep.processes import Children, RunLines
 from distilkit.sweep.spec import Sweep, load_sweep
-from distilkit.sweep.tasks import Task, variants_phrase
+from distilkit.sweep.tasks import Task, missing_text, variants_phrase
 
 if TYPE_CHECKING:  # running and collecting import torch and the reports; --plan needs neither
     from distilkit.sweep.results import RunRecord
@@ -198,11 +198,12 @@ class SweepRun:
     # -- collecting ----------------------------------------------------------------------------------------
 
     def records(self) -> tuple[list[RunRecord], list[str]]:
-        """The finished runs (variants and their upstream stages) and the titles of the missing ones."""
+        """The finished runs (variants and their upstream stages) and the missing ones, grouped
+        (:func:`~distilkit.sweep.tasks.missing_text`: variants missing the same seeds together)."""
         from distilkit.sweep.results import RunRecord
 
         records: list[RunRecord] = []
-        missing: list[str] = []
+        missing: list[tuple[str, int]] = []
         seen: set[Path] = set()
         for seed in self.seeds:
             for variant in self.sweep.recipes:
@@ -212,7 +213,7 @@ class SweepRun:
                     summary = read_summary(run_dir)
                     if summary is None:
                         if name == variant:
-                            missing.append(f"{variant} (seed {seed})")
+                            missing.append((variant, seed))
                         continue
                     if run_dir in seen:  # a shared upstream run: counted once
                         continue
@@ -220,7 +221,7 @@ class SweepRun:
                     upstream = name != variant
                     label = summary.get("label", name) if upstream else self.sweep.label(variant)
                     records.append(RunRecord(name, seed, run_dir, {**summary, "label": label}, upstream))
-        return records, missing
+        return records, missing_text(missing, list(self.sweep.recipes))
 
     def order(self) -> list[str]:
         ups: list[str] = []
@@ -247,7 +248,7 @@ class SweepRun:
             console.print(f"sweep {self.sweep.name}: no finished runs yet under {self.root}")
             return None
         if missing:
-            console.print(f"[yellow]not finished (left out of the table):[/] {', '.join(missing)}")
+            console.print(f"[yellow]not finished (left out of the table):[/] {'; '.join(missing)}", highlight=False)
         from distilkit.sweep.results import write_results
 
         return write_results(self.root, self.sweep.name, records, self.sweep.baseline, self.order(), console,

@@ -45,4 +45,33 @@ def variants_phrase(users: list[str], every: list[str]) -> str:
     return "variants " + ", ".join(users[:4]) + (f" and {len(users) - 4} more" if len(users) > 4 else "")
 
 
-__all__ = ["Task", "variants_phrase"]
+def seeds_text(seeds: list[int]) -> str:
+    """``seed 3``, ``seeds 1–5``, ``seeds 0, 2–4, 7``: runs of consecutive seeds as ranges."""
+    seeds = sorted(set(seeds))
+    parts: list[str] = []
+    start = prev = seeds[0]
+    for s in [*seeds[1:], None]:
+        if s is not None and s == prev + 1:
+            prev = s
+            continue
+        parts.append(str(start) if start == prev else f"{start}–{prev}" if prev > start + 1 else f"{start}, {prev}")
+        if s is not None:
+            start = prev = s
+    return ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(parts)
+
+
+def missing_text(missing: list[tuple[str, int]], every: list[str]) -> list[str]:
+    """The runs not finished, variants with the same seeds missing together, in the sweep's order: ``every variant
+    (seeds 1–5)``, ``nst_50, pvkd_1 (seed 0)`` — not one entry a run (a sweep under way misses hundreds)."""
+    by_variant: dict[str, list[int]] = {}
+    for variant, seed in missing:
+        by_variant.setdefault(variant, []).append(seed)
+    groups: dict[tuple[int, ...], list[str]] = {}
+    for variant in every:
+        if variant in by_variant:
+            groups.setdefault(tuple(sorted(by_variant[variant])), []).append(variant)
+    return [f"{'every variant' if len(names) == len(every) > 1 else ', '.join(names)} ({seeds_text(list(seeds))})"
+            for seeds, names in groups.items()]
+
+
+__all__ = ["Task", "missing_text", "seeds_text", "variants_phrase"]
