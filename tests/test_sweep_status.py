@@ -9,7 +9,7 @@ from pathlib import Path
 
 from distilkit.cli import main
 from distilkit.engine.store.lock import stage_lock
-from distilkit.sweep.local_status import RunState, pace, run_state, summary_line
+from distilkit.sweep.local_status import RunState, pace, run_info, run_state, summary_line
 from test_sweep import write_sweep
 
 
@@ -26,6 +26,8 @@ def _folder(root: Path, name: str, summary: dict | None = None, checkpoint: bool
 def test_each_state_is_read_from_the_folder(tmp_path: Path) -> None:
     done = _folder(tmp_path, "kd-1", {"status": "finished", "finished_at": "2026-11-29T03:00:00"})
     assert run_state(done)[0] == "done" and run_state(done)[1] is not None
+    timed = _folder(tmp_path, "kd-0", {"status": "finished", "finished_at": "2026-11-29T03:00:00", "train_seconds": 51.5})
+    assert run_info(timed)[2] == 51.5 and run_info(done)[2] is None and run_info(tmp_path / "kd-9")[2] is None
     assert run_state(_folder(tmp_path, "kd-2", checkpoint=True)) == ("stopped", None)
     assert run_state(_folder(tmp_path, "kd-3", {"status": "running"})) == ("waiting", None)
     running = _folder(tmp_path, "kd-4", checkpoint=True)
@@ -51,6 +53,11 @@ def test_the_pace_is_the_wall_clock_per_run_of_the_last_ends() -> None:
     assert pace([100.0]) is None and pace([]) is None
     assert pace([0.0, 60.0, 120.0, 180.0]) == 60.0
     assert pace([0.0, 1000.0, 1060.0, 1120.0], last=3) == 60.0  # only the last three ends
+    # a stop between two ends (the sweep stopped an hour): the gap counts at most 1.5x the run that ends it
+    ends, took = [0.0, 60.0, 3660.0, 3720.0], [50.0, 50.0, 40.0, 50.0]
+    assert pace(ends) == 1240.0 and pace(ends, seconds=took) == (60.0 + 60.0 + 60.0) / 3
+    assert pace(list(reversed(ends)), seconds=list(reversed(took))) == 60.0  # each end keeps its own run's time
+    assert pace([0.0, 60.0, 120.0], seconds=[None, None, 10.0]) == (60.0 + 15.0) / 2  # a run without its time
     found = [RunState("kd", s, "done", 60.0 * s) for s in range(4)] + [RunState("kd", 4, "running"),
                                                                           RunState("kd", 5, "waiting")]
     line = summary_line("sw", found, now=200.0)

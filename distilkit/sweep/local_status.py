@@ -23,6 +23,7 @@ class RunState:
     seed: int
     state: str  # done | running | stopped | waiting
     finished_at: float | None = None  # a done run's end (seconds since the epoch)
+    seconds: float | None = None  # a done run's own training time (its summary's train_seconds)
 
 
 def locked(path: Path) -> bool:
@@ -49,21 +50,29 @@ def locked(path: Path) -> bool:
 
 def run_state(run_dir: Path) -> tuple[str, float | None]:
     """(state, the end of a done run) of one run folder."""
+    state, at, _ = run_info(run_dir)
+    return state, at
+
+
+def run_info(run_dir: Path) -> tuple[str, float | None, float | None]:
+    """(state, the end of a done run, its training seconds) of one run folder."""
     try:
         summary = json.loads((run_dir / "summary.json").read_text())
     except (OSError, ValueError):
         summary = None
     if summary is not None and summary.get("status") == "finished":
-        at = summary.get("finished_at")
+        at, took = summary.get("finished_at"), summary.get("train_seconds")
+        took = float(took) if isinstance(took, (int, float)) else None
         try:
-            return "done", datetime.fromisoformat(at).timestamp() if at else (run_dir / "summary.json").stat().st_mtime
+            return ("done", datetime.fromisoformat(at).timestamp() if at else (run_dir / "summary.json").stat().st_mtime,
+                    took)
         except ValueError:
-            return "done", (run_dir / "summary.json").stat().st_mtime
+            return "done", (run_dir / "summary.json").stat().st_mtime, took
     if locked(run_dir.parent / ".locks" / f"{run_dir.name}.lock"):
-        return "running", None
+        return "running", None, None
     if (run_dir / "checkpoints" / "last.pt").is_file():
-        return "stopped", None
-    return "waiting", None
+        return "stopped", None, None
+    return "waiting", None, None
 
 
 def states(run: Any) -> list[RunState]:
@@ -71,17 +80,25 @@ def states(run: Any) -> list[RunState]:
     out = []
     for seed in run.seeds:
         for variant in run.sweep.recipes:
-            state, at = run_state(run.pipes[variant, seed].run_dir(variant))
-            out.append(RunState(variant, seed, state, at))
+            out.append(RunState(variant, seed, *run_info(run.pipes[variant, seed].run_dir(variant))))
     return out
 
 
-def pace(ends: list[float], last: int = 20) -> float | None:
-    """Seconds per finished run, wall clock, over the last ``last`` ends (None from fewer than two)."""
-    ends = sorted(ends)[-last:]
-    if len(ends) < 2 or ends[-1] <= ends[0]:
+def pace(ends: list[float], last: int = 20, seconds: list[float | None] | None = None) -> float | None:
+    """Seconds per finished run, wall clock, over the last ``last`` ends (None from fewer than two).
+
+    ``seconds`` (each end's run's own training time, in the same order as ``ends``) leaves out the time the sweep
+    was not running: while it runs, the run that ends a gap between two ends was running through that gap, so a gap
+    counts at most 1.5 times that run's training time (the rest is a stop, or a machine given back between
+    sessions), where the plain span would spread a pause of hours over the last runs."""
+    order = sorted(range(len(ends)), key=lambda i: ends[i])[-last:]
+    if len(order) < 2 or ends[order[-1]] <= ends[order[0]]:
         return None
-    return (ends[-1] - ends[0]) / (len(ends) - 1)
+    busy = 0.0
+    for before, after in zip(order, order[1:]):
+        gap, took = ends[after] - ends[before], seconds[after] if seconds is not None else None
+        busy += gap if took is None else min(gap, 1.5 * took)
+    return busy / (len(order) - 1) if busy > 0 else None
 
 
 def summary_line(name: str, found: list[RunState], now: float | None = None) -> str:
@@ -93,7 +110,8 @@ def summary_line(name: str, found: list[RunState], now: float | None = None) -> 
     text = (f"sweep {name}: {count['done']} of {len(found)} runs done, {count['running']} running, "
             f"{count['stopped']} stopped (resumed by the next `distilkit sweep`), {count['waiting']} waiting")
     left = len(found) - count["done"]
-    each = pace([r.finished_at for r in found if r.finished_at is not None])
+    finished = [r for r in found if r.finished_at is not None]
+    each = pace([r.finished_at for r in finished], seconds=[r.seconds for r in finished])
     if left and each is not None:
         recent = min(20, count["done"])
         idle = (now or time.time()) - max(r.finished_at for r in found if r.finished_at is not None)
@@ -127,4 +145,4 @@ def show(run: Any) -> list[RunState]:
     return found
 
 
-__all__ = ["MARKS", "RunState", "locked", "pace", "run_state", "show", "states", "summary_line", "table"]
+__all__ = ["MARKS", "RunState", "locked", "pace", "run_info", "run_state", "show", "states", "summary_line", "table"]
