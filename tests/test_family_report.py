@@ -137,6 +137,18 @@ def test_per_class_differences_match_numpy_and_scipy_ordered_by_voxels(tmp_path:
     assert road.split(" | ")[1] == "99.40 %" and road.split(" | ")[3].startswith("**+10.")  # DIST's column, bold
     assert (tmp_path / "results_classes.png").stat().st_size > 5_000
     assert "[results_classes.md](results_classes.md)" in (tmp_path / "results.md").read_text()
+    assert "mean over 6 seeds with" in text and "| class | voxels | kd_4 | dist | nst |" in text  # all six: said once
+    # a sweep not finished: a method over fewer seeds says so in its column, and the header gives the range
+    short = seed_rows({s: r for s, r in results.items()}, "none")
+    for row in short:
+        if row["stage"] == "dist":
+            row["class_iou"] = {s: v for s, v in row["class_iou"].items() if s < 4}
+    part = class_table(short, "none")
+    assert part["seeds"] == {"kd_4": 6, "dist": 4, "nst": 6, "pkt": 6, "fit": 6}
+    from distilkit.report.classes import classes_markdown
+    head = classes_markdown(part, "t", None).splitlines()
+    assert "mean over the seeds each method shares with the baseline (4 to 6" in head[2]
+    assert head[4].startswith("| class | voxels | kd_4 (6) | dist (4) |")
 
 
 def test_no_per_class_table_without_class_scores(tmp_path: Path) -> None:

@@ -33,15 +33,17 @@ def class_table(rows: list[dict[str, Any]], baseline: str | None) -> dict[str, A
     order = sorted(range(len(names)), key=lambda c: -counts[c]) if len(counts) == len(names) else list(range(len(names)))
     total = sum(counts) if len(counts) == len(names) else 0
     out: dict[str, list[tuple[float, float, float]]] = {}
+    shared: dict[str, int] = {}  # each method's count of seeds it shares with the baseline
     for row in members:
         seeds = [s for s in row["class_iou"] if s in base["class_iou"]]
+        shared[row["label"]] = len(seeds)
         cells = []
         for c in order:
             d = [row["class_iou"][s][c] - base["class_iou"][s][c] for s in seeds]
             cells.append((sum(d) / len(d) if d else math.nan, *t_interval(d)))
         out[row["label"]] = cells
     return {"classes": [names[c] for c in order], "voxels": [counts[c] / total for c in order] if total else None,
-            "methods": out, "seeds": len(base["class_iou"]), "scale": base["view"].per_class[2]
+            "methods": out, "seeds": shared, "scale": base["view"].per_class[2]
             if base["view"].per_class else 1.0}
 
 
@@ -58,14 +60,20 @@ def _cell(mean: float, low: float, high: float, scale: float) -> str:
 def classes_markdown(table: dict[str, Any], title: str, image: str | None) -> str:
     """The per-class table: a row a class (with its share of the voxels), a column a method."""
     methods, scale = list(table["methods"]), table["scale"]
-    share = table["voxels"]
+    share, counts = table["voxels"], table["seeds"]
+    if len(set(counts.values())) <= 1:  # every method over as many seeds: said once
+        over, heads = f"{next(iter(counts.values()), 0)} seeds", methods
+    else:  # a sweep not finished: each column says how many seeds its mean is over
+        over = (f"the seeds each method shares with the baseline ({min(counts.values())} to "
+                f"{max(counts.values())}: the count follows each column's name)")
+        heads = [f"{m} ({counts[m]})" for m in methods]
     lines = [f"# {title}: per class", "",
-             f"Each method's paired difference in per-class IoU to the baseline (points), mean over {table['seeds']} "
-             "seeds with its 95 % Student-t interval; bold where the interval excludes 0. One interval per cell, "
+             f"Each method's paired difference in per-class IoU to the baseline (points), mean over {over} "
+             "with its 95 % Student-t interval; bold where the interval excludes 0. One interval per cell, "
              "not corrected for the many cells: read them for where a method's effect lies, not as claims. "
              + ("Classes ordered by their share of the split's labelled voxels." if share else
                 "Classes in the data's order (these runs did not record each class's voxels)."), "",
-             "| class | " + ("voxels | " if share else "") + " | ".join(methods) + " |",
+             "| class | " + ("voxels | " if share else "") + " | ".join(heads) + " |",
              "|---|" + ("---|" if share else "") + "---|" * len(methods)]
     for i, name in enumerate(table["classes"]):
         cells = [_cell(*table["methods"][m][i], scale) for m in methods]
