@@ -89,6 +89,41 @@ def test_the_report_names_the_family_and_draws_the_diagram(tmp_path: Path) -> No
     assert "over the family of 5 methods at their chosen weights: Holm-adjusted p" in " ".join(console.split())
 
 
+def test_the_family_forest_shows_each_method_at_its_chosen_weight_with_its_simultaneous_interval(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``results_family.png``: the family alone (kd ×1, which the validation did not choose, is not drawn), best
+    first, each with a thick per-method and a thin simultaneous interval; linked from the chosen-weights section."""
+    from distilkit.report import plots
+
+    drawn: dict[str, list] = {}
+
+    def keep(fig, path) -> None:  # the figure's rows and lines, before it is written
+        (ax,) = fig.axes
+        drawn[Path(path).name] = [[t.get_text() for t in ax.get_yticklabels()],
+                                  [(line.get_linewidth(), tuple(line.get_xdata())) for line in ax.get_lines()]]
+        real(fig, path)
+
+    real = plots.save
+    monkeypatch.setattr(plots, "save", keep)
+    results, _ = _results(np.random.default_rng(3))
+    rows = seed_rows(results, "none")
+    text = write_seeds_report(tmp_path, rows, "none", Console(file=open(tmp_path / "out.txt", "w")),
+                              stem="results").read_text()
+    assert (tmp_path / "results_family.png").is_file()
+    chosen = text.split("## Each method at the weight chosen on validation")[1].split("## Every variant")[0]
+    assert "](results_family.png)" in chosen
+    labels, lines = drawn["results_family.png"]
+    by = {r["stage"]: r for r in rows}
+    best_first = sorted(["kd_4", "dist", "nst", "pkt", "fit"], key=lambda k: -by[k]["delta_mean"])
+    assert [t.split(" ")[0] for t in reversed(labels)] == best_first  # the top row is the best
+    thick = sorted(tuple(round(v, 9) for v in x) for w, x in lines if w == 2.2)
+    thin = sorted(tuple(round(v, 9) for v in x) for w, x in lines if w == 0.9)
+    scale = by["dist"]["view"].main[2]
+    assert thick == sorted(tuple(round(scale * v, 9) for v in by[k]["delta_ci"]) for k in best_first)
+    assert thin == sorted(tuple(round(scale * v, 9) for v in by[k]["sim_ci"]) for k in best_first)
+    assert len(drawn["results_forest.png"][0]) == 6  # the forest of every row keeps kd ×1
+
+
 def test_no_family_without_two_methods() -> None:
     rng = np.random.default_rng(4)
     results = {s: [fake("none", *rng.uniform(0.1, 0.3, 3)), fake("kd", *rng.uniform(0.1, 0.3, 3),

@@ -250,8 +250,11 @@ def seeds_markdown(rows: list[dict[str, Any]], baseline: str | None, title: str,
         chosen = [r for r in rows if r.get("chosen")]
         lines += ["## Each method at the weight chosen on validation", "",
                   f"Of a method's weights, the one with the best mean validation {main} over the seeds (◆ below); "
-                  f"its {split} scores are reported as they are.", "", *head, *_md_rows(chosen, per_row, corrected),
-                  "", "## Every variant", "", *head, *_md_rows(rows, per_row, corrected)]
+                  f"its {split} scores are reported as they are.", "", *head, *_md_rows(chosen, per_row, corrected)]
+        if forest and corrected:
+            lines += ["", f"![each method at its chosen weight: the per-method and the simultaneous 95 % intervals]"
+                          f"({forest.replace('_forest.png', '_family.png')})"]
+        lines += ["", "## Every variant", "", *head, *_md_rows(rows, per_row, corrected)]
     else:
         lines += [*head, *_md_rows(rows, per_row, corrected)]
     if forest:
@@ -269,7 +272,8 @@ def write_seeds_report(root: Path, rows: list[dict[str, Any]], baseline: str | N
                        notes: list[str] | None = None) -> Path:
     """Print the table and write ``<stem>.md``, ``<stem>.png`` (each seed as a dot, the mean as a bar with its std
     as an error bar), ``<stem>_forest.png`` (each row's paired difference to the baseline with its 95 %
-    interval, a line at 0), where the methods are a family ``<stem>_cd.png`` (their ranks:
+    interval, a line at 0), where the methods are a family chosen among weights ``<stem>_family.png`` (each method at
+    its chosen weight, with its simultaneous interval) and ``<stem>_cd.png`` (their ranks:
     :mod:`~distilkit.report.family`), and where the runs have per-class scores ``<stem>_classes.md`` and ``.png``
     (:mod:`~distilkit.report.classes`)."""
     seeds = sorted({s for r in rows for s in r["seeds"]})
@@ -290,6 +294,8 @@ def write_seeds_report(root: Path, rows: list[dict[str, Any]], baseline: str | N
         _plot(root / f"{stem}.png", rows)
         if forest:
             _forest(root / forest, rows, baseline)
+            if _weighs(rows) and family.of(rows) is not None:
+                _forest(root / forest.replace("_forest.png", "_family.png"), rows, baseline, chosen_only=True)
         family.plot(root / f"{stem}_cd.png", ranked)
     except Exception as exc:  # a plotting problem must not lose the table
         console.print(f"[yellow]{stem} plots not written: {exc}[/]")
@@ -314,13 +320,17 @@ def _plot(path: Path, rows: list[dict[str, Any]]) -> None:
     plots.save(fig, path)
 
 
-def _forest(path: Path, rows: list[dict[str, Any]], baseline: str | None) -> None:
+def _forest(path: Path, rows: list[dict[str, Any]], baseline: str | None, chosen_only: bool = False) -> None:
     """The question a comparison asks, as a picture: per row, the paired difference to the baseline (mean, dot)
     with its 95 % interval (bar) and the single seeds (small marks), a line at 0; rows chosen on validation
-    in dark blue, the other weights in grey."""
+    in dark blue, the other weights in grey. ``chosen_only``: the table's family alone (each method at its chosen
+    weight, no control row), best first, each with its simultaneous interval as a thin line beside the bar — the
+    figure of a paper's claims, whose scale the control teachers' collapses do not stretch."""
     from distilkit.report import plots
 
     shown = [r for r in rows if r["delta"]]
+    if chosen_only:
+        shown = sorted(family.family(rows), key=lambda r: -r["delta_mean"])
     view = _view(shown)
     _, name, scale = view.main if view else ("", "score", 1.0)
     fig, (ax,) = plots.figure(1, width=7.0, height=max(2.5, 0.38 * len(shown) + 1.2))
@@ -329,6 +339,8 @@ def _forest(path: Path, rows: list[dict[str, Any]], baseline: str | None) -> Non
         low, high = row["delta_ci"]
         if not math.isnan(low):
             ax.plot([scale * low, scale * high], [i, i], color=colour, linewidth=2.2, solid_capstyle="butt")
+        if chosen_only and row.get("sim_ci"):
+            ax.plot([scale * v for v in row["sim_ci"]], [i - 0.18] * 2, color=colour, linewidth=0.9)
         ax.scatter([scale * d for d in row["delta"]], [i + 0.2] * len(row["delta"]), facecolors="none",
                    edgecolors=colour, s=14, alpha=0.7, linewidths=0.8, zorder=2)
         ax.scatter([scale * row["delta_mean"]], [i], color=colour, s=30, zorder=3)
@@ -340,5 +352,11 @@ def _forest(path: Path, rows: list[dict[str, Any]], baseline: str | None) -> Non
     unit = " (points)" if scale == 100 else ""
     to = "its reference stage" if per_row else f"'{baseline or '—'}'"
     ax.set_xlabel(f"Δ {_split(rows)} {name}{unit} to {to}, paired by seed")
-    ax.set_title("mean and 95 % t-interval of the paired differences; circles: single seeds", fontsize=9)
+    if chosen_only:
+        info = family.of(rows) or {}
+        ax.set_title(f"each method at its chosen weight: 95 % t-interval (thick),\nsimultaneous 95 % over the "
+                     f"{info.get('k', len(shown))} methods ({info.get('method', '')}, thin); circles: single seeds",
+                     fontsize=9)
+    else:
+        ax.set_title("mean and 95 % t-interval of the paired differences; circles: single seeds", fontsize=9)
     plots.save(fig, path)
