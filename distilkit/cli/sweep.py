@@ -40,6 +40,10 @@ def add(sub: Any) -> None:
                    "cluster scheduler, or with --launcher slurm the jobs, arrays, afterok dependencies and sbatch "
                    "scripts a submission would queue (nothing written); `distilkit sweep` afterwards collects")
     w.add_argument("--collect", action="store_true", help="train nothing: the table of the runs finished so far")
+    w.add_argument("--reuse", nargs="+", action="extend", default=None, metavar="DIR",
+                   help="folders of another sweep's runs (its output folder, or its records under results/): each "
+                   "finished run there with the configuration hash a run here needs is copied in under this sweep's "
+                   "name instead of trained (a paper's table drawn from a larger comparison)")
     w.add_argument("--status", action="store_true", help="run nothing: where the sweep stands. Run here: every run "
                    "done, running, stopped (a checkpoint, no process) or waiting, as a grid of variants x seeds, and "
                    "when the rest should end at the pace so far (ask from another terminal while it runs). Queued "
@@ -94,5 +98,6 @@ def sweep(args: argparse.Namespace) -> int:
     cluster = {"gpus": args.gpus_per_run, "cpus": args.cpus_per_run, "mem": args.mem, "time": args.time,
                "partition": args.partition, "array_parallelism": args.array_parallelism, "extra": args.slurm}
     run_sweep(args.sweep, args.output, seeds=args.seeds, jobs=args.jobs, plan=args.plan, collect=args.collect,
-              quiet=args.quiet, launcher=args.launcher, cluster=cluster, status=args.status, wait=args.wait)
+              quiet=args.quiet, launcher=args.launcher, cluster=cluster, status=args.status, wait=args.wait,
+              reuse=args.reuse)
     return 0

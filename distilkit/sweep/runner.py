@@ -257,16 +257,25 @@ class SweepRun:
 
 def run_sweep(path: str | Path, output: str | Path = "runs", seeds: list[int] | None = None, jobs: int = 1,
               plan: bool = False, collect: bool = False, quiet: bool = False, launcher: str = "local",
-              cluster: dict[str, Any] | None = None, status: bool = False, wait: bool = False) -> Path | None:
+              cluster: dict[str, Any] | None = None, status: bool = False, wait: bool = False,
+              reuse: list[Path] | None = None) -> Path | None:
     """``distilkit sweep``: run (or plan, or only collect) a sweep file and write its results; with ``launcher``
     ``slurm``, queue its runs on Slurm (:mod:`distilkit.sweep.slurm`); ``status``: their states; ``wait``: until
-    the queued runs have ended, then collect. ``plan`` runs, submits and waits for nothing, with either launcher."""
+    the queued runs have ended, then collect. ``plan`` runs, submits and waits for nothing, with either launcher.
+    ``reuse``: folders whose finished runs of the same identity are copied in first (:mod:`distilkit.sweep.reuse`)."""
     if jobs < 1:
         raise DistilkitError(f"--jobs must be at least 1, got {jobs}")
     if plan and status:
         raise DistilkitError("--plan and --status: give one (--plan shows what would be run or submitted and asks "
                              "Slurm nothing; --status asks squeue about the jobs submitted)")
     sweep = SweepRun(path, output, seeds, quiet=quiet)
+    if reuse:
+        from distilkit.sweep.reuse import reuse_runs
+
+        copied = reuse_runs(sweep, [Path(f) for f in reuse])
+        print(f"--reuse: {len(copied)} finished run{'s' * (len(copied) != 1)} of the same configuration copied into "
+              f"{sweep.root} from {', '.join(sorted({str(s.parent) for s, _ in copied})) or 'nowhere'}",
+              file=sys.stderr)
     if plan:
         if wait:
             print("--wait: nothing is submitted with --plan, so nothing is waited for", file=sys.stderr)
