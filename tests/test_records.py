@@ -64,3 +64,10 @@ def test_a_table_re_collects_from_the_records_alone(folder: Path, tmp_path: Path
         summary = json.loads((folder / Path(r["run_dir"]).name / "summary.json").read_text())
         assert int(r["seed"]) == summary["seed"] and float(r["best_miou"]) == pytest.approx(summary["test"]["best"]["miou"], rel=1e-5)
     assert sorted(p.name for p in (tmp_path / folder.name).iterdir() if p.is_dir()) == kept  # nothing trained
+    if folder.name == "quickstart_methods_stored":  # the pages that read it say what its records give, word for word
+        import subprocess
+        import sys
+
+        check = subprocess.run([sys.executable, str(ROOT / "scripts" / "write-comparison"), "--check", "--results",
+                                str(tmp_path / folder.name)], capture_output=True, text=True)
+        assert check.returncode == 0, check.stdout + check.stderr
