@@ -168,8 +168,9 @@ class LossSpec(_Strict):
                                              "for a batch role, the batch field, e.g. {target: voxel_label}")
     connector: str | None = Field(
         None, description="learnable projection of the student tap to the teacher's channels before the objective: a "
-                          "registered connector (linear, mlp, conv3, or a plugin's; `distilkit list connectors`) or "
-                          "none (default: the objective's own; fitnets: linear)")
+                          "registered connector (linear, mlp, conv3; height_max or height_mean: voxel features "
+                          "collapsed over height onto the bird's-eye plane, then 1x1; or a plugin's: `distilkit list "
+                          "connectors`) or none (default: the objective's own; fitnets: linear)")
     warmup_steps: int = Field(0, ge=0, description="the weight grows linearly over the first N steps (mdistiller's "
                                                    "warm-up of the distillation weight); 0: the full weight at once")
 
