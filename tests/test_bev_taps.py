@@ -130,7 +130,8 @@ def test_the_bev_bench_times_each_term_against_its_release_form_with_the_same_va
     with contextlib.redirect_stdout(out):
         rows = {row["objective"]: row for row in run_bench(["bev"], quick=True, repeat=1)}
     assert set(rows) == {"licrocc_kl (PDD)", "licrocc_bev (CMRD)", "licrocc_affinity (BRD)",
-                         "licrocc_affinity unresized", "monoocc_kl (raw, as released)", "bev_from_voxels (LWD)"}
+                         "licrocc_affinity unresized", "monoocc_kl (raw, as released)",
+                         "monoocc_kl (softmax, default)", "monoocc_image", "bev_from_voxels (LWD)"}
     for name, row in rows.items():
         assert row["fast_ms"] > 0 and row["naive_ms"] > 0 and row["rel_err"] < 1e-5, (name, row)
 

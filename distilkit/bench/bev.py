@@ -2,7 +2,8 @@
 per-sample loops, boolean indexing and dense matrices, as the tests transcribe them): LiCROcc's PDD (17 classes on
 512 x 512 x 40), CMRD (three BEV scales, 128 x 256², 256 x 128², 512 x 64²) and BRD (three maps resized to 32 x 32,
 and unresized at 128 x 128: P² = 2.7e8, tiles against the dense matrices), MonoOcc's voxel KL (128 channels on its
-128 x 128 x 16 query volume) and the voxel-to-BEV term (64 channels, 150,000 active voxels of a 480 x 360 x 32
+128 x 128 x 16 query volume; the release's raw form, and the default softmax form against a per-sample loop) and its
+image term (128 channels at 48 x 160, the teacher's 24 x 80 resized), and the voxel-to-BEV term (64 channels, 150,000 active voxels of a 480 x 360 x 32
 cylinder grid onto its 480 x 360 plane). ``--quick``: every size about 8x smaller per axis pair."""
 
 from __future__ import annotations
@@ -59,6 +60,27 @@ def _release_monoocc(s: Tensor, t: Tensor, mask: Tensor) -> Tensor:
                         log_target=True)
 
 
+def _looped_softmax_kl(s: Tensor, t: Tensor, mask: Tensor) -> Tensor:
+    """distilkit's default MonoOcc form written as the release writes its own: per sample, [N, C] of the masked
+    voxels, KLDivLoss(mean) of the channel softmaxes (log_target), averaged over the batch."""
+    total = s.new_zeros(())
+    for i in range(s.shape[0]):
+        rows_s = F.log_softmax(s[i][:, mask[i]].T, dim=1)
+        rows_t = F.log_softmax(t[i][:, mask[i]].T, dim=1)
+        with warnings.catch_warnings():  # PyTorch's note on "mean": the release's reduction, as it is
+            warnings.simplefilter("ignore", UserWarning)
+            total = total + F.kl_div(rows_s, rows_t, reduction="mean", log_target=True)
+    return total / s.shape[0]
+
+
+def _release_image(s: Tensor, t: Tensor) -> Tensor:
+    """MonoOcc's cos_similarity_2d without its ratio: the teacher resized (bilinear, corners aligned), the pixels as
+    rows, 1 - the mean cosine over the channels."""
+    c, (h, w) = s.shape[1], s.shape[2:]
+    t = F.interpolate(t, size=(h, w), mode="bilinear", align_corners=True)
+    return 1 - F.cosine_similarity(s.permute(0, 2, 3, 1).reshape(-1, c), t.permute(0, 2, 3, 1).reshape(-1, c)).mean()
+
+
 def _dense_column_max(voxels: object, b: int) -> Tensor:
     """The voxels' column max through a dense (B, C, X, Y, Z) volume filled with -inf (empty columns then 0)."""
     coords, feats = voxels.coords, voxels.feats  # type: ignore[attr-defined]
@@ -72,7 +94,7 @@ def _dense_column_max(voxels: object, b: int) -> Tensor:
 @register("bev")
 def bev_cases(device: torch.device, quick: bool) -> list[Case]:
     from distilkit.losses import (bev_from_voxels, collapse_height, column_weights, licrocc_affinity, licrocc_bev,
-                                  licrocc_kl, monoocc_kl)
+                                  licrocc_kl, monoocc_image, monoocc_kl)
     from distilkit.structures import SparseVoxels
 
     g = torch.Generator().manual_seed(0)
@@ -113,6 +135,13 @@ def bev_cases(device: torch.device, quick: bool) -> list[Case]:
     vmask = (torch.rand(1, *vol, generator=g) < 0.25).to(device)
     cases.append(Case("monoocc_kl (raw, as released)", f"1 × 128 × {' × '.join(map(str, vol))}",
                       lambda: monoocc_kl(vs, vt, vmask, "raw"), lambda: _release_monoocc(vs, vt, vmask), [vs]))
+    cases.append(Case("monoocc_kl (softmax, default)", f"1 × 128 × {' × '.join(map(str, vol))}",
+                      lambda: monoocc_kl(vs, vt, vmask, "softmax"), lambda: _looped_softmax_kl(vs, vt, vmask), [vs]))
+    img_s, img_t = ((12, 40), (6, 20)) if quick else ((48, 160), (24, 80))  # stride-8 and -16 maps of a KITTI image
+    fs = torch.randn(1, 128, *img_s, generator=g).to(device).requires_grad_(True)
+    ft = torch.randn(1, 128, *img_t, generator=g).to(device)
+    cases.append(Case("monoocc_image", f"1 × 128 × {img_s[0]} × {img_s[1]} (teacher {img_t[0]} × {img_t[1]}, resized)",
+                      lambda: monoocc_image(fs, ft), lambda: _release_image(fs, ft), [fs]))
 
     cyl = (120, 90, 8) if quick else (480, 360, 32)  # the voxel-to-BEV release's cylinder grid
     n = 9_000 if quick else 150_000
