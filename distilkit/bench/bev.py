@@ -3,8 +3,9 @@ per-sample loops, boolean indexing and dense matrices, as the tests transcribe t
 512 x 512 x 40), CMRD (three BEV scales, 128 x 256², 256 x 128², 512 x 64²) and BRD (three maps resized to 32 x 32,
 and unresized at 128 x 128: P² = 2.7e8, tiles against the dense matrices), MonoOcc's voxel KL (128 channels on its
 128 x 128 x 16 query volume; the release's raw form, and the default softmax form against a per-sample loop) and its
-image term (128 channels at 48 x 160, the teacher's 24 x 80 resized), and the voxel-to-BEV term (64 channels, 150,000 active voxels of a 480 x 360 x 32
-cylinder grid onto its 480 x 360 plane). ``--quick``: every size about 8x smaller per axis pair."""
+image term (128 channels at 48 x 160, the teacher's 24 x 80 resized), and the voxel-to-BEV term (64 channels, 150,000
+active voxels of a 480 x 360 x 32 cylinder grid onto its 480 x 360 plane). ``--quick``: every size about 8x smaller
+per axis pair."""
 
 from __future__ import annotations
 
